@@ -1,0 +1,19 @@
+# DELTA: disentangled hybrid avatars from monocular video.
+# Usage: snakemake --cores 2            (the embedded default)
+#        snakemake --cores 2 --configfile .test/config/config.yaml   (tiny CI configuration)
+from snakemake.utils import min_version
+
+min_version("8.0")
+
+
+configfile: "config/config.yaml"
+
+
+include: "rules/common.smk"
+include: "rules/body.smk"
+
+
+rule all:
+    input:
+        all_targets(),
+    default_target: True

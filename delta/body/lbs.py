@@ -1,0 +1,177 @@
+"""Linear blend skinning as pure functions, one step each (SMPL-X conventions).
+
+Every function is batched over frames (B), and device and dtype follow the
+inputs. Shapes: V vertices, J joints, S shape, E expression coefficients.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from typing import Optional
+
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+
+from delta.body.model import BodyModel
+
+
+@dataclasses.dataclass
+class LBSOutput:
+    """Everything a forward pass produces; backward skinning needs the transforms."""
+
+    vertices: torch.Tensor
+    """(B, V, 3) posed vertices (translation included)."""
+    joints: torch.Tensor
+    """(B, J, 3) posed joint positions."""
+    rest_vertices: torch.Tensor
+    """(B, V, 3) shaped, expression-, offset- and pose-corrected vertices before skinning."""
+    rest_joints: torch.Tensor
+    """(B, J, 3) shape-dependent rest joint positions J(β)."""
+    joint_transforms: torch.Tensor
+    """(B, J, 4, 4) rest -> posed transform of each joint (A_j = G_j [I | -J_j], translation included)."""
+    vertex_transforms: torch.Tensor
+    """(B, V, 4, 4) per-vertex blended transforms: vertices = T_v · rest_vertices."""
+
+
+def blend_shapes(coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+    """Linear blend shapes: (B, S) coefficients, (N, 3, S) directions -> (B, N, 3)."""
+    return torch.einsum("bs,nks->bnk", coeffs, dirs)
+
+
+def batch_rodrigues(axis_angle: torch.Tensor) -> torch.Tensor:
+    """Axis-angle (..., 3) -> rotation matrices (..., 3, 3); finite gradients at 0 and beyond π."""
+    shape = axis_angle.shape[:-1]
+    return axis_angle_to_rotation_matrix(axis_angle.reshape(-1, 3)).reshape(*shape, 3, 3)
+
+
+def pose_features(rotmats: torch.Tensor) -> torch.Tensor:
+    """Pose-corrective features (R_j - I) for j >= 1: (B, J, 3, 3) -> (B, 9 (J - 1))."""
+    eye = torch.eye(3, dtype=rotmats.dtype, device=rotmats.device)
+    return (rotmats[:, 1:] - eye).flatten(1)
+
+
+@functools.lru_cache(maxsize=32)
+def kinematic_levels(parents: tuple[int, ...]) -> tuple[tuple[int, ...], ...]:
+    """Joints grouped by depth in the tree: each level's parents lie in earlier levels."""
+    depth = [0] * len(parents)
+    for j, p in enumerate(parents):
+        depth[j] = 0 if p < 0 else depth[p] + 1
+    levels: list[list[int]] = [[] for _ in range(max(depth) + 1)]
+    for j, d in enumerate(depth):
+        levels[d].append(j)
+    return tuple(tuple(level) for level in levels)
+
+
+def _homogeneous(rot: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3), (..., 3) -> (..., 4, 4) rigid transforms."""
+    top = torch.cat([rot, trans.unsqueeze(-1)], dim=-1)
+    bottom = torch.zeros_like(top[..., :1, :])
+    bottom[..., 0, 3] = 1.0
+    return torch.cat([top, bottom], dim=-2)
+
+
+def rigid_transforms(
+    rotmats: torch.Tensor, joints: torch.Tensor, parents: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Forward kinematics.
+
+    Args:
+        rotmats: (B, J, 3, 3) local rotations in world-aligned axes.
+        joints: (B, J, 3) rest joint positions.
+        parents: (J,) parent indices, -1 for the root.
+    Returns:
+        posed_joints (B, J, 3) and relative transforms A (B, J, 4, 4) with
+        A_j = G_j · [I | -J_j], which carry rest points to posed points.
+    """
+    par = parents.tolist()
+    rel = joints.clone()
+    rel[:, 1:] = joints[:, 1:] - joints[:, par[1:]]
+    local = _homogeneous(rotmats, rel)  # 1. each joint's transform relative to its parent
+    world = list(local.unbind(1))
+    for level in kinematic_levels(tuple(par))[1:]:  # 2. compose by depth: G_j = G_parent · L_j
+        parent_G = torch.stack([world[par[j]] for j in level], dim=1)
+        composed = parent_G @ local[:, list(level)]
+        for k, j in enumerate(level):
+            world[j] = composed[:, k]
+    G = torch.stack(world, dim=1)
+    posed_joints = G[..., :3, 3]
+    # 3. remove the rest joint position: A_j = G_j - [0 | G_j[:3,:3] J_j]
+    shift = torch.einsum("bjik,bjk->bji", G[..., :3, :3], joints)
+    A = G.clone()
+    A[..., :3, 3] = G[..., :3, 3] - shift
+    return posed_joints, A
+
+
+def skin(
+    rest_vertices: torch.Tensor, weights: torch.Tensor, joint_transforms: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Blend joint transforms per vertex and apply them.
+
+    Args:
+        rest_vertices: (B, V, 3).
+        weights: (V, J) or (B, V, J) skinning weights.
+        joint_transforms: (B, J, 4, 4).
+    Returns:
+        posed vertices (B, V, 3) and per-vertex transforms (B, V, 4, 4).
+    """
+    B = joint_transforms.shape[0]
+    if weights.ndim == 2:
+        weights = weights.unsqueeze(0).expand(B, -1, -1)
+    T = torch.einsum("bvj,bjkl->bvkl", weights, joint_transforms)
+    posed = torch.einsum("bvij,bvj->bvi", T[..., :3, :3], rest_vertices) + T[..., :3, 3]
+    return posed, T
+
+
+def lbs(
+    model: BodyModel,
+    betas: torch.Tensor,
+    pose: torch.Tensor,
+    expression: Optional[torch.Tensor] = None,
+    offsets: Optional[torch.Tensor] = None,
+    transl: Optional[torch.Tensor] = None,
+    pose_is_rotmat: bool = False,
+) -> LBSOutput:
+    """Pose a body model.
+
+    Args:
+        model: the body model (its tensors on the inputs' device and dtype).
+        betas: (B, S') shape coefficients, S' <= S (the rest are zero).
+        pose: (B, J, 3) axis-angle, or (B, J, 3, 3) rotations with ``pose_is_rotmat``.
+        expression: (B, E') expression coefficients, optional.
+        offsets: (B, V, 3) or (V, 3) canonical per-vertex offsets (DELTA's F_d), optional.
+        transl: (B, 3) global translation, optional.
+    """
+    B = betas.shape[0]
+    S = betas.shape[1]
+    # 1. identity (and expression) blend shapes, shape-dependent joints
+    v_shaped = model.v_template + blend_shapes(betas, model.shapedirs[..., :S])
+    joints = model.joints_template + blend_shapes(betas, model.joints_shapedirs[..., :S])
+    if expression is not None and model.exprdirs is not None:
+        E = expression.shape[1]
+        v_shaped = v_shaped + blend_shapes(expression, model.exprdirs[..., :E])
+        if model.joints_exprdirs is not None:
+            joints = joints + blend_shapes(expression, model.joints_exprdirs[..., :E])
+    # 2. rotations and pose correctives
+    rotmats = pose if pose_is_rotmat else batch_rodrigues(pose)
+    rest = v_shaped
+    if model.posedirs is not None:
+        rest = rest + blend_shapes(pose_features(rotmats), model.posedirs)
+    if offsets is not None:
+        rest = rest + offsets
+    rest = rest.expand(B, -1, -1)
+    # 3. forward kinematics and skinning
+    posed_joints, A = rigid_transforms(rotmats, joints.expand(B, -1, -1), model.parents)
+    if transl is not None:
+        A = A.clone()
+        A[..., :3, 3] = A[..., :3, 3] + transl[:, None]
+        posed_joints = posed_joints + transl[:, None]
+    vertices, T = skin(rest, model.weights, A)
+    return LBSOutput(
+        vertices=vertices,
+        joints=posed_joints,
+        rest_vertices=rest,
+        rest_joints=joints.expand(B, -1, -1),
+        joint_transforms=A,
+        vertex_transforms=T,
+    )

