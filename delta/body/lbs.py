@@ -30,8 +30,16 @@ class LBSOutput:
     """(B, J, 3) shape-dependent rest joint positions J(β)."""
     joint_transforms: torch.Tensor
     """(B, J, 4, 4) rest -> posed transform of each joint (A_j = G_j [I | -J_j], translation included)."""
-    vertex_transforms: torch.Tensor
-    """(B, V, 4, 4) per-vertex blended transforms: vertices = T_v · rest_vertices."""
+    vertex_transforms_3x4: torch.Tensor
+    """(B, V, 3, 4) top rows of the per-vertex blended transforms: vertices = T_v · [rest_vertices; 1]."""
+
+    @property
+    def vertex_transforms(self) -> torch.Tensor:
+        """(B, V, 4, 4) per-vertex blended transforms (built on access)."""
+        T = self.vertex_transforms_3x4
+        bottom = torch.zeros_like(T[..., :1, :])
+        bottom[..., 0, 3] = 1.0
+        return torch.cat([T, bottom], dim=-2)
 
 
 def blend_shapes(coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
@@ -113,14 +121,19 @@ def skin(
         weights: (V, J) or (B, V, J) skinning weights.
         joint_transforms: (B, J, 4, 4).
     Returns:
-        posed vertices (B, V, 3) and per-vertex transforms (B, V, 4, 4).
+        posed vertices (B, V, 3) and per-vertex transforms (B, V, 3, 4) (top rows).
     """
-    B = joint_transforms.shape[0]
+    B, J = joint_transforms.shape[:2]
+    A = joint_transforms[..., :3, :].reshape(B, J, 12)
+    homo = torch.cat([rest_vertices, torch.ones_like(rest_vertices[..., :1])], dim=-1)
     if weights.ndim == 2:
-        weights = weights.unsqueeze(0).expand(B, -1, -1)
-    T = torch.einsum("bvj,bjkl->bvkl", weights, joint_transforms)
-    posed = torch.einsum("bvij,bvj->bvi", T[..., :3, :3], rest_vertices) + T[..., :3, 3]
-    return posed, T
+        # one GEMM over the batch, (V, J) @ (J, B * 12), then work in that contiguous (V, B)
+        # layout: memory traffic, not arithmetic, bounds this on a CPU
+        T = (weights @ A.permute(1, 0, 2).reshape(J, B * 12)).reshape(-1, B, 3, 4)
+        posed = torch.einsum("vbij,vbj->vbi", T, homo.transpose(0, 1)).transpose(0, 1)
+        return posed, T.transpose(0, 1)
+    T = torch.bmm(weights, A).reshape(B, -1, 3, 4)
+    return torch.einsum("bvij,bvj->bvi", T, homo), T
 
 
 def lbs(
@@ -173,5 +186,5 @@ def lbs(
         rest_vertices=rest,
         rest_joints=joints.expand(B, -1, -1),
         joint_transforms=A,
-        vertex_transforms=T,
+        vertex_transforms_3x4=T,
     )

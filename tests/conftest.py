@@ -1,0 +1,100 @@
+"""Shared fixtures: small analytic body models, the SMPL-X fixture generator, Anny."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from delta.body.model import BodyModel
+
+REPO = Path(__file__).resolve().parents[1]
+ANNY_CACHE = Path(os.environ.get("DELTA_ANNY_CACHE", REPO / "resources" / "anny_cache"))
+
+
+def tree_model(dtype=torch.float64, num_shape: int = 2, seed: int = 0) -> BodyModel:
+    """A 4-joint tree (root -> a -> b, root -> c); each vertex is bound rigidly to one joint.
+
+    Joints sit at (0,0,0), (1,0,0), (2,0,0), (0,1,0); vertices cluster around them.
+    Shape directions and a pose corrective are random but small.
+    """
+    gen = torch.Generator().manual_seed(seed)
+    joints = torch.tensor([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0]], dtype=dtype)
+    owner = torch.arange(4).repeat_interleave(5)
+    verts = joints[owner] + 0.2 * torch.randn(20, 3, generator=gen, dtype=dtype)
+    weights = torch.nn.functional.one_hot(owner, 4).to(dtype)
+    return BodyModel(
+        name="tree",
+        v_template=verts,
+        faces=torch.tensor([[0, 1, 2], [5, 6, 7], [10, 11, 12], [15, 16, 17]]),
+        shapedirs=0.05 * torch.randn(20, 3, num_shape, generator=gen, dtype=dtype),
+        joints_template=joints,
+        joints_shapedirs=0.05 * torch.randn(4, 3, num_shape, generator=gen, dtype=dtype),
+        parents=torch.tensor([-1, 0, 1, 0]),
+        joint_names=["root", "a", "b", "c"],
+        weights=weights,
+        regions=torch.zeros(20, dtype=torch.int64),
+        canonical_pose=torch.zeros(4, 3, dtype=dtype),
+        posedirs=0.01 * torch.randn(20, 3, 27, generator=gen, dtype=dtype),
+    ).validate("tree fixture")
+
+
+def soft_tree_model(dtype=torch.float64) -> BodyModel:
+    """The tree fixture with blended (non one-hot) skinning weights."""
+    m = tree_model(dtype)
+    gen = torch.Generator().manual_seed(1)
+    w = m.weights + 0.3 * torch.rand(m.weights.shape, generator=gen, dtype=dtype)
+    m.weights = w / w.sum(-1, keepdim=True)
+    return m
+
+
+@pytest.fixture
+def tree() -> BodyModel:
+    return tree_model()
+
+
+SMPLX_PARENTS = [-1, 0, 0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 9, 9, 12, 13, 14, 16, 17, 18, 19, 15, 15, 15]
+SMPLX_PARENTS += [20, 25, 26, 20, 28, 29, 20, 31, 32, 20, 34, 35, 20, 37, 38]
+SMPLX_PARENTS += [21, 40, 41, 21, 43, 44, 21, 46, 47, 21, 49, 50, 21, 52, 53]
+
+
+def make_smplx_arrays(num_vertices: int = 10475, num_components: int = 400, seed: int = 0) -> dict:
+    """Random arrays with the official SMPL-X key names, dtypes and shapes (no licensed data)."""
+    rng = np.random.default_rng(seed)
+    V, J = num_vertices, 55
+    v = rng.normal(size=(V, 3)) * np.array([0.3, 0.8, 0.15])
+    faces = rng.integers(0, V, size=(2 * V, 3)).astype(np.uint32)
+    J_reg = np.zeros((J, V))
+    for j in range(J):  # each joint regresses from a few vertices
+        idx = rng.choice(V, size=6, replace=False)
+        J_reg[j, idx] = 1.0 / 6
+    w = rng.random((V, J)) ** 8
+    return {
+        "v_template": v.astype(np.float64),
+        "f": faces,
+        "shapedirs": (rng.normal(size=(V, 3, num_components)) * 1e-3),
+        "posedirs": (rng.normal(size=(V, 3, 9 * (J - 1))) * 1e-4),
+        "J_regressor": J_reg,
+        "kintree_table": np.stack([np.array([2**32 - 1] + SMPLX_PARENTS[1:], dtype=np.int64), np.arange(J)]),
+        "weights": w / w.sum(1, keepdims=True),
+        "hands_componentsl": rng.normal(size=(45, 45)),
+        "hands_componentsr": rng.normal(size=(45, 45)),
+    }
+
+
+@pytest.fixture(scope="session")
+def anny_model():
+    """Anny itself (float64, dense LBS), with its build cache under resources/ (slow the first time)."""
+    from delta.body.anny_convert import build_anny
+
+    return build_anny(ANNY_CACHE)
+
+
+@pytest.fixture(scope="session")
+def anny_conversion(anny_model):
+    from delta.body.anny_convert import convert_anny
+
+    return convert_anny(num_shape=32, num_samples=256, seed=0, anny_model=anny_model)

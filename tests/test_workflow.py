@@ -1,0 +1,75 @@
+"""The Snakemake workflow end to end on the tiny .test configuration."""
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from delta.body.model import load_body_model
+from tests.conftest import ANNY_CACHE
+
+REPO = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.workflow
+
+
+def workflow_copy(tmp_path: Path) -> Path:
+    """The workflow's files in a fresh directory, as a user's clone has them."""
+    for name in ("Snakefile", "rules", "workflow", "config", ".test"):
+        src = REPO / name
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, tmp_path / name)
+    return tmp_path
+
+
+def snakemake(workdir: Path, *args: str) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", *args]
+    return subprocess.run(cmd, cwd=workdir, capture_output=True, text=True, timeout=900)
+
+
+def test_lint_is_clean():
+    res = snakemake(REPO, "--lint")
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "Congratulations" in res.stdout + res.stderr
+
+
+@pytest.mark.slow
+def test_tiny_configuration_end_to_end(tmp_path):
+    work = workflow_copy(tmp_path)
+    cfg = yaml.safe_load((work / ".test/config/config.yaml").read_text())
+    cfg["body_model"]["anny"]["cache_dir"] = str(ANNY_CACHE)  # reuse the session's Anny build
+    (work / ".test/config/ci.yaml").write_text(yaml.safe_dump(cfg))
+    res = snakemake(work, "--configfile", ".test/config/ci.yaml")
+    assert res.returncode == 0, res.stdout[-4000:] + res.stderr[-4000:]
+    model = load_body_model(work / "resources/body/anny_sub1.npz")
+    summary = json.loads((work / "results/body/anny_sub1.json").read_text())
+    assert summary["vertices"] == model.num_vertices > 13718
+    assert model.num_shape == 8
+    assert not any(n.startswith(("finger", "toe", "eye.")) for n in model.joint_names)
+    for rule in ("convert_anny", "upsample_body"):
+        assert list((work / "logs" / rule).glob("*.log")), f"{rule} wrote no log"
+    assert (work / "results/benchmarks/convert_anny/all.tsv").is_file()
+    # a rerun has nothing to do
+    again = snakemake(work, "--configfile", ".test/config/ci.yaml", "--dry-run")
+    assert "Nothing to be done" in again.stdout + again.stderr
+
+
+def test_bad_config_stops_before_any_job(tmp_path):
+    work = workflow_copy(tmp_path)
+    (work / "bad.yaml").write_text("body_model:\n  anny:\n    num_shapes: 3\n")
+    res = snakemake(work, "--configfile", "bad.yaml")
+    assert res.returncode != 0
+    out = res.stdout + res.stderr
+    assert "body_model.anny" in out and "num_shapes" in out
+    assert not (work / "resources").exists() and not (work / "logs").exists()
+
+
+def test_missing_smplx_is_explained(tmp_path):
+    work = workflow_copy(tmp_path)
+    (work / "smplx.yaml").write_text("body_model:\n  name: smplx\n")
+    res = snakemake(work, "--configfile", "smplx.yaml", "--dry-run")
+    assert res.returncode != 0
+    out = res.stdout + res.stderr
+    assert "SMPLX_NEUTRAL.npz" in out and "body_model.smplx_path" in out
