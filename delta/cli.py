@@ -54,6 +54,8 @@ def cmd_convert_anny(args: argparse.Namespace) -> None:
     log.info("converted Anny: %s", report)
     if args.report:
         save_json(args.report, report)
+    if args.shape_space:
+        conv.space.save(args.shape_space)
 
 
 def cmd_load_smplx(args: argparse.Namespace) -> None:
@@ -105,6 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("convert-anny", help="convert the shipped Anny model into the project's body-model npz")
     p.add_argument("--out", required=True)
     p.add_argument("--report")
+    p.add_argument("--shape-space", help="where to write the PCA shape space (phenotype -> β)")
     p.add_argument("--num-shape", type=int, default=32)
     p.add_argument("--num-samples", type=int, default=1024)
     p.add_argument("--seed", type=int, default=0)

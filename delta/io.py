@@ -6,6 +6,7 @@ import contextlib
 import json
 import os
 import tempfile
+import zipfile
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -33,10 +34,17 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
 
 def save_npz(path: str | os.PathLike, **arrays: Any) -> None:
-    """Write arrays to ``path`` atomically (uncompressed npz, no pickled objects)."""
+    """Write arrays to ``path`` atomically as an npz without pickled objects.
+
+    Byte-identical for identical arrays: zip entries carry a fixed timestamp
+    (``np.savez`` stamps the current time).
+    """
     with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, **{k: np.asarray(v) for k, v in arrays.items()})
+        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+            for name, value in arrays.items():
+                info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+                with zf.open(info, "w", force_zip64=True) as f:
+                    np.lib.format.write_array(f, np.asarray(value), allow_pickle=False)
 
 
 def save_json(path: str | os.PathLike, obj: Any) -> None:

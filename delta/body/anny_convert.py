@@ -22,6 +22,7 @@ import torch
 
 from delta import DeltaError
 from delta.body.model import REGION, BodyModel
+from delta.io import save_npz
 
 #: x' = x, y' = z, z' = -y: Anny (z-up, facing -y) -> SMPL-X axes (y-up, facing +z).
 ANNY_TO_SMPLX = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
@@ -53,12 +54,9 @@ _SEGMENT_TO_REGION = {
 
 
 @dataclasses.dataclass
-class AnnyConversion:
-    """The converted model and what the conversion measured."""
+class ShapeSpace:
+    """Anny's PCA shape space: maps Anny rest shapes to the converted model's β."""
 
-    model: BodyModel
-    explained_variance: np.ndarray
-    """(S,) fraction of the sampled shape variance each kept component explains."""
     phenotype_labels: list[str]
     mean: np.ndarray
     """(V + J_full, 3) PCA mean in Anny axes (vertices then all bone heads)."""
@@ -66,6 +64,33 @@ class AnnyConversion:
     """(S, (V + J_full) * 3) unit principal directions in Anny axes."""
     std: np.ndarray
     """(S,) standard deviation of the samples along each component."""
+
+    def save(self, path: str | os.PathLike) -> None:
+        save_npz(path, phenotype_labels=np.array(self.phenotype_labels), mean=self.mean.astype(np.float32),
+                 components=self.components.astype(np.float32), std=self.std)  # fmt: skip
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "ShapeSpace":
+        try:
+            with np.load(path, allow_pickle=False) as d:
+                return cls([str(x) for x in d["phenotype_labels"]], d["mean"].astype(np.float64),
+                           d["components"].astype(np.float64), d["std"])  # fmt: skip
+        except (OSError, KeyError, ValueError) as exc:
+            raise DeltaError(f"{path}: not an Anny shape-space file ({exc})") from exc
+
+
+@dataclasses.dataclass
+class AnnyConversion:
+    """The converted model, its shape space and what the conversion measured."""
+
+    model: BodyModel
+    explained_variance: np.ndarray
+    """(S,) fraction of the sampled shape variance each kept component explains."""
+    space: ShapeSpace
+
+    @property
+    def phenotype_labels(self) -> list[str]:
+        return self.space.phenotype_labels
 
 
 def build_anny(cache_dir: str | os.PathLike | None = None):
@@ -117,6 +142,17 @@ def merge_map(names: Sequence[str], parents: Sequence[int], groups: Sequence[str
         if j > 0 and name.startswith(prefixes):
             target[j] = target[parents[j]]
     return target
+
+
+def phenotype_betas(space: ShapeSpace, anny_model, phenotype: dict[str, float]) -> torch.Tensor:
+    """(S,) β of one phenotype (missing labels take Anny's default 0.5)."""
+    unknown = set(phenotype) - set(space.phenotype_labels)
+    if unknown:
+        raise DeltaError(f"unknown phenotype label(s) {sorted(unknown)}; known: {space.phenotype_labels}")
+    values = torch.tensor([[phenotype.get(k, 0.5) for k in space.phenotype_labels]], dtype=torch.float64)
+    with torch.no_grad():
+        rest = anny_rest(anny_model, values)
+    return project_shape(space, rest["rest_vertices"], rest["rest_bone_heads"])[0]
 
 
 def sample_phenotypes(n: int, num_labels: int, seed: int) -> torch.Tensor:
@@ -186,18 +222,16 @@ def convert_anny(
     return AnnyConversion(
         model=model,
         explained_variance=var[:num_shape] / var.sum(),
-        phenotype_labels=labels,
-        mean=mean,
-        components=comps,
-        std=std,
+        space=ShapeSpace(phenotype_labels=labels, mean=mean, components=comps, std=std),
     )
 
 
-def project_shape(conv: AnnyConversion, rest_vertices: torch.Tensor, rest_heads: torch.Tensor) -> torch.Tensor:
+def project_shape(space: "ShapeSpace | AnnyConversion", rest_vertices: torch.Tensor, rest_heads: torch.Tensor) -> torch.Tensor:
     """β of Anny rest shapes (B, V, 3), (B, J_full, 3) (Anny axes) in the converted model."""
+    space = space.space if isinstance(space, AnnyConversion) else space
     X = torch.cat([rest_vertices, rest_heads], dim=1).reshape(rest_vertices.shape[0], -1)
-    centred = X - torch.as_tensor(conv.mean.reshape(-1), dtype=X.dtype)
-    return centred @ torch.as_tensor(conv.components.T / conv.std, dtype=X.dtype)
+    centred = X - torch.as_tensor(space.mean.reshape(-1), dtype=X.dtype)
+    return centred @ torch.as_tensor(space.components.T / space.std, dtype=X.dtype)
 
 
 def anny_pose_deltas(

@@ -1,0 +1,271 @@
+"""Generate one synthetic monocular capture with ground truth.
+
+Writes ``{out}/{subject}.mp4`` (all that a real capture has) and ground truth
+apart in ``{out}/gt/``: ``params.npz`` (body parameters, camera), ``frames.h5``
+(masks, labels, depth, keypoints per frame), ``meshes.h5`` (canonical and posed
+body and layer meshes), ``splits.json``, ``labels.json`` and canonical PLYs.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+import torch
+import trimesh
+
+from delta import DeltaError
+from delta.body.keypoints import openpose18_map
+from delta.body.lbs import lbs, skin
+from delta.body.model import REGION_NAMES, BodyModel, load_body_model
+from delta.cameras.models import OrthographicCamera, PinholeCamera, look_at
+from delta.io import atomic_path, save_json, save_npz
+from delta.synthetic import textures
+from delta.synthetic.garments import BODY_LABEL_OFFSET, LAYER_LABELS, Layer, build_layers, nonrigid_offsets
+from delta.synthetic.motion import novel_sequence, turn_sequence
+from delta.synthetic.raycast import SceneMesh, render
+from delta.synthetic.spec import SubjectSpec
+
+log = logging.getLogger(__name__)
+FOURCC = {"ffv1": "FFV1", "mp4v": "mp4v"}
+
+
+def label_names() -> dict[int, str]:
+    names = {0: "background"}
+    names.update({BODY_LABEL_OFFSET + i: f"body_{n}" for i, n in enumerate(REGION_NAMES)})
+    names.update({v: k for k, v in LAYER_LABELS.items()})
+    return names
+
+
+def make_camera(spec: SubjectSpec, height_m: float, centre_y: float):
+    """A static camera framing a standing subject of ``height_m`` metres."""
+    H = W = spec.resolution
+    fill = 0.86
+    if spec.camera == "orthographic":
+        s = 2 * fill / height_m
+        return OrthographicCamera(torch.tensor(s, dtype=torch.float64),
+                                  torch.tensor([0.0, -centre_y], dtype=torch.float64), W, H)  # fmt: skip
+    distance = 3.2
+    f = fill * H * distance / height_m
+    K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]], dtype=torch.float64)
+    eye = torch.tensor([0.0, centre_y, distance], dtype=torch.float64)
+    R, t = look_at(eye, torch.tensor([0.0, centre_y, 0.0], dtype=torch.float64),
+                   torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))  # fmt: skip
+    return PinholeCamera(K, R, t, torch.tensor(spec.distortion, dtype=torch.float64), W, H)
+
+
+def splits(spec: SubjectSpec) -> dict[str, list[int]]:
+    turn = list(range(spec.turn_frames))
+    test_view = turn[spec.test_view_every - 1 :: spec.test_view_every]
+    held = set(test_view)
+    return {
+        "train": [f for f in turn if f not in held],
+        "test_view": test_view,
+        "test_pose": list(range(spec.turn_frames, spec.num_frames)),
+    }
+
+
+class _Albedo:
+    """The subject's appearance: skin, garments and hair as solid textures."""
+
+    def __init__(self, spec: SubjectSpec, layers: list[Layer], rest_vertices: np.ndarray, regions: np.ndarray):
+        self.spec, self.layers = spec, layers
+        self.features = textures.FaceFeatures(rest_vertices, regions)
+
+    def __call__(self, objects: np.ndarray, points: np.ndarray, labels: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(points), 3))
+        body = objects == 0
+        if body.any():
+            regions = labels[body].astype(np.int64) - BODY_LABEL_OFFSET
+            out[body] = textures.skin_albedo(points[body], regions, self.spec.skin_color, self.features, self.spec.seed)
+        for k, layer in enumerate(self.layers, start=1):
+            sel = objects == k
+            if not sel.any():
+                continue
+            if layer.garment is None:
+                out[sel] = textures.hair_albedo(points[sel], self.spec.hair_color, self.spec.seed)
+            else:
+                out[sel] = textures.garment_albedo(points[sel], layer.garment, self.spec.seed + k)
+        return out
+
+
+def _normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    return trimesh.Trimesh(vertices, faces, process=False).vertex_normals.copy()
+
+
+def _phenotype_betas(spec: SubjectSpec, shape_space: str | None, anny_cache: str | None, num_shape: int):
+    if not spec.phenotype:
+        return torch.zeros(num_shape, dtype=torch.float64)
+    if shape_space is None:
+        raise DeltaError(f"subject '{spec.name}': a phenotype needs the Anny shape-space file")
+    from delta.body.anny_convert import ShapeSpace, build_anny, phenotype_betas
+
+    return phenotype_betas(ShapeSpace.load(shape_space), build_anny(anny_cache), spec.phenotype)[:num_shape]
+
+
+def generate(
+    spec: SubjectSpec,
+    body_model: str | os.PathLike,
+    out_dir: str | os.PathLike,
+    shape_space: str | None = None,
+    anny_cache: str | None = None,
+) -> None:
+    """Render the capture of ``spec`` into ``out_dir`` (see the module docstring)."""
+    out = Path(out_dir)
+    model: BodyModel = load_body_model(body_model, dtype=torch.float64)
+    if not model.name.startswith("anny"):
+        raise DeltaError(f"synthetic captures are built on the Anny body model, got '{model.name}'")
+    betas = _phenotype_betas(spec, shape_space, anny_cache, model.num_shape)[None]
+    zero = torch.zeros(1, model.num_joints, 3, dtype=torch.float64)
+    with torch.no_grad():
+        rest = lbs(model, betas, zero)
+    rest_v, rest_j = rest.vertices[0].numpy(), rest.joints[0].numpy()
+    layers = build_layers(model, rest_v, rest_j, spec.garments, spec.hair)
+    height = float(np.ptp(rest_v[:, 1]))
+    camera = make_camera(spec, height + 0.1, float(rest_v[:, 1].min() + rest_v[:, 1].max()) / 2)
+    turn, rate = turn_sequence(model.joint_names, spec.turn_frames, spec.turns, spec.fps, spec.seed)
+    poses = np.concatenate([turn, novel_sequence(model.joint_names, spec.novel_frames, spec.seed)])
+    rates = np.concatenate([rate, np.zeros(spec.novel_frames)])
+    transl = np.zeros((spec.num_frames, 3))
+    kp_map = openpose18_map(model)
+    on_joint = kp_map.joint_weights.sum(1).numpy() > 0
+    albedo = _Albedo(spec, layers, rest_v, model.regions.numpy())
+    body_faces = model.faces.numpy()
+    canon_n = [_normals(rest_v, body_faces)] + [_normals(l.vertices, l.faces) for l in layers]
+    labels_v = [model.regions.numpy() + BODY_LABEL_OFFSET] + [np.full(len(l.vertices), l.label) for l in layers]
+    F, H, W = spec.num_frames, spec.resolution, spec.resolution
+    gt = out / "gt"
+    gt.mkdir(parents=True, exist_ok=True)
+    video = out / f"{spec.name}.mp4"
+    with atomic_path(video) as tmp_video, atomic_path(gt / "frames.h5") as tmp_frames, \
+            atomic_path(gt / "meshes.h5") as tmp_meshes:  # fmt: skip
+        writer = cv2.VideoWriter(str(tmp_video), cv2.VideoWriter_fourcc(*FOURCC[spec.codec]), spec.fps, (W, H))
+        if not writer.isOpened():
+            raise DeltaError(f"OpenCV cannot write '{spec.codec}' video to {video}")
+        with h5py.File(tmp_frames, "w", track_order=False) as fh, h5py.File(tmp_meshes, "w") as mh:
+            dsets = _frame_datasets(fh, F, H, W, len(kp_map.names))
+            mesh_dsets = _mesh_datasets(mh, model, rest_v, layers, F)
+            for f in range(F):
+                pose = torch.from_numpy(poses[f : f + 1])
+                with torch.no_grad():
+                    posed = lbs(model, betas, pose, transl=torch.from_numpy(transl[f : f + 1]))
+                verts, faces, objects = [posed.vertices[0].numpy()], [body_faces], [np.zeros(len(body_faces), int)]
+                offset = len(verts[0])
+                for k, layer in enumerate(layers, start=1):
+                    moved = layer.vertices + nonrigid_offsets(layer, canon_n[k], f / spec.fps, rates[f], spec.sway)
+                    lv, _ = skin(torch.from_numpy(moved)[None], torch.from_numpy(layer.weights), posed.joint_transforms)
+                    verts.append(lv[0].numpy())
+                    faces.append(layer.faces + offset)
+                    objects.append(np.full(len(layer.faces), k))
+                    offset += len(layer.vertices)
+                    mesh_dsets[layer.name][f] = lv[0].numpy().astype(np.float32)
+                mesh_dsets["body"][f] = verts[0].astype(np.float32)
+                scene = SceneMesh(
+                    vertices=np.concatenate(verts),
+                    faces=np.concatenate(faces),
+                    face_object=np.concatenate(objects),
+                    canonical=np.concatenate([rest_v] + [l.vertices for l in layers]),
+                    canonical_normals=np.concatenate(canon_n),
+                    vertex_label=np.concatenate(labels_v).astype(np.uint8),
+                )
+                frame = render(scene, camera, albedo, _shading, spec.background, spec.supersample)
+                writer.write(cv2.cvtColor(np.round(frame.image * 255).astype(np.uint8), cv2.COLOR_RGB2BGR))
+                kp3d = kp_map(posed.joints, posed.vertices)[0]
+                _write_frame(dsets, f, frame, kp3d, camera, on_joint)
+            writer.release()
+    save_npz(
+        gt / "params.npz",
+        betas=betas[0].numpy(),
+        poses=poses,
+        transl=transl,
+        joint_names=np.array(model.joint_names),
+        phenotype_labels=np.array(sorted(spec.phenotype)) if spec.phenotype else np.array([""]),
+        phenotype_values=np.array([spec.phenotype[k] for k in sorted(spec.phenotype)]) if spec.phenotype else np.zeros(1),
+        fps=spec.fps,
+        **_camera_arrays(camera, F),
+    )
+    save_json(gt / "splits.json", splits(spec))
+    save_json(gt / "labels.json", {str(k): v for k, v in label_names().items()})
+    _export_ply(gt / "canonical_body.ply", rest_v, body_faces)
+    for layer in layers:
+        _export_ply(gt / f"canonical_{layer.name}.ply", layer.vertices, layer.faces)
+
+
+def _shading(normals: np.ndarray) -> np.ndarray:
+    """Two-sided baked lighting (layer normals may point either way)."""
+    light = np.array([0.35, 0.55, 0.76])
+    light = light / np.linalg.norm(light)
+    n = normals / (np.linalg.norm(normals, axis=1, keepdims=True) + 1e-12)
+    return 0.62 + 0.38 * np.abs(n @ light)
+
+
+def _frame_datasets(fh: h5py.File, F: int, H: int, W: int, K: int) -> dict:
+    kw = dict(chunks=(1, H, W), compression="gzip", compression_opts=4, track_times=False)
+    d = {name: fh.create_dataset(name, (F, H, W), dtype=np.uint8, **kw)
+         for name in ("person", "clothing", "skin", "hair", "labels", "alpha")}  # fmt: skip
+    d["depth"] = fh.create_dataset("depth", (F, H, W), dtype=np.float32, **kw)
+    d["keypoints"] = fh.create_dataset("keypoints", (F, K, 3), dtype=np.float32, track_times=False)
+    d["keypoints3d"] = fh.create_dataset("keypoints3d", (F, K, 3), dtype=np.float32, track_times=False)
+    return d
+
+
+def _write_frame(d: dict, f: int, frame, kp3d: torch.Tensor, camera, on_joint: np.ndarray) -> None:
+    """Masks, labels, depth and keypoints of one frame.
+
+    A keypoint's confidence is 1 where it is seen and 0.3 where the surface hides
+    it: surface keypoints (face) must lie within 3 cm of the depth map, joints
+    (inside the body) within 15 cm.
+    """
+    lab = frame.label
+    d["labels"][f] = lab
+    d["person"][f] = (lab > 0).astype(np.uint8)
+    d["skin"][f] = ((lab >= BODY_LABEL_OFFSET) & (lab < BODY_LABEL_OFFSET + len(REGION_NAMES))).astype(np.uint8)
+    d["clothing"][f] = np.isin(lab, [LAYER_LABELS[n] for n in ("upper", "lower", "dress")]).astype(np.uint8)
+    d["hair"][f] = (lab == LAYER_LABELS["hair"]).astype(np.uint8)
+    d["alpha"][f] = np.round(frame.alpha * 255).astype(np.uint8)
+    d["depth"][f] = frame.depth
+    uv, z = camera.project(kp3d)
+    uv_np, z_np = uv.numpy(), z.numpy()
+    H, W = lab.shape
+    conf = np.zeros(len(uv_np), np.float32)
+    for k, ((u, v), zk) in enumerate(zip(uv_np, z_np)):
+        i, j = int(np.floor(v)), int(np.floor(u))
+        if 0 <= i < H and 0 <= j < W:
+            tolerance = 0.15 if on_joint[k] else 0.03
+            seen = frame.depth[i, j] == 0 or zk <= frame.depth[i, j] + tolerance
+            conf[k] = 1.0 if seen else 0.3
+    d["keypoints"][f] = np.concatenate([uv_np, conf[:, None]], 1)
+    d["keypoints3d"][f] = kp3d.numpy()
+
+
+def _mesh_datasets(mh: h5py.File, model: BodyModel, rest_v: np.ndarray, layers: list[Layer], F: int) -> dict:
+    kw = dict(track_times=False)
+    mh.create_dataset("body_faces", data=model.faces.numpy().astype(np.int32), **kw)
+    mh.create_dataset("body_canonical", data=rest_v.astype(np.float32), **kw)
+    d = {"body": mh.create_dataset("body_vertices", (F, len(rest_v), 3), dtype=np.float32,
+                                   chunks=(1, len(rest_v), 3), **kw)}  # fmt: skip
+    for layer in layers:
+        mh.create_dataset(f"{layer.name}_faces", data=layer.faces.astype(np.int32), **kw)
+        mh.create_dataset(f"{layer.name}_canonical", data=layer.vertices.astype(np.float32), **kw)
+        d[layer.name] = mh.create_dataset(f"{layer.name}_vertices", (F, len(layer.vertices), 3), dtype=np.float32,
+                                          chunks=(1, len(layer.vertices), 3), **kw)  # fmt: skip
+    mh.attrs["layers"] = json.dumps([l.name for l in layers])
+    return d
+
+
+def _camera_arrays(camera, F: int) -> dict:
+    if isinstance(camera, OrthographicCamera):
+        return dict(camera_model=np.array("orthographic"), width=camera.width, height=camera.height,
+                    ortho_scale=np.full(F, float(camera.scale)), ortho_trans=np.tile(camera.trans.numpy(), (F, 1)))  # fmt: skip
+    return dict(camera_model=np.array("pinhole"), width=camera.width, height=camera.height, K=camera.K.numpy(),
+                R=camera.R.numpy(), t=camera.t.numpy(), dist=camera.dist.numpy())  # fmt: skip
+
+
+def _export_ply(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
+    with atomic_path(path) as tmp:
+        trimesh.Trimesh(vertices, faces, process=False).export(tmp)

@@ -1,0 +1,141 @@
+"""A synthetic subject's specification, validated before anything is rendered."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+from delta import DeltaError
+
+GARMENTS = ("tshirt", "longsleeve", "trousers", "shorts", "skirt", "dress")
+PATTERNS = ("stripes", "checker", "dots", "plaid", "plain")
+HAIR = ("none", "short", "long")
+CAMERAS = ("pinhole", "orthographic")
+CODECS = ("ffv1", "mp4v")
+#: garments that cover the upper / lower body; at most one of each, and a dress covers both
+_UPPER, _LOWER = {"tshirt", "longsleeve", "dress"}, {"trousers", "shorts", "skirt", "dress"}
+
+
+@dataclasses.dataclass(frozen=True)
+class GarmentSpec:
+    kind: str
+    pattern: str = "stripes"
+    colors: tuple[tuple[float, float, float], ...] = ((0.15, 0.3, 0.7), (0.9, 0.9, 0.85))
+    thickness: float = 0.012
+    """Offset of a tight garment from the skin (m)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class SubjectSpec:
+    name: str
+    seed: int = 0
+    phenotype: dict[str, float] = dataclasses.field(default_factory=dict)
+    """Anny phenotype values in [0, 1] (gender, age, muscle, weight, height, proportions)."""
+    skin_color: tuple[float, float, float] = (0.80, 0.62, 0.52)
+    garments: tuple[GarmentSpec, ...] = ()
+    hair: str = "none"
+    hair_color: tuple[float, float, float] = (0.18, 0.11, 0.07)
+    camera: str = "pinhole"
+    distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    resolution: int = 512
+    turn_frames: int = 100
+    novel_frames: int = 30
+    turns: float = 1.0
+    test_view_every: int = 5
+    background: tuple[float, float, float] = (0.92, 0.93, 0.95)
+    sway: float = 1.0
+    """Amplitude of the non-rigid garment and hair motion (0 = rigidly skinned)."""
+    codec: str = "ffv1"
+    supersample: int = 2
+    """Sub-samples per axis at edge pixels (2 -> 4 rays)."""
+    fps: int = 30
+
+    @property
+    def num_frames(self) -> int:
+        return self.turn_frames + self.novel_frames
+
+
+def _color(value: Any, key: str) -> tuple[float, float, float]:
+    if not (isinstance(value, (list, tuple)) and len(value) == 3 and all(isinstance(c, (int, float)) for c in value)):
+        raise DeltaError(f"{key}: a colour is three numbers in [0, 1], got {value!r}")
+    if not all(0.0 <= c <= 1.0 for c in value):
+        raise DeltaError(f"{key}: colour components must lie in [0, 1], got {value!r}")
+    return tuple(float(c) for c in value)
+
+
+def _garment(raw: Any, key: str) -> GarmentSpec:
+    if isinstance(raw, str):
+        raw = {"kind": raw}
+    if not isinstance(raw, dict) or "kind" not in raw:
+        raise DeltaError(f"{key}: a garment is a name or a mapping with 'kind'")
+    unknown = set(raw) - {f.name for f in dataclasses.fields(GarmentSpec)}
+    if unknown:
+        raise DeltaError(f"{key}: unknown garment key(s) {sorted(unknown)}")
+    if raw["kind"] not in GARMENTS:
+        raise DeltaError(f"{key}: unknown garment '{raw['kind']}'; known: {list(GARMENTS)}")
+    pattern = raw.get("pattern", "stripes")
+    if pattern not in PATTERNS:
+        raise DeltaError(f"{key}.pattern: unknown pattern '{pattern}'; known: {list(PATTERNS)}")
+    colors = tuple(_color(c, f"{key}.colors[{i}]") for i, c in enumerate(raw.get("colors", GarmentSpec.colors)))
+    if len(colors) != 2:
+        raise DeltaError(f"{key}.colors: give two colours")
+    thickness = float(raw.get("thickness", 0.012))
+    if not 0.002 <= thickness <= 0.05:
+        raise DeltaError(f"{key}.thickness: {thickness} m is outside [0.002, 0.05]")
+    return GarmentSpec(kind=raw["kind"], pattern=pattern, colors=colors, thickness=thickness)
+
+
+def parse_subject(name: str, raw: dict) -> SubjectSpec:
+    """Validate one subject's config mapping; every error names ``name`` and the key."""
+    key = f"datasets.synthetic.subjects.{name}"
+    if not isinstance(raw, dict):
+        raise DeltaError(f"{key}: expected a mapping")
+    fields = {f.name for f in dataclasses.fields(SubjectSpec)} - {"name"}
+    unknown = set(raw) - fields
+    if unknown:
+        raise DeltaError(f"{key}: unknown key(s) {sorted(unknown)}; allowed: {sorted(fields)}")
+    kw: dict[str, Any] = dict(raw)
+    for int_key, low, high in (("resolution", 32, 4096), ("turn_frames", 1, 100000), ("novel_frames", 0, 100000),
+                               ("test_view_every", 2, 1000), ("seed", 0, 2**31 - 1), ("supersample", 1, 4),
+                               ("fps", 1, 240)):  # fmt: skip
+        if int_key in kw:
+            value = kw[int_key]
+            if not isinstance(value, int) or isinstance(value, bool):
+                raise DeltaError(f"{key}.{int_key}: expected an integer, got {value!r}")
+            if not low <= value <= high:
+                raise DeltaError(f"{key}.{int_key}: {value} is outside [{low}, {high}]")
+    if kw.get("turn_frames", 1) + kw.get("novel_frames", 30) < 1:
+        raise DeltaError(f"{key}: zero frames")
+    if "garments" in kw:
+        if not isinstance(kw["garments"], list):
+            raise DeltaError(f"{key}.garments: expected a list")
+        kw["garments"] = tuple(_garment(g, f"{key}.garments[{i}]") for i, g in enumerate(kw["garments"]))
+        kinds = [g.kind for g in kw["garments"]]
+        if sum(k in _UPPER for k in kinds) > 1 or sum(k in _LOWER for k in kinds) > 1:
+            raise DeltaError(f"{key}.garments: {kinds} overlap (one upper and one lower garment, or one dress)")
+    for choice_key, options in (("hair", HAIR), ("camera", CAMERAS), ("codec", CODECS)):
+        if choice_key in kw and kw[choice_key] not in options:
+            raise DeltaError(f"{key}.{choice_key}: unknown value '{kw[choice_key]}'; known: {list(options)}")
+    for color_key in ("skin_color", "hair_color", "background"):
+        if color_key in kw:
+            kw[color_key] = _color(kw[color_key], f"{key}.{color_key}")
+    if "distortion" in kw:
+        d = kw["distortion"]
+        if not (isinstance(d, list) and len(d) == 5 and all(isinstance(c, (int, float)) for c in d)):
+            raise DeltaError(f"{key}.distortion: five numbers (k1, k2, p1, p2, k3)")
+        if max(abs(c) for c in d) > 1.0:
+            raise DeltaError(f"{key}.distortion: coefficients beyond ±1 are not a lens")
+        kw["distortion"] = tuple(float(c) for c in d)
+    if "phenotype" in kw:
+        ph = kw["phenotype"]
+        labels = {"gender", "age", "muscle", "weight", "height", "proportions"}
+        if not isinstance(ph, dict) or set(ph) - labels:
+            raise DeltaError(f"{key}.phenotype: a mapping over {sorted(labels)}")
+        if not all(isinstance(v, (int, float)) and 0.0 <= v <= 1.0 for v in ph.values()):
+            raise DeltaError(f"{key}.phenotype: values must lie in [0, 1]")
+    for float_key, low, high in (("turns", 0.1, 10.0), ("sway", 0.0, 5.0)):
+        if float_key in kw and not (isinstance(kw[float_key], (int, float)) and low <= kw[float_key] <= high):
+            raise DeltaError(f"{key}.{float_key}: expected a number in [{low}, {high}]")
+    if kw.get("camera") == "orthographic" and any(kw.get("distortion", ())):
+        raise DeltaError(f"{key}.distortion: an orthographic camera has no lens distortion")
+    return SubjectSpec(name=name, **kw)
