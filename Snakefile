@@ -11,6 +11,7 @@ configfile: "config/config.yaml"
 
 include: "rules/common.smk"
 include: "rules/body.smk"
+include: "rules/synthetic.smk"
 
 
 rule all:

@@ -93,6 +93,26 @@ def cmd_upsample(args: argparse.Namespace) -> None:
         save_json(args.summary, summary)
 
 
+def cmd_synthesize(args: argparse.Namespace) -> None:
+    import json
+
+    from delta.synthetic.generate import generate
+    from delta.synthetic.spec import parse_subject
+
+    _threads(args.threads)
+    raw = json.loads(args.spec)
+    spec = parse_subject(args.subject, raw)
+    generate(spec, args.body, args.out, shape_space=args.shape_space, anny_cache=args.anny_cache)
+    log.info("synthetic capture '%s' written to %s", args.subject, args.out)
+
+
+def cmd_to_peoplesnapshot(args: argparse.Namespace) -> None:
+    from delta.synthetic.generate import write_peoplesnapshot
+
+    write_peoplesnapshot(args.capture, args.subject, args.out)
+    log.info("People Snapshot layout of '%s' written to %s", args.subject, args.out)
+
+
 def cmd_validate_config(args: argparse.Namespace) -> None:
     from delta.config import load_config
 
@@ -129,6 +149,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--level", type=int, default=1)
     p.add_argument("--summary")
     p.set_defaults(func=cmd_upsample)
+
+    p = sub.add_parser("synthesize", help="render a synthetic capture with ground truth")
+    p.add_argument("--subject", required=True)
+    p.add_argument("--spec", required=True, help="the subject's spec as JSON (config datasets.synthetic.subjects)")
+    p.add_argument("--body", required=True, help="the Anny body model npz")
+    p.add_argument("--shape-space", help="the Anny shape-space npz (needed for phenotypes)")
+    p.add_argument("--anny-cache", default="resources/anny_cache")
+    p.add_argument("--out", required=True)
+    p.add_argument("--threads", type=int, default=1)
+    p.set_defaults(func=cmd_synthesize)
+
+    p = sub.add_parser("to-peoplesnapshot", help="write a synthetic capture in People Snapshot's layout")
+    p.add_argument("--capture", required=True)
+    p.add_argument("--subject", required=True)
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_to_peoplesnapshot)
 
     p = sub.add_parser("validate-config", help="check a config file against the workflow schema")
     p.add_argument("config")

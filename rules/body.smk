@@ -5,6 +5,7 @@ rule convert_anny:
     output:
         model=PATHS["body_base"].format(model="anny"),
         report=PATHS["body_base_report"].format(model="anny"),
+        shape_space=PATHS["anny_shape_space"],
     params:
         num_shape=BODY["anny"]["num_shape"],
         num_samples=BODY["anny"]["num_samples"],
@@ -21,7 +22,7 @@ rule convert_anny:
     resources:
         mem_mb=6000,
     shell:
-        "delta convert-anny --out {output.model} --report {output.report}"
+        "delta convert-anny --out {output.model} --report {output.report} --shape-space {output.shape_space}"
         " --num-shape {params.num_shape} --num-samples {params.num_samples} --seed {params.seed}"
         " --merge {params.merge} --cache-dir {params.cache} --threads {threads} > {log} 2>&1"
 

@@ -1,7 +1,9 @@
 # Config validation, wildcard constraints, every path pattern and input function.
+import json
 from pathlib import Path
 
 from delta.config import validate_config
+from delta.synthetic.spec import parse_subject
 
 config = validate_config(
     config,
@@ -10,11 +12,17 @@ config = validate_config(
 )
 
 BODY = config["body_model"]
+DATASETS = config["datasets"]
+# synthetic subject specs are checked now, before any job runs
+SYNTHETIC = {
+    name: parse_subject(name, raw) for name, raw in DATASETS.get("synthetic", {}).get("subjects", {}).items()
+}
 
 
 wildcard_constraints:
     model="anny|smplx",
     level="[0-9]",
+    subject="[A-Za-z0-9_.-]+",
 
 
 # ------------------------------------------------------------------ paths
@@ -24,6 +32,14 @@ PATHS = {
     "body_base_report": "results/body/{model}_convert.json",
     "body": "resources/body/{model}_sub{level}.npz",
     "body_summary": "results/body/{model}_sub{level}.json",
+    "anny_shape_space": "resources/body/anny_pca.npz",
+    # synthetic captures: the video is all a real capture has; ground truth lies apart in gt/
+    "syn_video": "data/synthetic/{subject}/{subject}.mp4",
+    "syn_params": "data/synthetic/{subject}/gt/params.npz",
+    "syn_frames": "data/synthetic/{subject}/gt/frames.h5",
+    "syn_meshes": "data/synthetic/{subject}/gt/meshes.h5",
+    "syn_splits": "data/synthetic/{subject}/gt/splits.json",
+    "syn_ps_dir": "data/synthetic/{subject}/peoplesnapshot",
     "log": "logs/{rule}/{name}.log",
     "benchmark": "results/benchmarks/{rule}/{name}.tsv",
 }
@@ -43,8 +59,31 @@ def body_model_file():
     return PATHS["body"].format(model=BODY["name"], level=BODY["upsample_level"])
 
 
+def anny_model_file():
+    """Synthetic captures are built on the Anny model at the configured upsampling level."""
+    return PATHS["body"].format(model="anny", level=BODY["upsample_level"])
+
+
+def synthetic_spec_json(wildcards):
+    return json.dumps(DATASETS["synthetic"]["subjects"][wildcards.subject], sort_keys=True)
+
+
+def peoplesnapshot_files(subject):
+    d = PATHS["syn_ps_dir"].format(subject=subject)
+    return [f"{d}/{subject}.mp4", f"{d}/masks.hdf5", f"{d}/camera.pkl", f"{d}/keypoints.hdf5"]
+
+
+def synthetic_targets():
+    out = []
+    for name, spec in SYNTHETIC.items():
+        out += [PATHS[k].format(subject=name) for k in ("syn_video", "syn_params", "syn_frames", "syn_splits")]
+        if spec.camera == "pinhole":
+            out += peoplesnapshot_files(name)
+    return out
+
+
 def all_targets():
     return [
         body_model_file(),
         PATHS["body_summary"].format(model=BODY["name"], level=BODY["upsample_level"]),
-    ]
+    ] + synthetic_targets()

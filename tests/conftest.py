@@ -98,3 +98,40 @@ def anny_conversion(anny_model):
     from delta.body.anny_convert import convert_anny
 
     return convert_anny(num_shape=32, num_samples=256, seed=0, anny_model=anny_model)
+
+
+@pytest.fixture(scope="session")
+def anny_files(tmp_path_factory, anny_model):
+    """A small converted + upsampled Anny model and its shape space, as the workflow writes them."""
+    from delta.body.anny_convert import convert_anny
+    from delta.body.upsample import upsample_body_model
+
+    out = tmp_path_factory.mktemp("anny")
+    conv = convert_anny(num_shape=8, num_samples=64, seed=0, merge_bones=["fingers", "toes"], anny_model=anny_model)
+    upsample_body_model(conv.model, 1).to(dtype=torch.float32).save(out / "anny_sub1.npz")
+    conv.space.save(out / "anny_pca.npz")
+    return {"body": str(out / "anny_sub1.npz"), "shape_space": str(out / "anny_pca.npz"), "cache": str(ANNY_CACHE)}
+
+
+TINY_SUBJECTS = {
+    "tight": dict(seed=1, phenotype={"gender": 0.85}, garments=["tshirt", "trousers"], hair="short", camera="pinhole",
+                  distortion=[-0.04, 0.01, 0.0, 0.0, 0.0], resolution=128, turn_frames=5, novel_frames=2,
+                  test_view_every=2),
+    "loose": dict(seed=2, garments=[{"kind": "dress", "pattern": "dots"}], hair="long", camera="orthographic",
+                  resolution=128, turn_frames=4, novel_frames=1, test_view_every=2),
+}  # fmt: skip
+
+
+@pytest.fixture(scope="session")
+def tiny_captures(tmp_path_factory, anny_files):
+    """The two tiny synthetic subjects, generated once per session."""
+    from delta.synthetic.generate import generate, write_peoplesnapshot
+    from delta.synthetic.spec import parse_subject
+
+    root = tmp_path_factory.mktemp("synthetic")
+    for name, raw in TINY_SUBJECTS.items():
+        spec = parse_subject(name, raw)
+        generate(spec, anny_files["body"], root / name, anny_files["shape_space"], anny_files["cache"])
+        if spec.camera == "pinhole":
+            write_peoplesnapshot(root / name, name, root / name / "peoplesnapshot")
+    return root

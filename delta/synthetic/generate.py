@@ -237,7 +237,7 @@ def _write_frame(d: dict, f: int, frame, kp3d: torch.Tensor, camera, on_joint: n
         i, j = int(np.floor(v)), int(np.floor(u))
         if 0 <= i < H and 0 <= j < W:
             tolerance = 0.15 if on_joint[k] else 0.03
-            seen = frame.depth[i, j] == 0 or zk <= frame.depth[i, j] + tolerance
+            seen = zk <= frame.depth[i, j] + tolerance
             conf[k] = 1.0 if seen else 0.3
     d["keypoints"][f] = np.concatenate([uv_np, conf[:, None]], 1)
     d["keypoints3d"][f] = kp3d.numpy()
@@ -269,3 +269,19 @@ def _camera_arrays(camera, F: int) -> dict:
 def _export_ply(path: Path, vertices: np.ndarray, faces: np.ndarray) -> None:
     with atomic_path(path) as tmp:
         trimesh.Trimesh(vertices, faces, process=False).export(tmp)
+
+
+def write_peoplesnapshot(capture_dir: str | os.PathLike, subject: str, out_dir: str | os.PathLike) -> None:
+    """The capture again in People Snapshot's layout (pinhole cameras only)."""
+    from delta.data.peoplesnapshot import write_layout
+
+    gt = Path(capture_dir) / "gt"
+    with np.load(gt / "params.npz", allow_pickle=False) as p:
+        if str(p["camera_model"]) != "pinhole":
+            raise DeltaError(f"{gt / 'params.npz'}: People Snapshot's layout needs a pinhole camera")
+        t = lambda k: torch.from_numpy(p[k])  # noqa: E731
+        camera = PinholeCamera(t("K"), t("R"), t("t"), t("dist"), int(p["width"]), int(p["height"]))
+    with h5py.File(gt / "frames.h5", "r") as f:
+        keypoints = np.asarray(f["keypoints"])
+        masks = (np.asarray(f["person"][i]) for i in range(f["person"].shape[0]))  # 0/1, as People Snapshot
+        write_layout(out_dir, subject, Path(capture_dir) / f"{subject}.mp4", camera, masks, keypoints)

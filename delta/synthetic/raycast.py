@@ -46,7 +46,7 @@ class RenderedFrame:
     label: np.ndarray
     """(H, W) uint8 label at the pixel centre (0 = background)."""
     depth: np.ndarray
-    """(H, W) float32 camera depth at the pixel centre (0 = background)."""
+    """(H, W) float32 camera depth at the pixel centre (+inf = background; orthographic depth is -Z)."""
     alpha: np.ndarray
     """(H, W) float32 fraction of the pixel covered (from the sub-samples at edges)."""
 
@@ -80,7 +80,7 @@ def render(scene: SceneMesh, camera, albedo_fn: AlbedoFn, shade_fn, background, 
     bg = np.asarray(background, dtype=np.float64)
     image = np.tile(bg, (H * W, 1))
     label = np.zeros(H * W, dtype=np.uint8)
-    depth = np.zeros(H * W, dtype=np.float32)
+    depth = np.full(H * W, np.inf, dtype=np.float32)
     alpha = np.zeros(H * W, dtype=np.float32)
     tri, ray, loc = _cast(inter, camera, uv)
     if len(tri):

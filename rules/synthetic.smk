@@ -1,0 +1,51 @@
+# Embedded default: synthetic monocular captures with ground truth, generated on the Anny model.
+
+
+rule synthesize:
+    input:
+        body=anny_model_file(),
+        shape_space=PATHS["anny_shape_space"],
+    output:
+        video=PATHS["syn_video"],
+        params=PATHS["syn_params"],
+        frames=PATHS["syn_frames"],
+        meshes=PATHS["syn_meshes"],
+        splits=PATHS["syn_splits"],
+    params:
+        spec=synthetic_spec_json,
+        cache=PATHS["anny_cache"],
+        out=lambda w: str(Path(PATHS["syn_video"].format(subject=w.subject)).parent),
+    conda:
+        "../workflow/envs/delta.yaml"
+    log:
+        log_path("synthesize", "{subject}"),
+    benchmark:
+        benchmark_path("synthesize", "{subject}")
+    threads: 2
+    resources:
+        mem_mb=4000,
+    shell:
+        "delta synthesize --subject {wildcards.subject} --spec {params.spec:q} --body {input.body}"
+        " --shape-space {input.shape_space} --anny-cache {params.cache} --out {params.out}"
+        " --threads {threads} > {log} 2>&1"
+
+
+rule synthetic_peoplesnapshot:
+    input:
+        video=PATHS["syn_video"],
+        params=PATHS["syn_params"],
+        frames=PATHS["syn_frames"],
+    output:
+        peoplesnapshot_files("{subject}"),
+    params:
+        capture=lambda w: str(Path(PATHS["syn_video"].format(subject=w.subject)).parent),
+        out=lambda w: PATHS["syn_ps_dir"].format(subject=w.subject),
+    conda:
+        "../workflow/envs/delta.yaml"
+    log:
+        log_path("synthetic_peoplesnapshot", "{subject}"),
+    resources:
+        mem_mb=2000,
+    shell:
+        "delta to-peoplesnapshot --capture {params.capture} --subject {wildcards.subject}"
+        " --out {params.out} > {log} 2>&1"

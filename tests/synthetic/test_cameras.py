@@ -1,0 +1,81 @@
+"""Camera models: projection against OpenCV, ray round trips, distortion inverse."""
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from delta.cameras.models import OrthographicCamera, PinholeCamera, distort, look_at, undistort
+
+
+def pinhole(dist=(0.0, 0.0, 0.0, 0.0, 0.0)):
+    K = torch.tensor([[600.0, 0, 250], [0, 610, 260], [0, 0, 1]], dtype=torch.float64)
+    R, t = look_at(torch.tensor([0.5, 0.3, 3.0], dtype=torch.float64), torch.zeros(3, dtype=torch.float64),
+                   torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))  # fmt: skip
+    return PinholeCamera(K, R, t, torch.tensor(dist, dtype=torch.float64), 512, 512)
+
+
+def points(n=200, seed=0):
+    return torch.from_numpy(np.random.default_rng(seed).uniform(-0.8, 0.8, size=(n, 3)))
+
+
+@pytest.mark.parametrize("dist", [(0, 0, 0, 0, 0), (-0.2, 0.05, 0.001, -0.002, 0.01)])
+def test_pinhole_matches_opencv(dist):
+    cam = pinhole(dist)
+    X = points()
+    uv, depth = cam.project(X)
+    rvec = cv2.Rodrigues(cam.R.numpy())[0]
+    ref, _ = cv2.projectPoints(X.numpy(), rvec, cam.t.numpy(), cam.K.numpy(), np.asarray(dist, dtype=np.float64))
+    np.testing.assert_allclose(uv.numpy(), ref[:, 0], atol=1e-8)
+    np.testing.assert_allclose(depth.numpy(), (X @ cam.R.T + cam.t)[:, 2].numpy())
+
+
+@pytest.mark.parametrize("dist", [(0, 0, 0, 0, 0), (-0.2, 0.05, 0.001, -0.002, 0.01)])
+def test_pinhole_ray_round_trip(dist):
+    cam = pinhole(dist)
+    X = points()
+    uv, _ = cam.project(X)
+    o, d = cam.rays(uv)
+    along = ((X - o) * d).sum(-1, keepdim=True)
+    assert ((o + along * d) - X).norm(dim=-1).max() < 1e-7
+    torch.testing.assert_close(d.norm(dim=-1), torch.ones(len(X), dtype=torch.float64))
+
+
+def test_look_at_axes():
+    cam = pinhole()
+    uv, z = cam.project(torch.zeros(1, 3, dtype=torch.float64))
+    np.testing.assert_allclose(uv.numpy()[0], [250, 260], atol=1e-9)  # the target lands on the principal point
+    up, _ = cam.project(torch.tensor([[0.0, 0.2, 0.0]], dtype=torch.float64))
+    assert up[0, 1] < 260  # world up is image up
+
+
+def test_undistort_inverts_distort():
+    k = torch.tensor([-0.25, 0.08, 0.002, -0.001, 0.0], dtype=torch.float64)
+    xy = torch.from_numpy(np.random.default_rng(1).uniform(-0.5, 0.5, size=(500, 2)))
+    torch.testing.assert_close(undistort(distort(xy, k), k), xy, atol=1e-10, rtol=0)
+    # (distort itself is checked against cv2.projectPoints above)
+
+
+def test_orthographic_round_trip_and_convention():
+    cam = OrthographicCamera(torch.tensor(1.1, dtype=torch.float64), torch.tensor([0.05, -0.1], dtype=torch.float64),
+                             200, 100)  # fmt: skip
+    X = points()
+    uv, depth = cam.project(X)
+    o, d = cam.rays(uv)
+    torch.testing.assert_close(o[:, :2], X[:, :2])
+    torch.testing.assert_close(depth, -X[:, 2])
+    assert (d[:, 2] == -1).all()
+    # s (X + t_x) = -1 is the left image border, s (Y + t_y) = 1 the top border
+    corner = torch.tensor([[-1 / 1.1 - 0.05, 1 / 1.1 + 0.1, 0.0]], dtype=torch.float64)
+    np.testing.assert_allclose(cam.project(corner)[0].numpy(), [[0.0, 0.0]], atol=1e-12)
+
+
+def test_camera_gradients():
+    cam = pinhole((-0.2, 0.05, 0.0, 0.0, 0.0))
+    X = points(5).requires_grad_()
+    assert torch.autograd.gradcheck(lambda x: cam.project(x)[0], (X,))
+    s = torch.tensor(0.9, dtype=torch.float64, requires_grad=True)
+    t = torch.tensor([0.1, 0.2], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(
+        lambda s_, t_: OrthographicCamera(s_, t_, 64, 64).project(X.detach())[0], (s, t)
+    )
