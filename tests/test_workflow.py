@@ -51,6 +51,16 @@ def test_tiny_configuration_end_to_end(tmp_path):
     for rule in ("convert_anny", "upsample_body"):
         assert list((work / "logs" / rule).glob("*.log")), f"{rule} wrote no log"
     assert (work / "results/benchmarks/convert_anny/all.tsv").is_file()
+    # the embedded default: two synthetic captures, People Snapshot layout for the pinhole one
+    for subject in ("tight", "loose"):
+        capture = work / "data/synthetic" / subject
+        assert (capture / f"{subject}.mp4").stat().st_size > 0
+        for name in ("params.npz", "frames.h5", "meshes.h5", "splits.json"):
+            assert (capture / "gt" / name).is_file()
+        assert (work / "results/benchmarks/synthesize" / f"{subject}.tsv").is_file()
+    ps = work / "data/synthetic/tight/peoplesnapshot"
+    assert sorted(p.name for p in ps.iterdir()) == ["camera.pkl", "keypoints.hdf5", "masks.hdf5", "tight.mp4"]
+    assert not (work / "data/synthetic/loose/peoplesnapshot").exists()  # orthographic: no such layout
     # a rerun has nothing to do
     again = snakemake(work, "--configfile", ".test/config/ci.yaml", "--dry-run")
     assert "Nothing to be done" in again.stdout + again.stderr
@@ -73,3 +83,11 @@ def test_missing_smplx_is_explained(tmp_path):
     assert res.returncode != 0
     out = res.stdout + res.stderr
     assert "SMPLX_NEUTRAL.npz" in out and "body_model.smplx_path" in out
+
+
+def test_bad_subject_spec_stops_before_any_job(tmp_path):
+    work = workflow_copy(tmp_path)
+    (work / "bad.yaml").write_text("datasets:\n  synthetic:\n    subjects:\n      x: {garments: [cape]}\n")
+    res = snakemake(work, "--configfile", "bad.yaml", "--dry-run")
+    assert res.returncode != 0
+    assert "datasets.synthetic.subjects.x.garments[0]: unknown garment 'cape'" in res.stdout + res.stderr
