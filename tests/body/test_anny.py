@@ -133,3 +133,19 @@ def test_saved_model_round_trip(tmp_path, anny_conversion):
     assert loaded.joint_names == anny_conversion.model.joint_names
     with np.load(path, allow_pickle=False) as data:  # no pickled objects inside
         assert "meta_explained_variance" in data.files
+
+
+@pytest.mark.parametrize("sign", [-5.0, 5.0])
+def test_extreme_shapes_and_poses_on_anny(anny_conversion, sign):
+    """Shape at ±5 standard deviations, joint angles beyond π, a batch of 256: finite values and gradients."""
+    m = anny_conversion.model.to(dtype=torch.float32)
+    gen = torch.Generator().manual_seed(int(sign))
+    betas = torch.full((256, m.num_shape), sign).requires_grad_()
+    pose = (4.0 * torch.randn(256, m.num_joints, 3, generator=gen)).requires_grad_()
+    out = lbs(m, betas, pose)
+    assert torch.isfinite(out.vertices).all() and torch.isfinite(out.vertex_transforms).all()
+    out.vertices.square().mean().backward()
+    assert torch.isfinite(betas.grad).all() and torch.isfinite(pose.grad).all()
+    # every coefficient at ±5σ at once extrapolates far (|β| = 5·sqrt(32) σ), yet stays metres, not an explosion
+    height = out.rest_vertices[0, :, 1].max() - out.rest_vertices[0, :, 1].min()
+    assert 0.3 < height < 5.0
