@@ -12,6 +12,7 @@ configfile: "config/config.yaml"
 include: "rules/common.smk"
 include: "rules/body.smk"
 include: "rules/synthetic.smk"
+include: "rules/preprocess.smk"
 
 
 rule all:

@@ -113,6 +113,25 @@ def cmd_to_peoplesnapshot(args: argparse.Namespace) -> None:
     log.info("People Snapshot layout of '%s' written to %s", args.subject, args.out)
 
 
+def cmd_prepare(args: argparse.Namespace) -> None:
+    import json
+
+    from delta.data.sources import peoplesnapshot_source, synthetic_source
+    from delta.io import save_json
+    from delta.preprocess.frames import prepare
+
+    cfg = json.loads(args.subject_config)
+    if args.kind == "synthetic":
+        source = synthetic_source(args.root, args.subject)
+    elif args.kind == "peoplesnapshot":
+        source = peoplesnapshot_source(args.root, args.subject, cfg)
+    else:
+        raise DeltaError(f"unknown dataset kind '{args.kind}'")
+    summary = prepare(source, args.out, args.size, args.margin)
+    if args.summary:
+        save_json(args.summary, summary)
+
+
 def cmd_validate_config(args: argparse.Namespace) -> None:
     from delta.config import load_config
 
@@ -165,6 +184,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--subject", required=True)
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_to_peoplesnapshot)
+
+    p = sub.add_parser("prepare", help="write a subject's frame record (crop, undistort, masks, keypoints)")
+    p.add_argument("--kind", required=True, choices=["synthetic", "peoplesnapshot"])
+    p.add_argument("--root", required=True)
+    p.add_argument("--subject", required=True)
+    p.add_argument("--subject-config", default="{}")
+    p.add_argument("--size", type=int, default=512)
+    p.add_argument("--margin", type=float, default=0.08)
+    p.add_argument("--out", required=True)
+    p.add_argument("--summary")
+    p.set_defaults(func=cmd_prepare)
 
     p = sub.add_parser("validate-config", help="check a config file against the workflow schema")
     p.add_argument("config")

@@ -62,6 +62,12 @@ def validate_config(config: dict, schema_path: str | os.PathLike, base_dir: str 
 
 
 def _check_files(config: dict, base: Path) -> None:
+    for name, dataset in config["datasets"].items():
+        if name == "synthetic":
+            continue
+        for key in ("kind", "root"):
+            if key not in dataset:
+                raise DeltaError(f"config key 'datasets.{name}.{key}' is required for a dataset other than 'synthetic'")
     body = config["body_model"]
     if body["name"] == "smplx":
         path = base / body["smplx_path"]

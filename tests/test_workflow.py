@@ -58,9 +58,16 @@ def test_tiny_configuration_end_to_end(tmp_path):
         for name in ("params.npz", "frames.h5", "meshes.h5", "splits.json"):
             assert (capture / "gt" / name).is_file()
         assert (work / "results/benchmarks/synthesize" / f"{subject}.tsv").is_file()
-    ps = work / "data/synthetic/tight/peoplesnapshot"
+    ps = work / "data/synthetic_ps/tight"
     assert sorted(p.name for p in ps.iterdir()) == ["camera.pkl", "keypoints.hdf5", "masks.hdf5", "tight.mp4"]
-    assert not (work / "data/synthetic/loose/peoplesnapshot").exists()  # orthographic: no such layout
+    assert not (work / "data/synthetic_ps/loose").exists()  # orthographic: no such layout
+    # frame records of every configured subject, with the sources recorded
+    for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", "tight")):
+        summary = json.loads((work / "results" / dataset / subject / "frames.json").read_text())
+        assert summary["frames"] > 0 and "person" in summary["sources"]
+    assert json.loads((work / "results/peoplesnapshot/tight/frames.json").read_text())["sources"]["person"] == (
+        "dataset:masks.hdf5"
+    )
     # a rerun has nothing to do
     again = snakemake(work, "--configfile", ".test/config/ci.yaml", "--dry-run")
     assert "Nothing to be done" in again.stdout + again.stderr

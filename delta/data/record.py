@@ -1,0 +1,104 @@
+"""The common per-frame record that training reads, whatever the source.
+
+One HDF5 file per subject (``results/{dataset}/{subject}/frames.h5``):
+
+- ``images`` (N, S, S, 3) uint8 RGB, cropped and resized to the training size S;
+- ``person`` (N, S, S) uint8 alpha (0-255); ``clothing``, ``skin``, ``hair`` (N, S, S) uint8 0/1 when known;
+- ``keypoints`` (N, 18, 3) float32 OpenPose-18 (u, v, confidence) in the cropped image;
+- ``frame_ids`` (N,) int64 indices into the source video; ``split`` (N,) uint8 (0 train, 1 test view, 2 test pose);
+- camera: attrs ``camera_model``; pinhole ``K`` (3, 3), ``R``, ``t`` (undistorted: no distortion left);
+  orthographic ``ortho_scale`` (N,), ``ortho_trans`` (N, 2);
+- attrs ``sources`` (JSON: which step or dataset file produced each array), ``crop`` (u0, v0, size, out),
+  ``source_size`` (W, H).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+import torch
+
+from delta import DeltaError
+from delta.cameras.models import OrthographicCamera, PinholeCamera
+
+SPLITS = ("train", "test_view", "test_pose")
+MASKS = ("person", "clothing", "skin", "hair")
+
+
+class RecordWriter:
+    """Append frames one at a time (streamed: a whole video never sits in memory)."""
+
+    def __init__(self, h5: h5py.File, n: int, size: int, masks: tuple[str, ...]):
+        kw = dict(compression="gzip", compression_opts=3, track_times=False)
+        self.images = h5.create_dataset("images", (n, size, size, 3), np.uint8, chunks=(1, size, size, 3), **kw)
+        self.masks = {m: h5.create_dataset(m, (n, size, size), np.uint8, chunks=(1, size, size), **kw) for m in masks}
+        self.keypoints = h5.create_dataset("keypoints", (n, 18, 3), np.float32, track_times=False)
+
+    def write(self, i: int, image: np.ndarray, masks: dict[str, np.ndarray], keypoints: np.ndarray | None) -> None:
+        self.images[i] = image
+        for name, dset in self.masks.items():
+            dset[i] = masks[name]
+        if keypoints is not None:
+            self.keypoints[i] = keypoints
+
+
+def write_camera_attrs(h5: h5py.File, camera) -> None:
+    if isinstance(camera, PinholeCamera):
+        h5.attrs["camera_model"] = "pinhole"
+        for k in ("K", "R", "t"):
+            h5.create_dataset(k, data=getattr(camera, k).numpy(), track_times=False)
+    else:
+        h5.attrs["camera_model"] = "orthographic"
+        n = h5["frame_ids"].shape[0]
+        scale = np.broadcast_to(np.asarray(camera.scale, dtype=np.float64), (n,))
+        trans = np.broadcast_to(np.asarray(camera.trans, dtype=np.float64), (n, 2))
+        h5.create_dataset("ortho_scale", data=scale, track_times=False)
+        h5.create_dataset("ortho_trans", data=trans, track_times=False)
+
+
+class FrameRecord:
+    """Read access to a frame record; arrays are read per frame unless asked for whole."""
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise DeltaError(f"frame record not found: {self.path}")
+        self.h5 = h5py.File(self.path, "r")
+        for key in ("images", "person", "keypoints", "frame_ids", "split"):
+            if key not in self.h5:
+                raise DeltaError(f"{self.path}: missing '{key}'; rerun the prepare_frames rule")
+
+    def __len__(self) -> int:
+        return int(self.h5["images"].shape[0])
+
+    @property
+    def size(self) -> int:
+        return int(self.h5["images"].shape[1])
+
+    @property
+    def sources(self) -> dict:
+        return json.loads(self.h5.attrs["sources"])
+
+    def indices(self, split: str) -> np.ndarray:
+        return np.flatnonzero(self.h5["split"][:] == SPLITS.index(split))
+
+    def camera(self, i: int | None = None):
+        if self.h5.attrs["camera_model"] == "pinhole":
+            t = lambda k: torch.from_numpy(self.h5[k][:])  # noqa: E731
+            return PinholeCamera(t("K"), t("R"), t("t"), torch.zeros(5, dtype=torch.float64), self.size, self.size)
+        sel = slice(None) if i is None else i
+        return OrthographicCamera(torch.from_numpy(np.asarray(self.h5["ortho_scale"][sel])),
+                                  torch.from_numpy(np.asarray(self.h5["ortho_trans"][sel])), self.size, self.size)  # fmt: skip
+
+    def close(self) -> None:
+        self.h5.close()
+
+    def __enter__(self) -> "FrameRecord":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,119 @@
+"""Dataset adapters: where a subject's video, camera, splits and provided annotations are.
+
+Each adapter returns a ``Source``; preprocessing reads it frame by frame. What a
+dataset provides (People Snapshot's masks and keypoints, the synthetic ground
+truth) is used as is; the steps that would compute it are not run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Callable
+
+import h5py
+import numpy as np
+import torch
+
+from delta import DeltaError
+from delta.cameras.models import OrthographicCamera, PinholeCamera
+from delta.data import peoplesnapshot as ps
+
+FrameArray = Callable[[int], np.ndarray]
+
+
+@dataclasses.dataclass
+class Source:
+    """One subject's capture and what its dataset provides."""
+
+    video: Path
+    camera: object
+    """PinholeCamera (possibly with distortion) or OrthographicCamera of the source frames."""
+    frames: list[tuple[int, int]]
+    """(frame index in the video, split id) of every frame to prepare."""
+    num_video_frames: int
+    provided: dict[str, FrameArray]
+    """Per-frame arrays the dataset ships: 'person' (H, W) uint8 0-255, 'clothing'/'skin'/'hair' 0/1,
+    'keypoints' (18, 3)."""
+    origin: dict[str, str]
+    """Where each provided array comes from (recorded in the frame record)."""
+    close: Callable[[], None] = lambda: None
+
+
+def _h5_frames(path: Path, key: str, scale: float = 1.0) -> tuple[FrameArray, Callable[[], None], int]:
+    f = h5py.File(path, "r")
+    if key not in f:
+        f.close()
+        raise DeltaError(f"{path}: no dataset '{key}' (found {sorted(f)})")
+    dset = f[key]
+
+    def get(i: int) -> np.ndarray:
+        a = np.asarray(dset[i])
+        return (a * scale).astype(np.uint8) if scale != 1.0 else a
+
+    return get, f.close, int(dset.shape[0])
+
+
+def _range_frames(spec: list[int], split: int, key: str) -> list[tuple[int, int]]:
+    if not (isinstance(spec, list) and len(spec) == 3 and all(isinstance(v, int) for v in spec)):
+        raise DeltaError(f"{key}: expected [start, end, step] (inclusive end), got {spec!r}")
+    start, end, step = spec
+    if step < 1 or end < start or start < 0:
+        raise DeltaError(f"{key}: [start, end, step] = {spec} is not a valid range")
+    return [(i, split) for i in range(start, end + 1, step)]
+
+
+def peoplesnapshot_source(root: str | Path, subject: str, cfg: dict) -> Source:
+    """People Snapshot: ``{root}/{subject}/{subject}.mp4``, masks.hdf5, camera.pkl, keypoints.hdf5."""
+    d = Path(root) / subject
+    need = [d / f"{subject}.mp4", d / "masks.hdf5", d / "camera.pkl", d / "keypoints.hdf5"]
+    missing = [str(p) for p in need if not p.is_file()]
+    if missing:
+        raise DeltaError(f"People Snapshot subject '{subject}': missing {missing}. Download the dataset "
+                         f"(licensed) and set datasets.peoplesnapshot.root to the folder holding '{subject}/'")  # fmt: skip
+    camera = ps.read_camera(d / "camera.pkl").to_pinhole()
+    key = f"datasets.peoplesnapshot.subjects.{subject}"
+    frames = _range_frames(cfg.get("train"), 0, f"{key}.train") + _range_frames(cfg.get("test"), 1, f"{key}.test")
+    masks, close_m, n_masks = _h5_frames(d / "masks.hdf5", "masks", 255.0)
+    kp_all = ps.read_keypoints(d / "keypoints.hdf5")
+    closers = [close_m]
+    return Source(
+        video=need[0],
+        camera=camera,
+        frames=frames,
+        num_video_frames=n_masks,
+        provided={"person": masks, "keypoints": lambda i: kp_all[i]},
+        origin={"person": "dataset:masks.hdf5", "keypoints": "dataset:keypoints.hdf5"},
+        close=lambda: [c() for c in closers],
+    )
+
+
+def synthetic_source(capture: str | Path, subject: str) -> Source:
+    """A generated capture: the video plus its ground truth used as the dataset's annotations."""
+    capture = Path(capture)
+    gt = capture / "gt"
+    with np.load(gt / "params.npz", allow_pickle=False) as p:
+        if str(p["camera_model"]) == "pinhole":
+            t = lambda k: torch.from_numpy(p[k])  # noqa: E731
+            camera: object = PinholeCamera(t("K"), t("R"), t("t"), t("dist"), int(p["width"]), int(p["height"]))
+        else:
+            camera = OrthographicCamera(torch.tensor(float(p["ortho_scale"][0])),
+                                        torch.from_numpy(p["ortho_trans"][0]), int(p["width"]), int(p["height"]))  # fmt: skip
+    splits = json.loads((gt / "splits.json").read_text())
+    frames = sorted((i, s) for s, name in enumerate(("train", "test_view", "test_pose")) for i in splits[name])
+    h5 = h5py.File(gt / "frames.h5", "r")
+    get = lambda key, scale=1: (lambda i: (np.asarray(h5[key][i]) * scale).astype(np.uint8))  # noqa: E731
+    keypoints = np.asarray(h5["keypoints"])
+    return Source(
+        video=capture / f"{subject}.mp4",
+        camera=camera,
+        frames=frames,
+        num_video_frames=int(h5["person"].shape[0]),
+        provided={"person": get("alpha"), "clothing": get("clothing"), "skin": get("skin"), "hair": get("hair"),
+                  "keypoints": lambda i: keypoints[i]},  # fmt: skip
+        origin={k: f"dataset:gt/frames.h5:{v}" for k, v in
+                (("person", "alpha"), ("clothing", "clothing"), ("skin", "skin"), ("hair", "hair"), ("keypoints", "keypoints"))},  # fmt: skip
+        close=h5.close,
+    )
+

@@ -1,0 +1,1 @@
+"""Frame preprocessing: person mattes, clothing and face parsing."""

@@ -1,0 +1,165 @@
+"""Frame extraction: streamed decoding, undistortion, one square crop for all frames, resizing.
+
+The crop is the union of the person's boxes over the selected frames plus a
+margin, made square (SCARF crops once per video): the camera changes once, and
+the person keeps its scale across frames.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Iterator
+
+import cv2
+import h5py
+import numpy as np
+import torch
+
+from delta import DeltaError
+from delta.cameras.crop import CropBox, crop_camera
+from delta.cameras.models import PinholeCamera
+from delta.data.record import MASKS, RecordWriter, write_camera_attrs
+from delta.data.sources import Source
+from delta.io import atomic_path
+
+log = logging.getLogger(__name__)
+
+
+def iter_video(path: Path, wanted: set[int]) -> Iterator[tuple[int, np.ndarray]]:
+    """Yield (index, RGB frame) for the wanted indices, decoding sequentially; errors name the file."""
+    cap = cv2.VideoCapture(str(path))
+    if not cap.isOpened():
+        raise DeltaError(f"cannot open video {path} (missing, empty or not a video)")
+    last = max(wanted) if wanted else -1
+    i = 0
+    try:
+        while i <= last:
+            ok, frame = cap.read()
+            if not ok:
+                if i == 0:
+                    raise DeltaError(f"{path}: the video has no readable frame")
+                raise DeltaError(f"{path}: the video ends at frame {i}, but frame {last} was asked for")
+            if i in wanted:
+                yield i, cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
+            i += 1
+    finally:
+        cap.release()
+
+
+class Undistorter:
+    """Undistort images, masks and points of a pinhole camera; the camera keeps its K."""
+
+    def __init__(self, camera):
+        self.active = isinstance(camera, PinholeCamera) and bool(torch.any(camera.dist != 0))
+        if self.active:
+            self.K, self.dist = camera.K.numpy(), camera.dist.numpy()
+            size = (camera.width, camera.height)
+            self.maps = cv2.initUndistortRectifyMap(self.K, self.dist, None, self.K, size, cv2.CV_32FC1)
+
+    def image(self, img: np.ndarray, mask: bool = False, nearest: bool = False) -> np.ndarray:
+        """Undistort a frame (border pixels repeated) or a mask (zero outside)."""
+        if not self.active:
+            return img
+        interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
+        border = cv2.BORDER_CONSTANT if mask else cv2.BORDER_REPLICATE
+        return cv2.remap(img, self.maps[0], self.maps[1], interp, borderMode=border)
+
+    def points(self, uv: np.ndarray) -> np.ndarray:
+        """(K, 2) pixel coordinates (centres at +0.5) in the distorted image -> undistorted."""
+        if not self.active or not len(uv):
+            return uv
+        idx = uv - 0.5  # OpenCV works in pixel-index coordinates
+        out = cv2.undistortPoints(idx.reshape(-1, 1, 2).astype(np.float64), self.K, self.dist, P=self.K)
+        return out.reshape(-1, 2) + 0.5
+
+    def camera(self, camera):
+        if not self.active:
+            return camera
+        return PinholeCamera(camera.K, camera.R, camera.t, torch.zeros(5, dtype=torch.float64),
+                             camera.width, camera.height)  # fmt: skip
+
+
+def square_box(masks: Iterator[np.ndarray], margin: float, out: int) -> CropBox:
+    """The square around the union of the masks' boxes, grown by ``margin`` of its side on each side."""
+    lo, hi = np.array([np.inf, np.inf]), np.array([-np.inf, -np.inf])
+    for m in masks:
+        ys, xs = np.nonzero(m > 127)
+        if len(xs):
+            lo = np.minimum(lo, [xs.min(), ys.min()])
+            hi = np.maximum(hi, [xs.max() + 1, ys.max() + 1])
+    if not np.isfinite(lo).all():
+        raise DeltaError("no frame shows a person: every mask is empty")
+    centre = (lo + hi) / 2
+    side = int(np.ceil((hi - lo).max() * (1 + 2 * margin)))
+    u0, v0 = np.round(centre - side / 2).astype(int)
+    return CropBox(int(u0), int(v0), side, out)
+
+
+def crop(img: np.ndarray, box: CropBox, interp: int, mask: bool = False) -> np.ndarray:
+    """Crop and resize to ``box.out``; outside the image, frames repeat their border and masks are 0."""
+    H, W = img.shape[:2]
+    pad = max(0, -box.u0, -box.v0, box.u0 + box.size - W, box.v0 + box.size - H)
+    if pad:
+        border = cv2.BORDER_CONSTANT if mask else cv2.BORDER_REPLICATE
+        img = cv2.copyMakeBorder(img, pad, pad, pad, pad, border, value=0)
+    patch = img[box.v0 + pad : box.v0 + pad + box.size, box.u0 + pad : box.u0 + pad + box.size]
+    return cv2.resize(patch, (box.out, box.out), interpolation=interp)
+
+
+def prepare(source: Source, out_path: str | Path, size: int, margin: float = 0.08) -> dict:
+    """Write the frame record of ``source`` (see :mod:`delta.data.record`); returns a summary.
+
+    Frames whose provided person mask is empty are skipped and listed in the record.
+    """
+    try:
+        return _prepare(source, out_path, size, margin)
+    finally:
+        source.close()
+
+
+def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
+    last = max(i for i, _ in source.frames)
+    if source.num_video_frames and last >= source.num_video_frames:
+        raise DeltaError(f"{source.video}: asked for frame {last} but the dataset's annotations hold "
+                         f"{source.num_video_frames} frames")  # fmt: skip
+    if "person" not in source.provided:
+        raise DeltaError(f"{source.video}: no person masks provided and no matting model configured")
+    und = Undistorter(source.camera)
+    person = source.provided["person"]
+    empty = [i for i, _ in source.frames if not (person(i) > 127).any()]
+    frames = [(i, s) for i, s in source.frames if i not in set(empty)]
+    if not frames:
+        raise DeltaError(f"{source.video}: no selected frame shows a person")
+    box = square_box((und.image(person(i), mask=True) for i, _ in frames), margin, size)
+    camera = crop_camera(und.camera(source.camera), box)
+    masks = tuple(m for m in MASKS if m in source.provided)
+    with atomic_path(out_path) as tmp, h5py.File(tmp, "w") as h5:
+        h5.create_dataset("frame_ids", data=np.array([i for i, _ in frames], dtype=np.int64), track_times=False)
+        h5.create_dataset("split", data=np.array([s for _, s in frames], dtype=np.uint8), track_times=False)
+        writer = RecordWriter(h5, len(frames), size, masks)
+        row = {i: r for r, (i, _) in enumerate(frames)}
+        for i, rgb in iter_video(source.video, set(row)):
+            mask = person(i)
+            if rgb.shape[:2] != mask.shape[:2]:
+                raise DeltaError(f"{source.video}: frame {i} is {rgb.shape[1]}x{rgb.shape[0]} but its mask is "
+                                 f"{mask.shape[1]}x{mask.shape[0]}")  # fmt: skip
+            out_masks = {"person": crop(und.image(mask, mask=True), box, cv2.INTER_AREA, mask=True)}
+            for m in masks[1:]:
+                part = und.image(source.provided[m](i), mask=True, nearest=True)
+                out_masks[m] = crop(part, box, cv2.INTER_NEAREST, mask=True)
+            kp = None
+            if "keypoints" in source.provided:
+                kp = np.asarray(source.provided["keypoints"](i), dtype=np.float64).copy()
+                kp[:, :2] = box.apply_to_points(torch.from_numpy(und.points(kp[:, :2]))).numpy()
+            writer.write(row[i], crop(und.image(rgb), box, cv2.INTER_AREA), out_masks, kp)
+        write_camera_attrs(h5, camera)
+        h5.attrs["sources"] = json.dumps({**source.origin, "images": f"video:{source.video.name}"}, sort_keys=True)
+        h5.attrs["crop"] = np.array([box.u0, box.v0, box.size, box.out])
+        h5.attrs["source_size"] = np.array([source.camera.width, source.camera.height])
+        h5.attrs["skipped_empty"] = np.array(empty, dtype=np.int64)
+    summary = {"frames": len(frames), "skipped_empty": empty, "crop": [box.u0, box.v0, box.size, box.out],
+               "sources": source.origin}  # fmt: skip
+    log.info("prepared %s", summary)
+    return summary

@@ -1,0 +1,121 @@
+"""Frame records: crop/undistort consistency, dataset adapters, bad input."""
+
+import json
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from delta import DeltaError
+from delta.cameras.crop import CropBox, crop_camera
+from delta.cameras.models import OrthographicCamera, PinholeCamera, look_at
+from delta.data.record import FrameRecord
+from delta.data.sources import peoplesnapshot_source, synthetic_source
+from delta.preprocess.frames import prepare
+
+
+def random_points(n=100):
+    return torch.from_numpy(np.random.default_rng(0).uniform(-0.7, 0.7, size=(n, 3)))
+
+
+@pytest.mark.parametrize("box", [CropBox(100, 40, 300, 128), CropBox(-20, -10, 600, 512), CropBox(3, 7, 50, 200)])
+def test_cropped_cameras_project_where_the_crop_moves_points(box):
+    R, t = look_at(torch.tensor([0.2, 0.1, 3.0], dtype=torch.float64), torch.zeros(3, dtype=torch.float64),
+                   torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))  # fmt: skip
+    K = torch.tensor([[500.0, 0, 260], [0, 505, 240], [0, 0, 1]], dtype=torch.float64)
+    pin = PinholeCamera(K, R, t, torch.zeros(5, dtype=torch.float64), 520, 480)
+    ortho = OrthographicCamera(torch.tensor(0.9, dtype=torch.float64), torch.tensor([0.1, -0.05], dtype=torch.float64),
+                               500, 500)  # fmt: skip
+    X = random_points()
+    for cam in (pin, ortho):
+        uv, depth = cam.project(X)
+        uv2, depth2 = crop_camera(cam, box).project(X)
+        torch.testing.assert_close(uv2, box.apply_to_points(uv))
+        torch.testing.assert_close(depth2, depth)
+
+
+def gt_keypoints3d(capture, frame_ids):
+    with h5py.File(capture / "gt" / "frames.h5") as g:
+        return torch.from_numpy(g["keypoints3d"][:][frame_ids].astype(np.float64))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("subject", ["tight", "loose"])
+def test_synthetic_record_is_consistent_with_ground_truth(tmp_path, tiny_captures, subject):
+    capture = tiny_captures / subject
+    summary = prepare(synthetic_source(capture, subject), tmp_path / "frames.h5", 96)
+    with FrameRecord(tmp_path / "frames.h5") as rec:
+        assert len(rec) == summary["frames"] and rec.size == 96
+        assert rec.h5["images"].shape == (len(rec), 96, 96, 3)
+        ids = rec.h5["frame_ids"][:]
+        for i in range(len(rec)):  # undistortion + crop + resize moved the keypoints with the camera
+            uv, _ = rec.camera(i).project(gt_keypoints3d(capture, ids[i : i + 1])[0])
+            np.testing.assert_allclose(rec.h5["keypoints"][i][:, :2], uv.numpy(), atol=0.02)
+        splits = json.loads((capture / "gt" / "splits.json").read_text())
+        assert sorted(ids[rec.indices("test_view")].tolist()) == splits["test_view"]
+        assert sorted(ids[rec.indices("test_pose")].tolist()) == splits["test_pose"]
+        assert rec.sources["person"] == "dataset:gt/frames.h5:alpha" and rec.sources["images"] == f"video:{subject}.mp4"
+        person = rec.h5["person"][:]
+        assert (rec.h5["clothing"][:].astype(bool) <= (person > 0)).all()
+        # the person sits inside the square crop with a margin: no mask on the border rows/columns
+        assert person[:, 0].max() == 0 and person[:, -1].max() == 0 and person[:, :, 0].max() == 0
+        # the background of the image is the capture's constant colour where the mask is empty
+        bg = rec.h5["images"][0][person[0] == 0]
+        assert np.abs(bg.astype(int) - np.median(bg, axis=0)).max() <= 2
+
+
+@pytest.mark.slow
+def test_peoplesnapshot_adapter_matches_the_synthetic_record(tmp_path, tiny_captures):
+    ps = prepare(peoplesnapshot_source(tiny_captures / "ps", "tight", {"train": [0, 4, 1], "test": [5, 6, 1]}),
+                 tmp_path / "ps.h5", 96)  # fmt: skip
+    syn = prepare(synthetic_source(tiny_captures / "tight", "tight"), tmp_path / "syn.h5", 96)
+    assert ps["sources"] == {"person": "dataset:masks.hdf5", "keypoints": "dataset:keypoints.hdf5"}
+    with FrameRecord(tmp_path / "ps.h5") as a, FrameRecord(tmp_path / "syn.h5") as b:
+        assert len(a) == len(b) == 7
+        assert abs(a.h5.attrs["crop"][2] - b.h5.attrs["crop"][2]) <= 2  # binary vs soft masks: same box
+        np.testing.assert_allclose(a.camera().K.numpy(), b.camera().K.numpy(), rtol=0.03)
+        iou = ((a.h5["person"][:] > 127) & (b.h5["person"][:] > 127)).sum() / (
+            (a.h5["person"][:] > 127) | (b.h5["person"][:] > 127)
+        ).sum()
+        assert iou > 0.85  # boundary pixels of a thin 128² person: binary centre samples vs soft alpha
+        assert a.indices("test_view").tolist() == [5, 6]
+
+
+def test_empty_video_is_named(tmp_path, tiny_captures):
+    capture = tmp_path / "tight"
+    shutil.copytree(tiny_captures / "tight", capture)
+    (capture / "tight.mp4").write_bytes(b"not a video")
+    with pytest.raises(DeltaError, match="tight.mp4"):
+        prepare(synthetic_source(capture, "tight"), tmp_path / "out.h5", 64)
+    assert not (tmp_path / "out.h5").exists() and not list(tmp_path.glob(".out*"))
+
+
+def test_frame_count_mismatch_is_named(tmp_path, tiny_captures):
+    with pytest.raises(DeltaError, match=r"asked for frame 50 but the dataset's annotations hold 7 frames"):
+        prepare(peoplesnapshot_source(tiny_captures / "ps", "tight", {"train": [0, 50, 10], "test": [1, 2, 1]}),
+                tmp_path / "out.h5", 64)  # fmt: skip
+    assert not (tmp_path / "out.h5").exists()
+
+
+def test_frames_without_a_person_are_skipped_and_recorded(tmp_path, tiny_captures):
+    root = tmp_path / "ps"
+    shutil.copytree(tiny_captures / "ps", root)
+    with h5py.File(root / "tight" / "masks.hdf5", "r+") as f:
+        f["masks"][2] = 0
+    summary = prepare(peoplesnapshot_source(root, "tight", {"train": [0, 4, 1], "test": [5, 6, 1]}),
+                      tmp_path / "out.h5", 64)  # fmt: skip
+    assert summary["skipped_empty"] == [2] and summary["frames"] == 6
+    with FrameRecord(tmp_path / "out.h5") as rec:
+        assert 2 not in rec.h5["frame_ids"][:].tolist() and rec.h5.attrs["skipped_empty"].tolist() == [2]
+
+
+def test_missing_peoplesnapshot_files_say_where(tmp_path):
+    with pytest.raises(DeltaError, match=r"missing .*male-3-casual.mp4.*datasets.peoplesnapshot.root"):
+        peoplesnapshot_source(tmp_path, "male-3-casual", {"train": [0, 4, 1], "test": [5, 6, 1]})
+
+
+def test_bad_split_range_is_named(tmp_path, tiny_captures):
+    with pytest.raises(DeltaError, match=r"subjects.tight.train: expected \[start, end, step\]"):
+        peoplesnapshot_source(tiny_captures / "ps", "tight", {"train": [0, 4], "test": [5, 6, 1]})
