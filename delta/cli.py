@@ -116,20 +116,39 @@ def cmd_to_peoplesnapshot(args: argparse.Namespace) -> None:
 def cmd_prepare(args: argparse.Namespace) -> None:
     import json
 
-    from delta.data.sources import peoplesnapshot_source, synthetic_source
+    from delta.data.sources import peoplesnapshot_source, synthetic_source, video_source
     from delta.io import save_json
     from delta.preprocess.frames import prepare
+    from delta.preprocess.steps import attach
 
     cfg = json.loads(args.subject_config)
-    if args.kind == "synthetic":
-        source = synthetic_source(args.root, args.subject)
-    elif args.kind == "peoplesnapshot":
-        source = peoplesnapshot_source(args.root, args.subject, cfg)
-    else:
-        raise DeltaError(f"unknown dataset kind '{args.kind}'")
+    adapters = {"synthetic": lambda: synthetic_source(args.root, args.subject),
+                "peoplesnapshot": lambda: peoplesnapshot_source(args.root, args.subject, cfg),
+                "video": lambda: video_source(args.root, args.subject, cfg)}  # fmt: skip
+    source = adapters[args.kind]()
+    if args.use_provided is not None:  # the config chose to ignore some of what the dataset ships
+        for name in list(source.provided):
+            if name not in args.use_provided:
+                del source.provided[name]
+    for step_file in args.steps:
+        attach(source, step_file)
     summary = prepare(source, args.out, args.size, args.margin)
     if args.summary:
         save_json(args.summary, summary)
+
+
+def cmd_matte(args: argparse.Namespace) -> None:
+    from delta.preprocess.steps import run_matting, video_length
+
+    _threads(args.threads)
+    run_matting(args.video, video_length(args.video), args.model, args.path, args.out, args.threads)
+
+
+def cmd_parse(args: argparse.Namespace) -> None:
+    from delta.preprocess.steps import run_parsing, video_length
+
+    _threads(args.threads)
+    run_parsing(args.video, video_length(args.video), args.model, args.path, args.out, args.threads)
 
 
 def cmd_validate_config(args: argparse.Namespace) -> None:
@@ -186,7 +205,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_to_peoplesnapshot)
 
     p = sub.add_parser("prepare", help="write a subject's frame record (crop, undistort, masks, keypoints)")
-    p.add_argument("--kind", required=True, choices=["synthetic", "peoplesnapshot"])
+    p.add_argument("--kind", required=True, choices=["synthetic", "peoplesnapshot", "video"])
+    p.add_argument("--use-provided", nargs="*", help="dataset arrays to use (default: all it ships)")
+    p.add_argument("--steps", nargs="*", default=[], help="outputs of matting / parsing steps")
     p.add_argument("--root", required=True)
     p.add_argument("--subject", required=True)
     p.add_argument("--subject-config", default="{}")
@@ -195,6 +216,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--summary")
     p.set_defaults(func=cmd_prepare)
+
+    for name, func, models in (("matte", cmd_matte, ["rvm", "modnet"]),
+                               ("parse", cmd_parse, ["u2net_cloth", "bisenet_face"])):  # fmt: skip
+        p = sub.add_parser(name, help=f"run an ONNX {name} model over every frame of a video")
+        p.add_argument("--video", required=True)
+        p.add_argument("--model", required=True, choices=models)
+        p.add_argument("--path", required=True, help="the ONNX file")
+        p.add_argument("--out", required=True)
+        p.add_argument("--threads", type=int, default=1)
+        p.set_defaults(func=func)
 
     p = sub.add_parser("validate-config", help="check a config file against the workflow schema")
     p.add_argument("config")

@@ -3,6 +3,7 @@ import json
 from pathlib import Path
 
 from delta.config import validate_config
+from delta.data.sources import PROVIDES
 from delta.synthetic.spec import parse_subject
 
 config = validate_config(
@@ -12,6 +13,7 @@ config = validate_config(
 )
 
 BODY = config["body_model"]
+PRE = config["preprocess"]
 DATASETS = config["datasets"]
 # synthetic subject specs are checked now, before any job runs
 SYNTHETIC = {
@@ -43,6 +45,8 @@ PATHS = {
     # the same captures in People Snapshot's layout: a People Snapshot root anyone can generate
     "syn_ps_dir": "data/synthetic_ps/{subject}",
     "record": "results/{dataset}/{subject}/frames.h5",
+    "matting": "results/{dataset}/{subject}/matting.h5",
+    "parsing": "results/{dataset}/{subject}/parsing.h5",
     "record_summary": "results/{dataset}/{subject}/frames.json",
     "log": "logs/{rule}/{name}.log",
     "benchmark": "results/benchmarks/{rule}/{name}.tsv",
@@ -93,10 +97,14 @@ def dataset_kind(dataset):
 def prepare_inputs(wildcards):
     """What the frame record of a subject is made from, by dataset kind."""
     kind = dataset_kind(wildcards.dataset)
+    steps = step_files(wildcards)
     if kind == "synthetic":
-        return {k: PATHS[k].format(subject=wildcards.subject) for k in ("syn_video", "syn_params", "syn_frames", "syn_splits")}
+        files = ("syn_video", "syn_params", "syn_frames", "syn_splits")
+        return {k: PATHS[k].format(subject=wildcards.subject) for k in files} | steps
+    if kind == "video":
+        return {"video": video_input(wildcards)} | steps
     root = Path(DATASETS[wildcards.dataset]["root"]) / wildcards.subject
-    return {
+    return steps | {
         "video": str(root / f"{wildcards.subject}.mp4"),
         "masks": str(root / "masks.hdf5"),
         "camera": str(root / "camera.pkl"),
@@ -104,7 +112,36 @@ def prepare_inputs(wildcards):
     }
 
 
+def used_provided(dataset):
+    """The dataset annotations the config uses; model steps produce the rest."""
+    ships = PROVIDES[dataset_kind(dataset)]
+    return [a for a in ships if a in DATASETS[dataset].get("use_provided", ships)]
+
+
+def needs_parsing(dataset):
+    wanted = {"u2net_cloth": {"clothing"}, "bisenet_face": {"hair", "skin"}}.get(PRE["parsing"]["model"], set())
+    return bool(wanted - set(used_provided(dataset)))
+
+
+def step_files(wildcards):
+    files = {}
+    if "person" not in used_provided(wildcards.dataset):
+        files["matting"] = PATHS["matting"].format(**wildcards)
+    if needs_parsing(wildcards.dataset):
+        files["parsing"] = PATHS["parsing"].format(**wildcards)
+    return files
+
+
+def video_input(wildcards):
+    kind = dataset_kind(wildcards.dataset)
+    if kind == "synthetic":
+        return PATHS["syn_video"].format(subject=wildcards.subject)
+    root = Path(DATASETS[wildcards.dataset]["root"])
+    return str((root / wildcards.subject if kind == "peoplesnapshot" else root) / f"{wildcards.subject}.mp4")
+
+
 def prepare_root(wildcards):
+    """The folder the dataset adapter reads."""
     if dataset_kind(wildcards.dataset) == "synthetic":
         return str(Path(PATHS["syn_video"].format(subject=wildcards.subject)).parent)
     return DATASETS[wildcards.dataset]["root"]

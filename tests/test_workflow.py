@@ -98,3 +98,37 @@ def test_bad_subject_spec_stops_before_any_job(tmp_path):
     res = snakemake(work, "--configfile", "bad.yaml", "--dry-run")
     assert res.returncode != 0
     assert "datasets.synthetic.subjects.x.garments[0]: unknown garment 'cape'" in res.stdout + res.stderr
+
+
+@pytest.mark.slow
+def test_model_steps_run_only_where_the_dataset_ships_nothing(tmp_path):
+    """With the synthetic masks set aside, matting and parsing run (stand-in ONNX graphs with the real
+    signatures); with them used, the DAG holds no such step."""
+    from tests.preprocess.test_onnx_models import parser_graph, rvm_graph
+
+    work = workflow_copy(tmp_path)
+    rvm_graph(work / "rvm.onnx")
+    parser_graph(work / "cloth.onnx", classes=4, rgb_class=(1, 2, 3), size=64, extra_outputs=6)
+    cfg = yaml.safe_load((work / ".test/config/config.yaml").read_text())
+    cfg["body_model"]["anny"]["cache_dir"] = str(ANNY_CACHE)
+    default = snakemake(work, "--configfile", ".test/config/config.yaml", "--dry-run")
+    assert default.returncode == 0 and "matte" not in default.stdout and "parse" not in default.stdout
+    cfg["datasets"] = {"synthetic": {"subjects": {"tight": cfg["datasets"]["synthetic"]["subjects"]["tight"]},
+                                     "use_provided": ["keypoints"]}}  # fmt: skip
+    cfg["preprocess"]["matting"] = {"model": "rvm", "path": "rvm.onnx"}
+    cfg["preprocess"]["parsing"] = {"model": "u2net_cloth", "path": "cloth.onnx"}
+    (work / "steps.yaml").write_text(yaml.safe_dump(cfg))
+    res = snakemake(work, "results/synthetic/tight/frames.json", "--configfile", "steps.yaml")
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    sources = json.loads((work / "results/synthetic/tight/frames.json").read_text())["sources"]
+    assert sources == {"person": "model:rvm:rvm.onnx", "clothing": "model:u2net_cloth:cloth.onnx",
+                       "keypoints": "dataset:gt/frames.h5:keypoints"}  # fmt: skip
+    assert (work / "logs/matte/synthetic_tight.log").is_file() and (work / "logs/parse/synthetic_tight.log").is_file()
+
+
+def test_missing_matting_model_is_explained(tmp_path):
+    work = workflow_copy(tmp_path)
+    (work / "m.yaml").write_text("datasets:\n  clips:\n    kind: video\n    root: videos\n    subjects: {a: {}}\n")
+    res = snakemake(work, "--configfile", "m.yaml", "--dry-run")
+    assert res.returncode != 0
+    assert "dataset 'clips' ships no person masks" in res.stdout + res.stderr

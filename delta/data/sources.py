@@ -89,6 +89,51 @@ def peoplesnapshot_source(root: str | Path, subject: str, cfg: dict) -> Source:
     )
 
 
+#: what each dataset kind ships, so the DAG runs only the missing steps
+PROVIDES = {
+    "synthetic": ("person", "clothing", "skin", "hair", "keypoints"),
+    "peoplesnapshot": ("person", "keypoints"),
+    "video": (),
+}
+
+
+def default_camera(width: int, height: int) -> PinholeCamera:
+    """The camera assumed for a video without one: pinhole, focal 1.2 x the longer side
+    (about a 45° field of view), principal point at the centre, no distortion, at the origin."""
+    f = 1.2 * max(width, height)
+    K = torch.tensor([[f, 0, width / 2], [0, f, height / 2], [0, 0, 1]], dtype=torch.float64)
+    return PinholeCamera(K, torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64),
+                         torch.zeros(5, dtype=torch.float64), width, height)  # fmt: skip
+
+
+def video_source(root: str | Path, subject: str, cfg: dict) -> Source:
+    """Any video ``{root}/{subject}.mp4``, with an optional ``{root}/{subject}.camera.json``
+    (``{"K": 3x3, "dist": [k1, k2, p1, p2, k3]}``); annotations come from the model steps."""
+    import cv2
+
+    video = Path(root) / f"{subject}.mp4"
+    cap = cv2.VideoCapture(str(video))
+    if not cap.isOpened():
+        raise DeltaError(f"cannot open video {video} (missing, empty or not a video)")
+    n, W, H = (int(cap.get(p)) for p in (cv2.CAP_PROP_FRAME_COUNT, cv2.CAP_PROP_FRAME_WIDTH, cv2.CAP_PROP_FRAME_HEIGHT))
+    cap.release()
+    cam_file = Path(root) / f"{subject}.camera.json"
+    camera = default_camera(W, H)
+    if cam_file.is_file():
+        data = json.loads(cam_file.read_text())
+        if "K" not in data:
+            raise DeltaError(f"{cam_file}: expected a 'K' (3x3) entry")
+        dist = torch.zeros(5, dtype=torch.float64)
+        dist[: len(data.get("dist", []))] = torch.tensor(data.get("dist", []), dtype=torch.float64)
+        camera = PinholeCamera(torch.tensor(data["K"], dtype=torch.float64), camera.R, camera.t, dist, W, H)
+    key = f"datasets.*.subjects.{subject}"
+    frames = _range_frames(cfg.get("train", [0, n - 1, 1]), 0, f"{key}.train")
+    if "test" in cfg:
+        frames += _range_frames(cfg["test"], 1, f"{key}.test")
+    return Source(video=video, camera=camera, frames=frames, num_video_frames=n, provided={},
+                  origin={"camera": "file" if cam_file.is_file() else "default"})  # fmt: skip
+
+
 def synthetic_source(capture: str | Path, subject: str) -> Source:
     """A generated capture: the video plus its ground truth used as the dataset's annotations."""
     capture = Path(capture)

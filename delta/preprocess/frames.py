@@ -125,7 +125,8 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
         raise DeltaError(f"{source.video}: asked for frame {last} but the dataset's annotations hold "
                          f"{source.num_video_frames} frames")  # fmt: skip
     if "person" not in source.provided:
-        raise DeltaError(f"{source.video}: no person masks provided and no matting model configured")
+        raise DeltaError(f"{source.video}: no person masks: the dataset ships none and no matting ran "
+                         "(set preprocess.matting.model and preprocess.matting.path)")  # fmt: skip
     und = Undistorter(source.camera)
     person = source.provided["person"]
     empty = [i for i, _ in source.frames if not (person(i) > 127).any()]
@@ -155,11 +156,12 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
                 kp[:, :2] = box.apply_to_points(torch.from_numpy(und.points(kp[:, :2]))).numpy()
             writer.write(row[i], crop(und.image(rgb), box, cv2.INTER_AREA), out_masks, kp)
         write_camera_attrs(h5, camera)
-        h5.attrs["sources"] = json.dumps({**source.origin, "images": f"video:{source.video.name}"}, sort_keys=True)
+        origin = {k: v for k, v in source.origin.items() if k in source.provided or k == "camera"}
+        h5.attrs["sources"] = json.dumps({**origin, "images": f"video:{source.video.name}"}, sort_keys=True)
         h5.attrs["crop"] = np.array([box.u0, box.v0, box.size, box.out])
         h5.attrs["source_size"] = np.array([source.camera.width, source.camera.height])
         h5.attrs["skipped_empty"] = np.array(empty, dtype=np.int64)
     summary = {"frames": len(frames), "skipped_empty": empty, "crop": [box.u0, box.v0, box.size, box.out],
-               "sources": source.origin}  # fmt: skip
+               "sources": {k: v for k, v in source.origin.items() if k in source.provided or k == "camera"}}  # fmt: skip
     log.info("prepared %s", summary)
     return summary

@@ -119,3 +119,23 @@ def test_missing_peoplesnapshot_files_say_where(tmp_path):
 def test_bad_split_range_is_named(tmp_path, tiny_captures):
     with pytest.raises(DeltaError, match=r"subjects.tight.train: expected \[start, end, step\]"):
         peoplesnapshot_source(tiny_captures / "ps", "tight", {"train": [0, 4], "test": [5, 6, 1]})
+
+
+def test_generic_video_with_a_step_file(tmp_path, tiny_captures):
+    """Any video: default camera unless a camera.json is given; masks from a model step's file."""
+    from delta.data.sources import video_source
+    from delta.preprocess.steps import attach
+
+    shutil.copy(tiny_captures / "tight" / "tight.mp4", tmp_path / "clip.mp4")
+    with h5py.File(tiny_captures / "tight" / "gt" / "frames.h5") as g, h5py.File(tmp_path / "m.h5", "w") as f:
+        f.create_dataset("person", data=g["alpha"][:])
+        f.attrs["model"] = "rvm:test.onnx"
+    src = video_source(tmp_path, "clip", {"train": [0, 4, 1], "test": [5, 6, 1]})
+    assert src.origin["camera"] == "default" and src.camera.K[0, 0] == 1.2 * 128
+    attach(src, tmp_path / "m.h5")
+    summary = prepare(src, tmp_path / "out.h5", 64)
+    assert summary["sources"] == {"person": "model:rvm:test.onnx", "camera": "default"}
+    (tmp_path / "clip.camera.json").write_text(json.dumps({"K": [[300, 0, 64], [0, 300, 64], [0, 0, 1]]}))
+    src = video_source(tmp_path, "clip", {})
+    assert src.origin["camera"] == "file" and src.camera.K[0, 0] == 300 and len(src.frames) == 7
+    src.close()

@@ -1,0 +1,103 @@
+"""Model-based preprocessing steps (matting, parsing), streamed over a subject's frames.
+
+Each step writes one HDF5 file of per-frame masks at the source resolution,
+indexed by video frame, which :mod:`delta.preprocess.frames` reads as if the
+dataset had shipped them; ``attrs['model']`` records which model made them.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from delta import DeltaError
+from delta.io import atomic_path
+from delta.preprocess import onnx_models as om
+from delta.preprocess.frames import iter_video
+
+log = logging.getLogger(__name__)
+
+MATTING = {"rvm": om.RobustVideoMatting, "modnet": om.MODNet}
+PARSING = {"u2net_cloth": om.ClothSegmentation, "bisenet_face": om.FaceParsing}
+
+
+def _model(kind: str, table: dict, path: str, threads: int, key: str):
+    if kind not in table:
+        raise DeltaError(f"{key}: unknown model '{kind}'; known: {sorted(table)}")
+    return table[kind](path, threads=threads, config_key=f"{key.rsplit('.', 1)[0]}.path")
+
+
+def _masks_file(out: Path, n: int, shape: tuple[int, int], names: tuple[str, ...]):
+    f = h5py.File(out, "w")
+    kw = dict(chunks=(1, *shape), compression="gzip", compression_opts=3, track_times=False)
+    return f, {k: f.create_dataset(k, (n, *shape), np.uint8, **kw) for k in names}
+
+
+def video_length(video: str | Path) -> int:
+    import cv2
+
+    cap = cv2.VideoCapture(str(video))
+    if not cap.isOpened():
+        raise DeltaError(f"cannot open video {video} (missing, empty or not a video)")
+    n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
+    cap.release()
+    if n <= 0:
+        raise DeltaError(f"{video}: the video has no frame")
+    return n
+
+
+def run_matting(video: Path, num_frames: int, kind: str, path: str, out: str | Path, threads: int = 1) -> None:
+    """Person alpha (0-255) for every frame of the video, in order (RVM is recurrent)."""
+    model = _model(kind, MATTING, path, threads, "preprocess.matting.model")
+    with atomic_path(out) as tmp:
+        f = None
+        try:
+            for i, rgb in iter_video(Path(video), set(range(num_frames))):
+                if f is None:
+                    f, d = _masks_file(tmp, num_frames, rgb.shape[:2], ("person",))
+                d["person"][i] = np.round(np.clip(model(rgb), 0, 1) * 255).astype(np.uint8)
+            f.attrs["model"] = f"{kind}:{Path(path).name}"
+        finally:
+            if f is not None:
+                f.close()
+    log.info("matting (%s) of %d frames -> %s", kind, num_frames, out)
+
+
+def run_parsing(video: Path, num_frames: int, kind: str, path: str, out: str | Path, threads: int = 1) -> None:
+    """Clothing (U²-Net cloth) or hair and face skin (BiSeNet face parsing) masks, 0/1, per frame."""
+    model = _model(kind, PARSING, path, threads, "preprocess.parsing.model")
+    names = ("clothing",) if kind == "u2net_cloth" else ("hair", "skin")
+    with atomic_path(out) as tmp:
+        f = None
+        try:
+            for i, rgb in iter_video(Path(video), set(range(num_frames))):
+                if f is None:
+                    f, d = _masks_file(tmp, num_frames, rgb.shape[:2], names)
+                classes = model(rgb)
+                if kind == "u2net_cloth":
+                    d["clothing"][i] = om.clothing_mask(classes)
+                else:
+                    d["hair"][i] = om.hair_mask(classes)
+                    d["skin"][i] = om.face_skin_mask(classes)
+            f.attrs["model"] = f"{kind}:{Path(path).name}"
+        finally:
+            if f is not None:
+                f.close()
+    log.info("parsing (%s) of %d frames -> %s", kind, num_frames, out)
+
+
+def attach(source, path: str | Path) -> None:
+    """Add the masks of a step's output file to a Source's provided arrays (not overriding the dataset's)."""
+    f = h5py.File(path, "r")
+    model = str(f.attrs.get("model", "unknown"))
+    for name in f:
+        if name in source.provided:
+            continue
+        dset = f[name]
+        source.provided[name] = lambda i, d=dset: np.asarray(d[i])
+        source.origin[name] = f"model:{model}"
+    previous = source.close
+    source.close = lambda: (previous(), f.close())
