@@ -15,6 +15,12 @@ include: "rules/synthetic.smk"
 include: "rules/preprocess.smk"
 
 
+# cheap bookkeeping runs on the submitting machine, never as a cluster job
+localrules:
+    all,
+    synthetic_peoplesnapshot,
+
+
 rule all:
     input:
         all_targets(),

@@ -20,7 +20,8 @@ rule convert_anny:
         benchmark_path("convert_anny")
     threads: 2
     resources:
-        mem_mb=6000,
+        mem_mb=lambda w, attempt: 6000 * attempt,
+        runtime=30,
     shell:
         "delta convert-anny --out {output.model} --report {output.report} --shape-space {output.shape_space}"
         " --num-shape {params.num_shape} --num-samples {params.num_samples} --seed {params.seed}"

@@ -163,3 +163,25 @@ def all_targets():
         + synthetic_targets()
         + record_targets()
     )
+
+
+# ------------------------------------------------------------ resources
+# Callables so that local and cluster runs use the same figures; memory grows with each retry.
+def _grow(mb, attempt):
+    return int(mb * (1 + 0.5 * (attempt - 1)))
+
+
+def synth_mem_mb(wildcards, attempt):
+    """~1.3 GB measured for a 512² subject; scales with the image area."""
+    res = SYNTHETIC[wildcards.subject].resolution
+    return _grow(1200 + 0.004 * res * res, attempt)
+
+
+def synth_runtime(wildcards, attempt):
+    """Minutes: ~0.8 s a 512² frame on 2 cores, times 3 for slower nodes."""
+    spec = SYNTHETIC[wildcards.subject]
+    return int(5 + attempt * 3 * spec.num_frames * 0.8 * (spec.resolution / 512) ** 2 / 60)
+
+
+def prepare_mem_mb(wildcards, attempt):
+    return _grow(1500 + 0.01 * PRE["resolution"] ** 2, attempt)

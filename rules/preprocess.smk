@@ -22,7 +22,8 @@ rule prepare_frames:
     benchmark:
         benchmark_path("prepare_frames", "{dataset}_{subject}")
     resources:
-        mem_mb=3000,
+        mem_mb=prepare_mem_mb,
+        runtime=30,
     shell:
         "delta prepare --kind {params.kind} --root {params.root} --subject {wildcards.subject}"
         " --subject-config {params.cfg:q} --size {params.size} --margin {params.margin}"

@@ -23,7 +23,8 @@ rule synthesize:
         benchmark_path("synthesize", "{subject}")
     threads: 2
     resources:
-        mem_mb=4000,
+        mem_mb=synth_mem_mb,
+        runtime=synth_runtime,
     shell:
         "delta synthesize --subject {wildcards.subject} --spec {params.spec:q} --body {input.body}"
         " --shape-space {input.shape_space} --anny-cache {params.cache} --out {params.out}"

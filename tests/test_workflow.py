@@ -132,3 +132,13 @@ def test_missing_matting_model_is_explained(tmp_path):
     res = snakemake(work, "--configfile", "m.yaml", "--dry-run")
     assert res.returncode != 0
     assert "dataset 'clips' ships no person masks" in res.stdout + res.stderr
+
+
+@pytest.mark.parametrize("profile", ["slurm", "cluster-generic"])
+def test_cluster_profiles_build_the_dag(tmp_path, profile):
+    work = workflow_copy(tmp_path)
+    res = snakemake(work, "--profile", f"workflow/profiles/{profile}", "--configfile", ".test/config/config.yaml",
+                    "--dry-run")  # fmt: skip
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    out = res.stdout + res.stderr
+    assert "synthesize" in out and "prepare_frames" in out
