@@ -151,6 +151,20 @@ def cmd_parse(args: argparse.Namespace) -> None:
     run_parsing(args.video, video_length(args.video), args.model, args.path, args.out, args.threads)
 
 
+def cmd_keypoints(args: argparse.Namespace) -> None:
+    from delta.preprocess.steps import run_keypoints, video_length
+
+    _threads(args.threads)
+    run_keypoints(args.video, video_length(args.video), args.model, args.path, args.out, args.threads)
+
+
+def cmd_convert_mediapipe(args: argparse.Namespace) -> None:
+    from delta.preprocess.mediapipe_convert import convert
+
+    manifest = convert(args.out, args.env)
+    log.info("converted %s", sorted(manifest["models"]))
+
+
 def cmd_validate_config(args: argparse.Namespace) -> None:
     from delta.config import load_config
 
@@ -217,8 +231,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--summary")
     p.set_defaults(func=cmd_prepare)
 
-    for name, func, models in (("matte", cmd_matte, ["rvm", "modnet"]),
-                               ("parse", cmd_parse, ["u2net_cloth", "bisenet_face"])):  # fmt: skip
+    for name, func, models in (("matte", cmd_matte, ["mediapipe", "rvm", "modnet"]),
+                               ("parse", cmd_parse, ["u2net_cloth", "bisenet_face"]),
+                               ("keypoints", cmd_keypoints, ["mediapipe"])):  # fmt: skip
         p = sub.add_parser(name, help=f"run an ONNX {name} model over every frame of a video")
         p.add_argument("--video", required=True)
         p.add_argument("--model", required=True, choices=models)
@@ -226,6 +241,11 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--out", required=True)
         p.add_argument("--threads", type=int, default=1)
         p.set_defaults(func=func)
+
+    p = sub.add_parser("convert-mediapipe", help="convert MediaPipe's shipped TFLite models to ONNX (once)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--env", required=True, help="where to create the conversion environment")
+    p.set_defaults(func=cmd_convert_mediapipe)
 
     p = sub.add_parser("validate-config", help="check a config file against the workflow schema")
     p.add_argument("config")

@@ -70,10 +70,9 @@ def _check_files(config: dict, base: Path) -> None:
                 raise DeltaError(f"config key 'datasets.{name}.{key}' is required for a dataset other than 'synthetic'")
     for step in ("matting", "parsing"):
         cfg = config["preprocess"][step]
-        if cfg["model"] != "none" and not (base / cfg["path"]).is_file():
+        if cfg["model"] not in ("none", "mediapipe") and not (base / cfg["path"]).is_file():
             raise DeltaError(f"config key 'preprocess.{step}.path': ONNX model not found: {base / cfg['path']}. "
                              f"Download the {cfg['model']} export and give its path, or set model: none")  # fmt: skip
-    _check_matting_needed(config)
     body = config["body_model"]
     if body["name"] == "smplx":
         path = base / body["smplx_path"]
@@ -81,19 +80,6 @@ def _check_files(config: dict, base: Path) -> None:
             from delta.body.smplx_loader import MISSING_HELP
 
             raise DeltaError(f"config key 'body_model.smplx_path': file not found: {path}. {MISSING_HELP}")
-
-
-def _check_matting_needed(config: dict) -> None:
-    from delta.data.sources import PROVIDES
-
-    if config["preprocess"]["matting"]["model"] != "none":
-        return
-    for name, dataset in config["datasets"].items():
-        kind = "synthetic" if name == "synthetic" else dataset["kind"]
-        used = [a for a in PROVIDES[kind] if a in dataset.get("use_provided", PROVIDES[kind])]
-        if "person" not in used:
-            raise DeltaError(f"dataset '{name}' ships no person masks (or use_provided leaves them out): "
-                             "set preprocess.matting.model (rvm or modnet) and preprocess.matting.path")  # fmt: skip
 
 
 def load_config(path: str | os.PathLike, schema_path: str | os.PathLike) -> dict:

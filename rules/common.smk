@@ -46,6 +46,9 @@ PATHS = {
     "syn_ps_dir": "data/synthetic_ps/{subject}",
     "record": "results/{dataset}/{subject}/frames.h5",
     "matting": "results/{dataset}/{subject}/matting.h5",
+    "keypoints": "results/{dataset}/{subject}/keypoints.h5",
+    "mediapipe_pose": f"{PRE['models_dir']}/mediapipe/pose_landmark_full.onnx",
+    "mediapipe_face": f"{PRE['models_dir']}/mediapipe/face_landmark.onnx",
     "parsing": "results/{dataset}/{subject}/parsing.h5",
     "record_summary": "results/{dataset}/{subject}/frames.json",
     "log": "logs/{rule}/{name}.log",
@@ -129,7 +132,15 @@ def step_files(wildcards):
         files["matting"] = PATHS["matting"].format(**wildcards)
     if needs_parsing(wildcards.dataset):
         files["parsing"] = PATHS["parsing"].format(**wildcards)
+    if "keypoints" not in used_provided(wildcards.dataset):
+        files["keypoints"] = PATHS["keypoints"].format(**wildcards)
     return files
+
+
+def matting_model(wildcards=None):
+    """The ONNX file the matting step runs: the converted default or the user's export."""
+    m = PRE["matting"]
+    return PATHS["mediapipe_pose"] if m["model"] == "mediapipe" else m["path"]
 
 
 def video_input(wildcards):

@@ -33,12 +33,12 @@ rule prepare_frames:
 
 rule matte:
     input:
-        video_input,
+        video=video_input,
+        model=matting_model(),
     output:
         PATHS["matting"],
     params:
         model=PRE["matting"]["model"],
-        path=PRE["matting"]["path"],
     conda:
         "../workflow/envs/delta.yaml"
     log:
@@ -49,7 +49,7 @@ rule matte:
     resources:
         mem_mb=4000,
     shell:
-        "delta matte --video {input} --model {params.model} --path {params.path} --out {output}"
+        "delta matte --video {input.video} --model {params.model} --path {input.model} --out {output}"
         " --threads {threads} > {log} 2>&1"
 
 
@@ -73,3 +73,44 @@ rule parse:
     shell:
         "delta parse --video {input} --model {params.model} --path {params.path} --out {output}"
         " --threads {threads} > {log} 2>&1"
+
+
+rule keypoints:
+    input:
+        video=video_input,
+        model=PATHS["mediapipe_pose"],
+    output:
+        PATHS["keypoints"],
+    params:
+        model=PRE["keypoints"]["model"],
+    conda:
+        "../workflow/envs/delta.yaml"
+    log:
+        log_path("keypoints", "{dataset}_{subject}"),
+    benchmark:
+        benchmark_path("keypoints", "{dataset}_{subject}")
+    resources:
+        mem_mb=2000,
+    shell:
+        "delta keypoints --video {input.video} --model {params.model} --path {input.model} --out {output}"
+        " > {log} 2>&1"
+
+
+rule convert_mediapipe:
+    output:
+        pose=PATHS["mediapipe_pose"],
+        face=PATHS["mediapipe_face"],
+    params:
+        out=lambda w: str(Path(PATHS["mediapipe_pose"]).parent),
+        env=f"{PRE['envs_dir']}/mediapipe-convert",
+    conda:
+        "../workflow/envs/delta.yaml"
+    log:
+        log_path("convert_mediapipe"),
+    benchmark:
+        benchmark_path("convert_mediapipe")
+    resources:
+        mem_mb=4000,
+        runtime=30,
+    shell:
+        "delta convert-mediapipe --out {params.out} --env {params.env} > {log} 2>&1"

@@ -13,6 +13,7 @@ from delta.body.model import BodyModel
 
 REPO = Path(__file__).resolve().parents[1]
 ANNY_CACHE = Path(os.environ.get("DELTA_ANNY_CACHE", REPO / "resources" / "anny_cache"))
+MODELS_DIR = REPO / "resources" / "models"
 
 
 def tree_model(dtype=torch.float64, num_shape: int = 2, seed: int = 0) -> BodyModel:
@@ -135,3 +136,14 @@ def tiny_captures(tmp_path_factory, anny_files):
         if spec.camera == "pinhole":
             write_peoplesnapshot(root / name, name, root / "ps" / name)
     return root
+
+
+@pytest.fixture(scope="session")
+def mediapipe_pose_model():
+    """MediaPipe's pose landmark model in ONNX, converted once (the first run installs the converter)."""
+    from delta.preprocess.mediapipe_convert import MODELS, convert
+
+    target = MODELS_DIR / "mediapipe" / "pose_landmark_full.onnx"
+    if not all((MODELS_DIR / "mediapipe" / f"{m}.onnx").is_file() for m in MODELS):
+        convert(MODELS_DIR / "mediapipe", REPO / "resources" / "envs" / "mediapipe-convert")
+    return target

@@ -83,21 +83,6 @@ def test_bad_config_stops_before_any_job(tmp_path):
     assert not (work / "resources").exists() and not (work / "logs").exists()
 
 
-def test_missing_smplx_is_explained(tmp_path):
-    work = workflow_copy(tmp_path)
-    (work / "smplx.yaml").write_text("body_model:\n  name: smplx\n")
-    res = snakemake(work, "--configfile", "smplx.yaml", "--dry-run")
-    assert res.returncode != 0
-    out = res.stdout + res.stderr
-    assert "SMPLX_NEUTRAL.npz" in out and "body_model.smplx_path" in out
-
-
-def test_bad_subject_spec_stops_before_any_job(tmp_path):
-    work = workflow_copy(tmp_path)
-    (work / "bad.yaml").write_text("datasets:\n  synthetic:\n    subjects:\n      x: {garments: [cape]}\n")
-    res = snakemake(work, "--configfile", "bad.yaml", "--dry-run")
-    assert res.returncode != 0
-    assert "datasets.synthetic.subjects.x.garments[0]: unknown garment 'cape'" in res.stdout + res.stderr
 
 
 @pytest.mark.slow
@@ -126,12 +111,24 @@ def test_model_steps_run_only_where_the_dataset_ships_nothing(tmp_path):
     assert (work / "logs/matte/synthetic_tight.log").is_file() and (work / "logs/parse/synthetic_tight.log").is_file()
 
 
-def test_missing_matting_model_is_explained(tmp_path):
+@pytest.mark.parametrize(
+    "config_text,messages",
+    [
+        ("body_model:\n  name: smplx\n", ["SMPLX_NEUTRAL.npz", "body_model.smplx_path"]),
+        ("datasets:\n  synthetic:\n    subjects:\n      x: {garments: [cape]}\n",
+         ["datasets.synthetic.subjects.x.garments[0]: unknown garment 'cape'"]),
+        ("datasets:\n  clips:\n    root: videos\n    subjects: {a: {}}\n",
+         ["'datasets.clips.kind' is required"]),
+        ("preprocess:\n  matting: {model: rvm, path: nowhere/rvm.onnx}\n", ["preprocess.matting.path", "nowhere/rvm.onnx"]),
+    ],
+)  # fmt: skip
+def test_config_problems_are_explained_at_dag_construction(tmp_path, config_text, messages):
     work = workflow_copy(tmp_path)
-    (work / "m.yaml").write_text("datasets:\n  clips:\n    kind: video\n    root: videos\n    subjects: {a: {}}\n")
-    res = snakemake(work, "--configfile", "m.yaml", "--dry-run")
+    (work / "c.yaml").write_text(config_text)
+    res = snakemake(work, "--configfile", "c.yaml", "--dry-run")
     assert res.returncode != 0
-    assert "dataset 'clips' ships no person masks" in res.stdout + res.stderr
+    for message in messages:
+        assert message in res.stdout + res.stderr
 
 
 @pytest.mark.parametrize("profile", ["slurm", "cluster-generic"])
@@ -142,3 +139,24 @@ def test_cluster_profiles_build_the_dag(tmp_path, profile):
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
     out = res.stdout + res.stderr
     assert "synthesize" in out and "prepare_frames" in out
+
+
+@pytest.mark.slow
+def test_generic_video_runs_the_offline_default_steps(tmp_path, tiny_captures, mediapipe_pose_model):
+    """A dataset of plain videos: matting and keypoints come from the converted MediaPipe model."""
+    work = workflow_copy(tmp_path)
+    (work / "videos").mkdir()
+    shutil.copy(tiny_captures / "tight" / "tight.mp4", work / "videos" / "clip.mp4")
+    cfg = {
+        "body_model": {"anny": {"cache_dir": str(ANNY_CACHE), "num_shape": 8, "num_samples": 64}},
+        "preprocess": {"resolution": 64, "models_dir": str(mediapipe_pose_model.parent.parent)},
+        "datasets": {"clips": {"kind": "video", "root": "videos", "subjects": {"clip": {}}}},
+    }
+    (work / "video.yaml").write_text(yaml.safe_dump(cfg))
+    res = snakemake(work, "results/clips/clip/frames.json", "--configfile", "video.yaml")
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    summary = json.loads((work / "results/clips/clip/frames.json").read_text())
+    assert summary["sources"] == {"person": "model:mediapipe:pose_landmark_full.onnx",
+                                  "keypoints": "model:mediapipe:pose_landmark_full.onnx", "camera": "default"}  # fmt: skip
+    assert summary["frames"] == 7
+    assert "convert_mediapipe" not in res.stdout + res.stderr  # the converted model was reused

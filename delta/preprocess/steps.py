@@ -20,7 +20,14 @@ from delta.preprocess.frames import iter_video
 
 log = logging.getLogger(__name__)
 
-MATTING = {"rvm": om.RobustVideoMatting, "modnet": om.MODNet}
+def _mediapipe(path, threads=1, config_key=None):
+    from delta.preprocess.pose_landmarks import PoseLandmarker
+
+    landmarker = PoseLandmarker(path, threads=threads, config_key=config_key)
+    return lambda frame: landmarker(frame).mask
+
+
+MATTING = {"rvm": om.RobustVideoMatting, "modnet": om.MODNet, "mediapipe": _mediapipe}
 PARSING = {"u2net_cloth": om.ClothSegmentation, "bisenet_face": om.FaceParsing}
 
 
@@ -87,6 +94,22 @@ def run_parsing(video: Path, num_frames: int, kind: str, path: str, out: str | P
             if f is not None:
                 f.close()
     log.info("parsing (%s) of %d frames -> %s", kind, num_frames, out)
+
+
+def run_keypoints(video: Path, num_frames: int, kind: str, path: str, out: str | Path, threads: int = 1) -> None:
+    """OpenPose-18 keypoints (u, v, confidence) per frame from MediaPipe's pose landmarks."""
+    from delta.preprocess.pose_landmarks import PoseLandmarker
+
+    if kind != "mediapipe":
+        raise DeltaError(f"preprocess.keypoints.model: unknown model '{kind}'; known: ['mediapipe']")
+    model = PoseLandmarker(path, threads=threads, config_key="preprocess.keypoints.path")
+    keypoints = np.zeros((num_frames, 18, 3), np.float32)
+    for i, rgb in iter_video(Path(video), set(range(num_frames))):
+        keypoints[i] = model(rgb).openpose18()
+    with atomic_path(out) as tmp, h5py.File(tmp, "w") as f:
+        f.create_dataset("keypoints", data=keypoints, track_times=False)
+        f.attrs["model"] = f"{kind}:{Path(path).name}"
+    log.info("keypoints (%s) of %d frames -> %s", kind, num_frames, out)
 
 
 def attach(source, path: str | Path) -> None:

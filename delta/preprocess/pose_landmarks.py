@@ -1,0 +1,101 @@
+"""The offline default for person masks and body keypoints: MediaPipe's pose landmark model in ONNX.
+
+``pose_landmark_full.onnx`` (converted by :mod:`delta.preprocess.mediapipe_convert`)
+takes a 256 x 256 RGB crop in [0, 1] (NHWC) and returns 39 landmarks (x, y, z,
+visibility and presence logits; the first 33 are BlazePose's body points, in crop
+pixels), a pose-presence score and 256 x 256 segmentation logits. The person is
+tracked: each frame's crop is the square around the previous frame's landmarks
+(the whole frame at the start or when the person is lost).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from delta.preprocess.onnx_models import check_frame, open_session
+
+INPUT = 256
+#: OpenPose-18 keypoint -> BlazePose-33 landmark(s) (averaged)
+OPENPOSE18_FROM_BLAZEPOSE: tuple[tuple[int, ...], ...] = (
+    (0,), (11, 12), (12,), (14,), (16,), (11,), (13,), (15,), (24,), (26,), (28,), (23,), (25,), (27,),
+    (5,), (2,), (8,), (7,),
+)  # fmt: skip
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-np.clip(x, -60, 60)))
+
+
+@dataclasses.dataclass
+class PoseResult:
+    mask: np.ndarray
+    """(H, W) float32 person probability."""
+    landmarks: np.ndarray
+    """(33, 3) BlazePose landmarks (u, v, visibility) in frame pixel coordinates (centres at +0.5)."""
+    presence: float
+    """Probability that a person is in the crop."""
+
+    def openpose18(self) -> np.ndarray:
+        """(18, 3) keypoints (u, v, confidence); confidence 0 when no person was found."""
+        out = np.zeros((18, 3), np.float32)
+        for k, ids in enumerate(OPENPOSE18_FROM_BLAZEPOSE):
+            out[k, :2] = self.landmarks[list(ids), :2].mean(0)
+            out[k, 2] = self.landmarks[list(ids), 2].min() * (self.presence > 0.5)
+        return out
+
+
+class PoseLandmarker:
+    """Person mask and body landmarks per frame, tracking the person across frames."""
+
+    def __init__(self, path: str | Path, threads: int = 1, config_key: str | None = None, margin: float = 1.35):
+        self.path = Path(path)
+        self.session = open_session(self.path, {"input_1": 4}, 5, threads, config_key)
+        self.margin = margin
+        self.roi: tuple[float, float, float] | None = None  # centre u, centre v, side
+
+    def reset(self) -> None:
+        self.roi = None
+
+    def _crop(self, frame: np.ndarray, roi) -> tuple[np.ndarray, float, float, float]:
+        cu, cv, side = roi
+        scale = INPUT / side
+        # affine map frame pixel-index coords -> crop pixel-index coords (pixel centres aligned)
+        tx = INPUT / 2 - cu * scale - 0.5 + 0.5 * scale
+        ty = INPUT / 2 - cv * scale - 0.5 + 0.5 * scale
+        M = np.array([[scale, 0, tx], [0, scale, ty]], dtype=np.float64)
+        crop = cv2.warpAffine(frame, M, (INPUT, INPUT), flags=cv2.INTER_AREA if scale < 1 else cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_CONSTANT)  # fmt: skip
+        return crop, scale, tx, ty
+
+    def __call__(self, frame_rgb_uint8: np.ndarray) -> PoseResult:
+        frame = check_frame(frame_rgb_uint8, self.path)
+        H, W = frame.shape[:2]
+        roi = self.roi or (W / 2, H / 2, float(max(H, W)))
+        crop, scale, tx, ty = self._crop(frame, roi)
+        out = self.session.run(None, {"input_1": crop[None].astype(np.float32) / 255.0})
+        raw = out[0].reshape(-1, 5)[:33]
+        presence = float(np.asarray(out[1]).reshape(-1)[0])
+        # crop coords (continuous, centres at +0.5) -> frame continuous coords
+        u = (raw[:, 0] - 0.5 - tx) / scale + 0.5
+        v = (raw[:, 1] - 0.5 - ty) / scale + 0.5
+        vis = _sigmoid(raw[:, 3])
+        Minv = cv2.invertAffineTransform(np.array([[scale, 0, tx], [0, scale, ty]]))
+        seg = _sigmoid(np.asarray(out[2])[0, :, :, 0]).astype(np.float32)
+        mask = cv2.warpAffine(seg, Minv, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        result = PoseResult(mask=mask, landmarks=np.stack([u, v, vis], 1).astype(np.float32), presence=presence)
+        self._track(result)
+        return result
+
+    def _track(self, result: PoseResult) -> None:
+        seen = result.landmarks[:, 2] > 0.5
+        if result.presence < 0.5 or seen.sum() < 4:
+            self.roi = None
+            return
+        pts = result.landmarks[seen, :2]
+        lo, hi = pts.min(0), pts.max(0)
+        centre = (lo + hi) / 2
+        self.roi = (float(centre[0]), float(centre[1]), float((hi - lo).max() * self.margin + 16))

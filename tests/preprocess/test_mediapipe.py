@@ -1,0 +1,57 @@
+"""The offline default: MediaPipe's pose landmark model converted to ONNX, on a real photo and on
+the synthetic captures."""
+
+import h5py
+import numpy as np
+import pytest
+from skimage import data
+
+from delta.preprocess.pose_landmarks import OPENPOSE18_FROM_BLAZEPOSE, PoseLandmarker
+from delta.body.keypoints import OPENPOSE18
+
+pytestmark = pytest.mark.slow
+
+
+def test_astronaut_mask_covers_the_person_and_face_points_land_on_the_face(mediapipe_pose_model):
+    img = data.astronaut()  # a real person, 512 x 512
+    result = PoseLandmarker(mediapipe_pose_model)(img)
+    assert result.presence > 0.5
+    mask = result.mask
+    assert mask[90:160, 200:270].mean() > 0.9  # the face
+    assert mask[300:420, 60:200].mean() > 0.8  # the suit's shoulder and chest
+    assert mask[0:60, 440:512].mean() < 0.1  # the background above the shuttle
+    kp = result.openpose18()
+    face = {n: kp[OPENPOSE18.index(n)] for n in ("nose", "left_eye", "right_eye", "left_ear", "right_ear")}
+    for name, (u, v, conf) in face.items():
+        assert 170 < u < 300 and 60 < v < 200, f"{name} at ({u:.0f}, {v:.0f}) is off the face"
+        assert conf > 0.5
+    assert face["left_eye"][0] > face["nose"][0] > face["right_eye"][0]  # the subject's left is image right
+    assert face["nose"][1] > face["left_eye"][1]
+
+
+def test_keypoint_map_is_complete():
+    assert len(OPENPOSE18_FROM_BLAZEPOSE) == len(OPENPOSE18) == 18
+
+
+@pytest.mark.parametrize("subject", ["tight", "loose"])
+def test_synthetic_masks_and_keypoints_match_ground_truth(mediapipe_pose_model, tiny_captures, subject):
+    import cv2
+
+    capture = tiny_captures / subject
+    model = PoseLandmarker(mediapipe_pose_model)
+    cap = cv2.VideoCapture(str(capture / f"{subject}.mp4"))
+    ious, errors = [], []
+    with h5py.File(capture / "gt" / "frames.h5") as gt:
+        for i in range(gt["person"].shape[0]):
+            ok, frame = cap.read()
+            assert ok
+            r = model(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+            pred, true = r.mask > 0.5, gt["person"][i] > 0
+            ious.append((pred & true).sum() / (pred | true).sum())
+            kp, gk = r.openpose18(), gt["keypoints"][i]
+            body = [OPENPOSE18.index(n) for n in ("left_shoulder", "right_shoulder", "left_hip", "right_hip")]
+            seen = [k for k in body if gk[k, 2] == 1 and kp[k, 2] > 0.5]
+            if seen:
+                errors.append(np.linalg.norm(kp[seen, :2] - gk[seen, :2], axis=1).mean())
+    assert np.mean(ious) > 0.85, ious  # 128² captures: boundary pixels weigh a lot
+    assert errors and np.median(errors) < 0.06 * 128  # within ~8 px at 128²
