@@ -232,7 +232,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_prepare)
 
     for name, func, models in (("matte", cmd_matte, ["mediapipe", "rvm", "modnet"]),
-                               ("parse", cmd_parse, ["u2net_cloth", "bisenet_face"]),
+                               ("parse", cmd_parse, ["default", "u2net_cloth", "bisenet_face"]),
                                ("keypoints", cmd_keypoints, ["mediapipe"])):  # fmt: skip
         p = sub.add_parser(name, help=f"run an ONNX {name} model over every frame of a video")
         p.add_argument("--video", required=True)

@@ -70,7 +70,7 @@ def _check_files(config: dict, base: Path) -> None:
                 raise DeltaError(f"config key 'datasets.{name}.{key}' is required for a dataset other than 'synthetic'")
     for step in ("matting", "parsing"):
         cfg = config["preprocess"][step]
-        if cfg["model"] not in ("none", "mediapipe") and not (base / cfg["path"]).is_file():
+        if cfg["model"] not in ("none", "mediapipe", "default") and not (base / cfg["path"]).is_file():
             raise DeltaError(f"config key 'preprocess.{step}.path': ONNX model not found: {base / cfg['path']}. "
                              f"Download the {cfg['model']} export and give its path, or set model: none")  # fmt: skip
     body = config["body_model"]

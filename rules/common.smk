@@ -122,7 +122,9 @@ def used_provided(dataset):
 
 
 def needs_parsing(dataset):
-    wanted = {"u2net_cloth": {"clothing"}, "bisenet_face": {"hair", "skin"}}.get(PRE["parsing"]["model"], set())
+    wanted = {"default": {"clothing"}, "u2net_cloth": {"clothing"}, "bisenet_face": {"hair", "skin"}}.get(
+        PRE["parsing"]["model"], set()
+    )
     return bool(wanted - set(used_provided(dataset)))
 
 
@@ -137,10 +139,20 @@ def step_files(wildcards):
     return files
 
 
-def matting_model(wildcards=None):
-    """The ONNX file the matting step runs: the converted default or the user's export."""
-    m = PRE["matting"]
-    return PATHS["mediapipe_pose"] if m["model"] == "mediapipe" else m["path"]
+def _step_model(step, default_model):
+    """The ONNX file a step runs: the converted MediaPipe model for the defaults, else the user's export."""
+    m = PRE[step]
+    if m["model"] == "none":
+        return []
+    return PATHS["mediapipe_pose"] if m["model"] == default_model else m["path"]
+
+
+def matting_model():
+    return _step_model("matting", "mediapipe")
+
+
+def parsing_model():
+    return _step_model("parsing", "default")
 
 
 def video_input(wildcards):

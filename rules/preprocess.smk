@@ -55,12 +55,12 @@ rule matte:
 
 rule parse:
     input:
-        video_input,
+        video=video_input,
+        model=parsing_model(),
     output:
         PATHS["parsing"],
     params:
         model=PRE["parsing"]["model"],
-        path=PRE["parsing"]["path"],
     conda:
         "../workflow/envs/delta.yaml"
     log:
@@ -71,7 +71,7 @@ rule parse:
     resources:
         mem_mb=4000,
     shell:
-        "delta parse --video {input} --model {params.model} --path {params.path} --out {output}"
+        "delta parse --video {input.video} --model {params.model} --path {input.model} --out {output}"
         " --threads {threads} > {log} 2>&1"
 
 

@@ -36,10 +36,11 @@ def test_lint_is_clean():
 
 
 @pytest.mark.slow
-def test_tiny_configuration_end_to_end(tmp_path):
+def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
     work = workflow_copy(tmp_path)
     cfg = yaml.safe_load((work / ".test/config/config.yaml").read_text())
     cfg["body_model"]["anny"]["cache_dir"] = str(ANNY_CACHE)  # reuse the session's Anny build
+    cfg["preprocess"]["models_dir"] = str(mediapipe_pose_model.parent.parent)  # and its converted models
     (work / ".test/config/ci.yaml").write_text(yaml.safe_dump(cfg))
     res = snakemake(work, "--configfile", ".test/config/ci.yaml")
     assert res.returncode == 0, res.stdout[-4000:] + res.stderr[-4000:]
@@ -65,9 +66,10 @@ def test_tiny_configuration_end_to_end(tmp_path):
     for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", "tight")):
         summary = json.loads((work / "results" / dataset / subject / "frames.json").read_text())
         assert summary["frames"] > 0 and "person" in summary["sources"]
-    assert json.loads((work / "results/peoplesnapshot/tight/frames.json").read_text())["sources"]["person"] == (
-        "dataset:masks.hdf5"
-    )
+    ps_sources = json.loads((work / "results/peoplesnapshot/tight/frames.json").read_text())["sources"]
+    assert ps_sources["person"] == "dataset:masks.hdf5"  # shipped: no matting ran
+    assert ps_sources["clothing"] == "model:default:pose_landmark_full.onnx"  # not shipped: the default parser
+    assert not (work / "logs/matte").exists()
     # a rerun has nothing to do
     again = snakemake(work, "--configfile", ".test/config/ci.yaml", "--dry-run")
     assert "Nothing to be done" in again.stdout + again.stderr
@@ -97,7 +99,8 @@ def test_model_steps_run_only_where_the_dataset_ships_nothing(tmp_path):
     cfg = yaml.safe_load((work / ".test/config/config.yaml").read_text())
     cfg["body_model"]["anny"]["cache_dir"] = str(ANNY_CACHE)
     default = snakemake(work, "--configfile", ".test/config/config.yaml", "--dry-run")
-    assert default.returncode == 0 and "matte" not in default.stdout and "parse" not in default.stdout
+    assert default.returncode == 0 and "matte" not in default.stdout
+    assert "logs/parse/synthetic" not in default.stdout  # the synthetic dataset ships its parsing
     cfg["datasets"] = {"synthetic": {"subjects": {"tight": cfg["datasets"]["synthetic"]["subjects"]["tight"]},
                                      "use_provided": ["keypoints"]}}  # fmt: skip
     cfg["preprocess"]["matting"] = {"model": "rvm", "path": "rvm.onnx"}
@@ -156,7 +159,9 @@ def test_generic_video_runs_the_offline_default_steps(tmp_path, tiny_captures, m
     res = snakemake(work, "results/clips/clip/frames.json", "--configfile", "video.yaml")
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
     summary = json.loads((work / "results/clips/clip/frames.json").read_text())
-    assert summary["sources"] == {"person": "model:mediapipe:pose_landmark_full.onnx",
-                                  "keypoints": "model:mediapipe:pose_landmark_full.onnx", "camera": "default"}  # fmt: skip
+    pose = "pose_landmark_full.onnx"
+    assert summary["sources"] == {"person": f"model:mediapipe:{pose}", "keypoints": f"model:mediapipe:{pose}",
+                                  "clothing": f"model:default:{pose}", "skin": f"model:default:{pose}",
+                                  "hair": f"model:default:{pose}", "camera": "default"}  # fmt: skip
     assert summary["frames"] == 7
     assert "convert_mediapipe" not in res.stdout + res.stderr  # the converted model was reused

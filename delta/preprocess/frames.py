@@ -147,9 +147,9 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
                 raise DeltaError(f"{source.video}: frame {i} is {rgb.shape[1]}x{rgb.shape[0]} but its mask is "
                                  f"{mask.shape[1]}x{mask.shape[0]}")  # fmt: skip
             out_masks = {"person": crop(und.image(mask, mask=True), box, cv2.INTER_AREA, mask=True)}
-            for m in masks[1:]:
+            for m in masks[1:]:  # parts lie inside the person, whichever step made each
                 part = und.image(source.provided[m](i), mask=True, nearest=True)
-                out_masks[m] = crop(part, box, cv2.INTER_NEAREST, mask=True)
+                out_masks[m] = crop(part, box, cv2.INTER_NEAREST, mask=True) * (out_masks["person"] > 127)
             kp = None
             if "keypoints" in source.provided:
                 kp = np.asarray(source.provided["keypoints"](i), dtype=np.float64).copy()

@@ -28,7 +28,22 @@ def _mediapipe(path, threads=1, config_key=None):
 
 
 MATTING = {"rvm": om.RobustVideoMatting, "modnet": om.MODNet, "mediapipe": _mediapipe}
-PARSING = {"u2net_cloth": om.ClothSegmentation, "bisenet_face": om.FaceParsing}
+def _default_parser(path, threads=1, config_key=None):
+    """MediaPipe pose landmarks + the skin-colour parser (:mod:`delta.preprocess.parsing_default`)."""
+    from delta.preprocess.parsing_default import VideoParser
+    from delta.preprocess.pose_landmarks import PoseLandmarker
+
+    landmarker, parser = PoseLandmarker(path, threads=threads, config_key=config_key), VideoParser()
+
+    def parse(frame):
+        pose = landmarker(frame)
+        return parser(frame, pose.mask, pose)
+
+    return parse
+
+
+PARSING = {"default": _default_parser, "u2net_cloth": om.ClothSegmentation, "bisenet_face": om.FaceParsing}
+PARSED = {"default": ("clothing", "skin", "hair"), "u2net_cloth": ("clothing",), "bisenet_face": ("hair", "skin")}
 
 
 def _model(kind: str, table: dict, path: str, threads: int, key: str):
@@ -74,21 +89,25 @@ def run_matting(video: Path, num_frames: int, kind: str, path: str, out: str | P
 
 
 def run_parsing(video: Path, num_frames: int, kind: str, path: str, out: str | Path, threads: int = 1) -> None:
-    """Clothing (U²-Net cloth) or hair and face skin (BiSeNet face parsing) masks, 0/1, per frame."""
+    """Clothing, skin and hair (default), clothing (U²-Net cloth) or hair and face skin (BiSeNet face
+    parsing) masks, 0/1, per frame."""
     model = _model(kind, PARSING, path, threads, "preprocess.parsing.model")
-    names = ("clothing",) if kind == "u2net_cloth" else ("hair", "skin")
+    names = PARSED[kind]
     with atomic_path(out) as tmp:
         f = None
         try:
             for i, rgb in iter_video(Path(video), set(range(num_frames))):
                 if f is None:
                     f, d = _masks_file(tmp, num_frames, rgb.shape[:2], names)
-                classes = model(rgb)
-                if kind == "u2net_cloth":
-                    d["clothing"][i] = om.clothing_mask(classes)
+                result = model(rgb)
+                if kind == "default":
+                    for name in names:
+                        d[name][i] = result[name]
+                elif kind == "u2net_cloth":
+                    d["clothing"][i] = om.clothing_mask(result)
                 else:
-                    d["hair"][i] = om.hair_mask(classes)
-                    d["skin"][i] = om.face_skin_mask(classes)
+                    d["hair"][i] = om.hair_mask(result)
+                    d["skin"][i] = om.face_skin_mask(result)
             f.attrs["model"] = f"{kind}:{Path(path).name}"
         finally:
             if f is not None:

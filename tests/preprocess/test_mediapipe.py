@@ -55,3 +55,26 @@ def test_synthetic_masks_and_keypoints_match_ground_truth(mediapipe_pose_model, 
                 errors.append(np.linalg.norm(kp[seen, :2] - gk[seen, :2], axis=1).mean())
     assert np.mean(ious) > 0.85, ious  # 128² captures: boundary pixels weigh a lot
     assert errors and np.median(errors) < 0.06 * 128  # within ~8 px at 128²
+
+
+@pytest.mark.parametrize("subject", ["tight", "loose"])
+def test_default_parser_partitions_the_person(mediapipe_pose_model, tiny_captures, subject):
+    """Skin, hair and clothing partition the person; clothing overlaps the ground truth's."""
+    import cv2
+
+    from delta.preprocess.parsing_default import VideoParser
+
+    capture = tiny_captures / subject
+    landmarker, parser = PoseLandmarker(mediapipe_pose_model), VideoParser()
+    cap = cv2.VideoCapture(str(capture / f"{subject}.mp4"))
+    ious = []
+    with h5py.File(capture / "gt" / "frames.h5") as gt:
+        for i in range(gt["person"].shape[0]):
+            rgb = cv2.cvtColor(cap.read()[1], cv2.COLOR_BGR2RGB)
+            pose = landmarker(rgb)
+            masks = parser(rgb, pose.mask, pose)
+            total = masks["skin"].astype(int) + masks["hair"] + masks["clothing"]
+            assert (total == (pose.mask > 0.5)).all()
+            a, b = masks["clothing"] > 0, gt["clothing"][i] > 0
+            ious.append((a & b).sum() / (a | b).sum())
+    assert np.mean(ious) > 0.7, ious  # ~0.9 at 512² (benchmarks/preprocess_quality.py); 128² here
