@@ -155,7 +155,8 @@ def cmd_keypoints(args: argparse.Namespace) -> None:
     from delta.preprocess.steps import run_keypoints, video_length
 
     _threads(args.threads)
-    run_keypoints(args.video, video_length(args.video), args.model, args.path, args.out, args.threads)
+    run_keypoints(args.video, video_length(args.video), args.model, args.path, args.out, args.threads,
+                  args.face_path)  # fmt: skip
 
 
 def cmd_convert_mediapipe(args: argparse.Namespace) -> None:
@@ -240,6 +241,8 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--path", required=True, help="the ONNX file")
         p.add_argument("--out", required=True)
         p.add_argument("--threads", type=int, default=1)
+        if name == "keypoints":
+            p.add_argument("--face-path", help="face_landmark.onnx: also write face-mesh landmarks")
         p.set_defaults(func=func)
 
     p = sub.add_parser("convert-mediapipe", help="convert MediaPipe's shipped TFLite models to ONNX (once)")

@@ -134,7 +134,7 @@ def step_files(wildcards):
         files["matting"] = PATHS["matting"].format(**wildcards)
     if needs_parsing(wildcards.dataset):
         files["parsing"] = PATHS["parsing"].format(**wildcards)
-    if "keypoints" not in used_provided(wildcards.dataset):
+    if "keypoints" not in used_provided(wildcards.dataset) or PRE["face_landmarks"]:
         files["keypoints"] = PATHS["keypoints"].format(**wildcards)
     return files
 

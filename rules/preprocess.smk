@@ -79,10 +79,12 @@ rule keypoints:
     input:
         video=video_input,
         model=PATHS["mediapipe_pose"],
+        face=PATHS["mediapipe_face"] if PRE["face_landmarks"] else [],
     output:
         PATHS["keypoints"],
     params:
         model=PRE["keypoints"]["model"],
+        face=lambda w, input: f"--face-path {input.face}" if PRE["face_landmarks"] else "",
     conda:
         "../workflow/envs/delta.yaml"
     log:
@@ -92,8 +94,8 @@ rule keypoints:
     resources:
         mem_mb=2000,
     shell:
-        "delta keypoints --video {input.video} --model {params.model} --path {input.model} --out {output}"
-        " > {log} 2>&1"
+        "delta keypoints --video {input.video} --model {params.model} --path {input.model} {params.face}"
+        " --out {output} > {log} 2>&1"
 
 
 rule convert_mediapipe:

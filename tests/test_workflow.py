@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import h5py
 import pytest
 import yaml
 
@@ -152,7 +153,7 @@ def test_generic_video_runs_the_offline_default_steps(tmp_path, tiny_captures, m
     shutil.copy(tiny_captures / "tight" / "tight.mp4", work / "videos" / "clip.mp4")
     cfg = {
         "body_model": {"anny": {"cache_dir": str(ANNY_CACHE), "num_shape": 8, "num_samples": 64}},
-        "preprocess": {"resolution": 64, "models_dir": str(mediapipe_pose_model.parent.parent)},
+        "preprocess": {"resolution": 64, "models_dir": str(mediapipe_pose_model.parent.parent), "face_landmarks": True},
         "datasets": {"clips": {"kind": "video", "root": "videos", "subjects": {"clip": {}}}},
     }
     (work / "video.yaml").write_text(yaml.safe_dump(cfg))
@@ -162,6 +163,9 @@ def test_generic_video_runs_the_offline_default_steps(tmp_path, tiny_captures, m
     pose = "pose_landmark_full.onnx"
     assert summary["sources"] == {"person": f"model:mediapipe:{pose}", "keypoints": f"model:mediapipe:{pose}",
                                   "clothing": f"model:default:{pose}", "skin": f"model:default:{pose}",
-                                  "hair": f"model:default:{pose}", "camera": "default"}  # fmt: skip
+                                  "hair": f"model:default:{pose}", "face_landmarks": f"model:mediapipe:{pose}",
+                                  "camera": "default"}  # fmt: skip
     assert summary["frames"] == 7
+    with h5py.File(work / "results/clips/clip/frames.h5") as rec:
+        assert rec["face_landmarks"].shape == (7, 468, 3) and rec["keypoints"].shape == (7, 18, 3)
     assert "convert_mediapipe" not in res.stdout + res.stderr  # the converted model was reused

@@ -5,6 +5,7 @@ One HDF5 file per subject (``results/{dataset}/{subject}/frames.h5``):
 - ``images`` (N, S, S, 3) uint8 RGB, cropped and resized to the training size S;
 - ``person`` (N, S, S) uint8 alpha (0-255); ``clothing``, ``skin``, ``hair`` (N, S, S) uint8 0/1 when known;
 - ``keypoints`` (N, 18, 3) float32 OpenPose-18 (u, v, confidence) in the cropped image;
+  ``face_landmarks`` (N, 468, 3) MediaPipe face-mesh points, same format, when asked for;
 - ``frame_ids`` (N,) int64 indices into the source video; ``split`` (N,) uint8 (0 train, 1 test view, 2 test pose);
 - camera: attrs ``camera_model``; pinhole ``K`` (3, 3), ``R``, ``t`` (undistorted: no distortion left);
   orthographic ``ortho_scale`` (N,), ``ortho_trans`` (N, 2);
@@ -32,18 +33,22 @@ MASKS = ("person", "clothing", "skin", "hair")
 class RecordWriter:
     """Append frames one at a time (streamed: a whole video never sits in memory)."""
 
-    def __init__(self, h5: h5py.File, n: int, size: int, masks: tuple[str, ...]):
+    def __init__(self, h5: h5py.File, n: int, size: int, masks: tuple[str, ...], face: bool = False):
         kw = dict(compression="gzip", compression_opts=3, track_times=False)
         self.images = h5.create_dataset("images", (n, size, size, 3), np.uint8, chunks=(1, size, size, 3), **kw)
         self.masks = {m: h5.create_dataset(m, (n, size, size), np.uint8, chunks=(1, size, size), **kw) for m in masks}
         self.keypoints = h5.create_dataset("keypoints", (n, 18, 3), np.float32, track_times=False)
+        self.face = h5.create_dataset("face_landmarks", (n, 468, 3), np.float32, track_times=False) if face else None
 
-    def write(self, i: int, image: np.ndarray, masks: dict[str, np.ndarray], keypoints: np.ndarray | None) -> None:
+    def write(self, i: int, image: np.ndarray, masks: dict[str, np.ndarray], keypoints: np.ndarray | None,
+              face: np.ndarray | None = None) -> None:  # fmt: skip
         self.images[i] = image
         for name, dset in self.masks.items():
             dset[i] = masks[name]
         if keypoints is not None:
             self.keypoints[i] = keypoints
+        if face is not None and self.face is not None:
+            self.face[i] = face
 
 
 def write_camera_attrs(h5: h5py.File, camera) -> None:

@@ -74,6 +74,10 @@ def peoplesnapshot_source(root: str | Path, subject: str, cfg: dict) -> Source:
                          f"(licensed) and set datasets.peoplesnapshot.root to the folder holding '{subject}/'")  # fmt: skip
     camera = ps.read_camera(d / "camera.pkl").to_pinhole()
     key = f"datasets.peoplesnapshot.subjects.{subject}"
+    cfg = {**ps.STANDARD_SPLITS.get(subject, {}), **cfg}
+    if "train" not in cfg or "test" not in cfg:
+        raise DeltaError(f"{key}: give 'train' and 'test' frame ranges [start, end, step] (standard ones are "
+                         f"known for {sorted(ps.STANDARD_SPLITS)})")  # fmt: skip
     frames = _range_frames(cfg.get("train"), 0, f"{key}.train") + _range_frames(cfg.get("test"), 1, f"{key}.test")
     masks, close_m, n_masks = _h5_frames(d / "masks.hdf5", "masks", 255.0)
     kp_all = ps.read_keypoints(d / "keypoints.hdf5")

@@ -139,7 +139,7 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
     with atomic_path(out_path) as tmp, h5py.File(tmp, "w") as h5:
         h5.create_dataset("frame_ids", data=np.array([i for i, _ in frames], dtype=np.int64), track_times=False)
         h5.create_dataset("split", data=np.array([s for _, s in frames], dtype=np.uint8), track_times=False)
-        writer = RecordWriter(h5, len(frames), size, masks)
+        writer = RecordWriter(h5, len(frames), size, masks, face="face_landmarks" in source.provided)
         row = {i: r for r, (i, _) in enumerate(frames)}
         for i, rgb in iter_video(source.video, set(row)):
             mask = person(i)
@@ -150,11 +150,14 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
             for m in masks[1:]:  # parts lie inside the person, whichever step made each
                 part = und.image(source.provided[m](i), mask=True, nearest=True)
                 out_masks[m] = crop(part, box, cv2.INTER_NEAREST, mask=True) * (out_masks["person"] > 127)
-            kp = None
-            if "keypoints" in source.provided:
-                kp = np.asarray(source.provided["keypoints"](i), dtype=np.float64).copy()
-                kp[:, :2] = box.apply_to_points(torch.from_numpy(und.points(kp[:, :2]))).numpy()
-            writer.write(row[i], crop(und.image(rgb), box, cv2.INTER_AREA), out_masks, kp)
+            points = {}
+            for name in ("keypoints", "face_landmarks"):  # undistorted, then moved with the crop
+                if name in source.provided:
+                    p = np.asarray(source.provided[name](i), dtype=np.float64).copy()
+                    p[:, :2] = box.apply_to_points(torch.from_numpy(und.points(p[:, :2]))).numpy()
+                    points[name] = p
+            writer.write(row[i], crop(und.image(rgb), box, cv2.INTER_AREA), out_masks, points.get("keypoints"),
+                         points.get("face_landmarks"))  # fmt: skip
         write_camera_attrs(h5, camera)
         origin = {k: v for k, v in source.origin.items() if k in source.provided or k == "camera"}
         h5.attrs["sources"] = json.dumps({**origin, "images": f"video:{source.video.name}"}, sort_keys=True)

@@ -99,3 +99,40 @@ class PoseLandmarker:
         lo, hi = pts.min(0), pts.max(0)
         centre = (lo + hi) / 2
         self.roi = (float(centre[0]), float(centre[1]), float((hi - lo).max() * self.margin + 16))
+
+
+FACE_INPUT = 192
+
+
+class FaceLandmarker:
+    """MediaPipe's face mesh (468 landmarks) in ONNX, on the face box the pose landmarks give.
+
+    ``face_landmark.onnx``: input ``input_1`` (1, 192, 192, 3) RGB in [0, 1]; outputs the
+    468 x (x, y, z) landmarks in crop pixels and a face-presence logit.
+    """
+
+    def __init__(self, path: str | Path, threads: int = 1, config_key: str | None = None, scale: float = 2.2):
+        self.path = Path(path)
+        self.session = open_session(self.path, {"input_1": 4}, 2, threads, config_key)
+        self.scale = scale
+
+    def __call__(self, frame_rgb_uint8: np.ndarray, pose: PoseResult) -> np.ndarray:
+        """(468, 3) landmarks (u, v, confidence) in frame pixels; confidence 0 without a face."""
+        frame = check_frame(frame_rgb_uint8, self.path)
+        lm = pose.landmarks
+        out = np.zeros((468, 3), np.float32)
+        face = lm[[0, 2, 5, 7, 8, 9, 10]]
+        if pose.presence < 0.5 or (face[:3, 2] < 0.5).any():
+            return out
+        centre = face[:, :2].mean(0)
+        side = self.scale * max(np.linalg.norm(lm[7, :2] - lm[8, :2]), np.linalg.norm(lm[2, :2] - lm[5, :2]) * 2)
+        s = FACE_INPUT / side
+        tx, ty = FACE_INPUT / 2 - centre[0] * s - 0.5 + 0.5 * s, FACE_INPUT / 2 - centre[1] * s - 0.5 + 0.5 * s
+        crop = cv2.warpAffine(frame, np.array([[s, 0, tx], [0, s, ty]]), (FACE_INPUT, FACE_INPUT),
+                              flags=cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR)  # fmt: skip
+        points, flag = self.session.run(None, {"input_1": crop[None].astype(np.float32) / 255.0})
+        points = np.asarray(points).reshape(468, 3)
+        out[:, 0] = (points[:, 0] - 0.5 - tx) / s + 0.5
+        out[:, 1] = (points[:, 1] - 0.5 - ty) / s + 0.5
+        out[:, 2] = _sigmoid(np.asarray(flag).reshape(-1)[:1])[0]
+        return out

@@ -115,18 +115,27 @@ def run_parsing(video: Path, num_frames: int, kind: str, path: str, out: str | P
     log.info("parsing (%s) of %d frames -> %s", kind, num_frames, out)
 
 
-def run_keypoints(video: Path, num_frames: int, kind: str, path: str, out: str | Path, threads: int = 1) -> None:
-    """OpenPose-18 keypoints (u, v, confidence) per frame from MediaPipe's pose landmarks."""
-    from delta.preprocess.pose_landmarks import PoseLandmarker
+def run_keypoints(video: Path, num_frames: int, kind: str, path: str, out: str | Path, threads: int = 1,
+                  face_path: str | None = None) -> None:  # fmt: skip
+    """OpenPose-18 keypoints (N, 18, 3) and, with ``face_path``, face-mesh landmarks (N, 468, 3),
+    as (u, v, confidence), per frame from MediaPipe's pose (and face) landmark models."""
+    from delta.preprocess.pose_landmarks import FaceLandmarker, PoseLandmarker
 
     if kind != "mediapipe":
         raise DeltaError(f"preprocess.keypoints.model: unknown model '{kind}'; known: ['mediapipe']")
     model = PoseLandmarker(path, threads=threads, config_key="preprocess.keypoints.path")
+    face = FaceLandmarker(face_path, threads=threads) if face_path else None
     keypoints = np.zeros((num_frames, 18, 3), np.float32)
+    faces = np.zeros((num_frames, 468, 3), np.float32)
     for i, rgb in iter_video(Path(video), set(range(num_frames))):
-        keypoints[i] = model(rgb).openpose18()
+        pose = model(rgb)
+        keypoints[i] = pose.openpose18()
+        if face is not None:
+            faces[i] = face(rgb, pose)
     with atomic_path(out) as tmp, h5py.File(tmp, "w") as f:
         f.create_dataset("keypoints", data=keypoints, track_times=False)
+        if face is not None:
+            f.create_dataset("face_landmarks", data=faces, track_times=False)
         f.attrs["model"] = f"{kind}:{Path(path).name}"
     log.info("keypoints (%s) of %d frames -> %s", kind, num_frames, out)
 

@@ -139,3 +139,20 @@ def test_generic_video_with_a_step_file(tmp_path, tiny_captures):
     src = video_source(tmp_path, "clip", {})
     assert src.origin["camera"] == "file" and src.camera.K[0, 0] == 300 and len(src.frames) == 7
     src.close()
+
+
+def test_peoplesnapshot_standard_splits_and_missing_ranges(tmp_path, tiny_captures):
+    from delta.data.peoplesnapshot import STANDARD_SPLITS
+
+    start, end, step = STANDARD_SPLITS["male-3-casual"]["train"]
+    assert len(range(start, end + 1, step)) == 114  # as the published protocol counts
+    root = tmp_path / "ps"
+    shutil.copytree(tiny_captures / "ps" / "tight", root / "male-3-casual")
+    (root / "male-3-casual" / "tight.mp4").rename(root / "male-3-casual" / "male-3-casual.mp4")
+    src = peoplesnapshot_source(root, "male-3-casual", {})
+    assert src.frames[:3] == [(0, 0), (4, 0), (8, 0)] and (456, 1) in src.frames
+    src.close()
+    shutil.copytree(root / "male-3-casual", root / "someone")
+    (root / "someone" / "male-3-casual.mp4").rename(root / "someone" / "someone.mp4")
+    with pytest.raises(DeltaError, match="someone: give 'train' and 'test' frame ranges"):
+        peoplesnapshot_source(root, "someone", {})

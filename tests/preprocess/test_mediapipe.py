@@ -78,3 +78,26 @@ def test_default_parser_partitions_the_person(mediapipe_pose_model, tiny_capture
             a, b = masks["clothing"] > 0, gt["clothing"][i] > 0
             ious.append((a & b).sum() / (a | b).sum())
     assert np.mean(ious) > 0.7, ious  # ~0.9 at 512² (benchmarks/preprocess_quality.py); 128² here
+
+
+def test_face_mesh_lands_on_the_astronauts_face(mediapipe_pose_model):
+    from delta.preprocess.pose_landmarks import FaceLandmarker
+
+    img = data.astronaut()
+    pose = PoseLandmarker(mediapipe_pose_model)(img)
+    face = FaceLandmarker(mediapipe_pose_model.parent / "face_landmark.onnx")(img, pose)
+    assert face.shape == (468, 3) and (face[:, 2] > 0.9).all()
+    assert (face[:, 0] > 170).all() and (face[:, 0] < 290).all()
+    assert (face[:, 1] > 60).all() and (face[:, 1] < 200).all()
+    # MediaPipe's mesh: 1 is the nose tip, 13/14 the inner lips, 10 the top of the forehead
+    assert face[10, 1] < face[1, 1] < face[13, 1]
+    assert np.linalg.norm(face[1, :2] - pose.landmarks[0, :2]) < 25  # near the pose model's nose
+
+
+def test_no_face_no_landmarks(mediapipe_pose_model):
+    from delta.preprocess.pose_landmarks import FaceLandmarker
+
+    blank = np.full((256, 256, 3), 200, np.uint8)
+    pose = PoseLandmarker(mediapipe_pose_model)(blank)
+    face = FaceLandmarker(mediapipe_pose_model.parent / "face_landmark.onnx")(blank, pose)
+    assert pose.presence < 0.5 and (face[:, 2] == 0).all() and (pose.openpose18()[:, 2] == 0).all()
