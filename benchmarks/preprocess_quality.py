@@ -12,6 +12,7 @@ and frames per second of each.
 from __future__ import annotations
 
 import argparse
+import resource
 import tempfile
 import time
 from pathlib import Path
@@ -89,7 +90,8 @@ def main() -> None:
                          default_hair_iou=np.mean(parts["hair"]) if parts["hair"] else np.nan,
                          default_parser_fps=n / t_parse, prepare_frames_fps=n / t_prepare,
                          clothing_iou_mean=np.mean(cloth_ious) if cloth_ious else np.nan,
-                         cloth_fps=n / t_cloth if t_cloth else np.nan, threads=args.threads))  # fmt: skip
+                         cloth_fps=n / t_cloth if t_cloth else np.nan, threads=args.threads,
+                         peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)))  # fmt: skip
         print(rows[-1], flush=True)
     pd.DataFrame(rows).to_csv(args.out, index=False)
 

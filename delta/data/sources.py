@@ -39,6 +39,9 @@ class Source:
     origin: dict[str, str]
     """Where each provided array comes from (recorded in the frame record)."""
     close: Callable[[], None] = lambda: None
+    body_params: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    """Per-video-frame body parameters the dataset ships (People Snapshot's SMPL 'pose', 'trans'),
+    and per-subject ones ('betas'); copied into the record for the selected frames."""
 
 
 def _h5_frames(path: Path, key: str, scale: float = 1.0) -> tuple[FrameArray, Callable[[], None], int]:
@@ -82,14 +85,20 @@ def peoplesnapshot_source(root: str | Path, subject: str, cfg: dict) -> Source:
     masks, close_m, n_masks = _h5_frames(d / "masks.hdf5", "masks", 255.0)
     kp_all = ps.read_keypoints(d / "keypoints.hdf5")
     closers = [close_m]
+    body, origin = {}, {"person": "dataset:masks.hdf5", "keypoints": "dataset:keypoints.hdf5"}
+    if (d / "reconstructed_poses.hdf5").is_file():  # optional: SMPL poses of every frame
+        with h5py.File(d / "reconstructed_poses.hdf5", "r") as f:
+            body = {f"smpl_{k}": np.asarray(f[k]) for k in ("pose", "trans", "betas") if k in f}
+        origin["smpl"] = "dataset:reconstructed_poses.hdf5"
     return Source(
         video=need[0],
         camera=camera,
         frames=frames,
         num_video_frames=n_masks,
         provided={"person": masks, "keypoints": lambda i: kp_all[i]},
-        origin={"person": "dataset:masks.hdf5", "keypoints": "dataset:keypoints.hdf5"},
+        origin=origin,
         close=lambda: [c() for c in closers],
+        body_params=body,
     )
 
 

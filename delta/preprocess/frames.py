@@ -159,12 +159,16 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
             writer.write(row[i], crop(und.image(rgb), box, cv2.INTER_AREA), out_masks, points.get("keypoints"),
                          points.get("face_landmarks"))  # fmt: skip
         write_camera_attrs(h5, camera)
-        origin = {k: v for k, v in source.origin.items() if k in source.provided or k == "camera"}
+        ids = np.array([i for i, _ in frames])
+        for name, values in source.body_params.items():  # per-frame rows for the kept frames; per-subject as is
+            per_frame = values.ndim >= 2 and len(values) == source.num_video_frames
+            h5.create_dataset(name, data=values[ids] if per_frame else values, track_times=False)
+        origin = {k: v for k, v in source.origin.items() if k in source.provided or k in ("camera", "smpl")}
         h5.attrs["sources"] = json.dumps({**origin, "images": f"video:{source.video.name}"}, sort_keys=True)
         h5.attrs["crop"] = np.array([box.u0, box.v0, box.size, box.out])
         h5.attrs["source_size"] = np.array([source.camera.width, source.camera.height])
         h5.attrs["skipped_empty"] = np.array(empty, dtype=np.int64)
     summary = {"frames": len(frames), "skipped_empty": empty, "crop": [box.u0, box.v0, box.size, box.out],
-               "sources": {k: v for k, v in source.origin.items() if k in source.provided or k == "camera"}}  # fmt: skip
+               "sources": {k: v for k, v in source.origin.items() if k in source.provided or k in ("camera", "smpl")}}  # fmt: skip
     log.info("prepared %s", summary)
     return summary

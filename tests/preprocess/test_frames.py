@@ -156,3 +156,17 @@ def test_peoplesnapshot_standard_splits_and_missing_ranges(tmp_path, tiny_captur
     (root / "someone" / "male-3-casual.mp4").rename(root / "someone" / "someone.mp4")
     with pytest.raises(DeltaError, match="someone: give 'train' and 'test' frame ranges"):
         peoplesnapshot_source(root, "someone", {})
+
+
+def test_peoplesnapshot_reconstructed_poses_reach_the_record(tmp_path, tiny_captures):
+    root = tmp_path / "ps"
+    shutil.copytree(tiny_captures / "ps", root)
+    pose = np.random.default_rng(0).normal(size=(7, 72))
+    with h5py.File(root / "tight" / "reconstructed_poses.hdf5", "w") as f:
+        f["pose"], f["trans"], f["betas"] = pose, np.zeros((7, 3)), np.arange(10.0)
+    summary = prepare(peoplesnapshot_source(root, "tight", {"train": [0, 4, 2], "test": [5, 6, 1]}),
+                      tmp_path / "out.h5", 64)  # fmt: skip
+    assert summary["sources"]["smpl"] == "dataset:reconstructed_poses.hdf5"
+    with FrameRecord(tmp_path / "out.h5") as rec:
+        np.testing.assert_array_equal(rec.h5["smpl_pose"][:], pose[[0, 2, 4, 5, 6]])
+        np.testing.assert_array_equal(rec.h5["smpl_betas"][:], np.arange(10.0))
