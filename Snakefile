@@ -13,6 +13,7 @@ include: "rules/common.smk"
 include: "rules/body.smk"
 include: "rules/synthetic.smk"
 include: "rules/preprocess.smk"
+include: "rules/fitting.smk"
 
 
 # cheap bookkeeping runs on the submitting machine, never as a cluster job

@@ -6,6 +6,7 @@ import argparse
 import logging
 import sys
 import time
+from pathlib import Path
 
 from delta import DeltaError
 
@@ -166,6 +167,15 @@ def cmd_convert_mediapipe(args: argparse.Namespace) -> None:
     log.info("converted %s", sorted(manifest["models"]))
 
 
+def cmd_fit_init(args: argparse.Namespace) -> None:
+    from delta.fitting.run import run
+    from delta.io import save_json
+
+    _threads(args.threads)
+    summary = run(args.record, args.body, args.out)
+    save_json(Path(args.out) / "summary.json", summary)
+
+
 def cmd_validate_config(args: argparse.Namespace) -> None:
     from delta.config import load_config
 
@@ -249,6 +259,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--env", required=True, help="where to create the conversion environment")
     p.set_defaults(func=cmd_convert_mediapipe)
+
+    p = sub.add_parser("fit-init", help="fit shape, per-frame pose and camera to a frame record's keypoints")
+    p.add_argument("--record", required=True)
+    p.add_argument("--body", required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--threads", type=int, default=1)
+    p.set_defaults(func=cmd_fit_init)
 
     p = sub.add_parser("validate-config", help="check a config file against the workflow schema")
     p.add_argument("config")

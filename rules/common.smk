@@ -51,6 +51,8 @@ PATHS = {
     "mediapipe_face": f"{PRE['models_dir']}/mediapipe/face_landmark.onnx",
     "parsing": "results/{dataset}/{subject}/parsing.h5",
     "record_summary": "results/{dataset}/{subject}/frames.json",
+    "init_params": "results/{dataset}/{subject}/init/params.npz",
+    "init_report": "results/{dataset}/{subject}/init/report.csv",
     "log": "logs/{rule}/{name}.log",
     "benchmark": "results/benchmarks/{rule}/{name}.tsv",
 }
@@ -176,7 +178,10 @@ def subject_config_json(wildcards):
 
 def record_targets():
     return [
-        PATHS["record"].format(dataset=d, subject=s) for d, spec in DATASETS.items() for s in spec["subjects"]
+        PATHS[k].format(dataset=d, subject=s)
+        for d, spec in DATASETS.items()
+        for s in spec["subjects"]
+        for k in ("record", "init_params")
     ]
 
 

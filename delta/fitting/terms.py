@@ -1,0 +1,59 @@
+"""Pure loss terms of the body-model initialisation (SMPLify-style), batched over frames.
+
+Shapes: F frames, K keypoints, J joints, S shape coefficients.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def gmof(residual: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Geman-McClure robust penalty of (..., D) residuals: ρ(r) = σ² |r|² / (σ² + |r|²), per point.
+
+    Quadratic near 0 (ρ ≈ |r|²), bounded by σ² far away, so outlier detections cost little.
+    """
+    sq = residual.square().sum(-1)
+    return sigma**2 * sq / (sigma**2 + sq)
+
+
+def keypoint_term(projected: torch.Tensor, detected: torch.Tensor, sigma: float = 20.0) -> torch.Tensor:
+    """Confidence-weighted robust reprojection error.
+
+    Args:
+        projected: (F, K, 2) model keypoints in pixels.
+        detected: (F, K, 3) detections (u, v, confidence).
+    Returns:
+        (F,) per-frame cost, normalised by the frame's total confidence (0 for frames without any).
+    """
+    conf = detected[..., 2]
+    cost = (conf * gmof(projected - detected[..., :2], sigma)).sum(-1)
+    return cost / conf.sum(-1).clamp_min(1e-6)
+
+
+def shape_prior(betas: torch.Tensor) -> torch.Tensor:
+    """|β|² (the shape spaces here are scaled so that β ~ N(0, I))."""
+    return betas.square().sum(-1)
+
+
+def pose_prior(pose: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """Per-joint weighted |θ_j|² around the rest pose: (F, J, 3), (J,) -> (F,)."""
+    return (pose.square().sum(-1) * weights).sum(-1)
+
+
+def bend_prior(pose: torch.Tensor, joints: list[int], axis: int, sign: float) -> torch.Tensor:
+    """Hinge joints bend one way only: penalise exp of the wrong-way angle (SMPLify's angle prior).
+
+    ``sign`` is the direction of a natural bend of the ``axis`` component; (F, J, 3) -> (F,).
+    """
+    if not joints:
+        return pose.new_zeros(pose.shape[0])
+    wrong = -sign * pose[:, joints, axis]
+    return torch.exp(wrong).sub(1).clamp_min(0).square().sum(-1)
+
+
+def smoothness(x: torch.Tensor) -> torch.Tensor:
+    """Σ |x_{f+1} - x_f|² over consecutive frames of (F, ...) parameters (0 for one frame)."""
+    if x.shape[0] < 2:
+        return x.new_zeros(())
+    return (x[1:] - x[:-1]).square().flatten(1).sum(-1).sum()

@@ -1,0 +1,25 @@
+# Body-model initialisation: shared shape, per-frame pose and camera fitted to the keypoints.
+
+
+rule fit_init:
+    input:
+        record=PATHS["record"],
+        body=body_model_file(),
+    output:
+        params=PATHS["init_params"],
+        report=PATHS["init_report"],
+    params:
+        out=lambda w: str(Path(PATHS["init_params"].format(**w)).parent),
+    conda:
+        "../workflow/envs/delta.yaml"
+    log:
+        log_path("fit_init", "{dataset}_{subject}"),
+    benchmark:
+        benchmark_path("fit_init", "{dataset}_{subject}")
+    threads: 2
+    resources:
+        mem_mb=3000,
+        runtime=60,
+    shell:
+        "delta fit-init --record {input.record} --body {input.body} --out {params.out}"
+        " --threads {threads} > {log} 2>&1"
