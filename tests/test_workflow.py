@@ -71,6 +71,10 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
     assert ps_sources["person"] == "dataset:masks.hdf5"  # shipped: no matting ran
     assert ps_sources["clothing"] == "model:default:pose_landmark_full.onnx"  # not shipped: the default parser
     assert not (work / "logs/matte").exists()
+    # the body-model initialisation ran on every subject
+    for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", "tight")):
+        report = (work / "results" / dataset / subject / "init" / "report.csv").read_text().splitlines()
+        assert report[0] == "frame,flagged,residual_px,confident_keypoints" and len(report) > 5
     # a rerun has nothing to do
     again = snakemake(work, "--configfile", ".test/config/ci.yaml", "--dry-run")
     assert "Nothing to be done" in again.stdout + again.stderr
