@@ -80,13 +80,6 @@ def write_camera(path: str | os.PathLike, camera: PinholeCamera) -> None:
         tmp.write_bytes(pickle.dumps(data, protocol=2))
 
 
-def count_frames(path: str | os.PathLike, key: str) -> int:
-    with h5py.File(path, "r") as f:
-        if key not in f:
-            raise DeltaError(f"{path}: no dataset '{key}' (found {list(f)})")
-        return int(f[key].shape[0])
-
-
 def iter_masks(path: str | os.PathLike):
     """Yield (H, W) uint8 masks one frame at a time (never the whole array)."""
     with h5py.File(path, "r") as f:

@@ -173,7 +173,7 @@ def generate(
                     canonical_normals=np.concatenate(canon_n),
                     vertex_label=np.concatenate(labels_v).astype(np.uint8),
                 )
-                frame = render(scene, camera, albedo, _shading, spec.background, spec.supersample)
+                frame = render(scene, camera, albedo, textures.shading, spec.background, spec.supersample)
                 writer.write(cv2.cvtColor(np.round(frame.image * 255).astype(np.uint8), cv2.COLOR_RGB2BGR))
                 kp3d = kp_map(posed.joints, posed.vertices)[0]
                 _write_frame(dsets, f, frame, kp3d, camera, on_joint)
@@ -194,14 +194,6 @@ def generate(
     _export_ply(gt / "canonical_body.ply", rest_v, body_faces)
     for layer in layers:
         _export_ply(gt / f"canonical_{layer.name}.ply", layer.vertices, layer.faces)
-
-
-def _shading(normals: np.ndarray) -> np.ndarray:
-    """Two-sided baked lighting (layer normals may point either way)."""
-    light = np.array([0.35, 0.55, 0.76])
-    light = light / np.linalg.norm(light)
-    n = normals / (np.linalg.norm(normals, axis=1, keepdims=True) + 1e-12)
-    return 0.62 + 0.38 * np.abs(n @ light)
 
 
 def _frame_datasets(fh: h5py.File, F: int, H: int, W: int, K: int) -> dict:

@@ -121,8 +121,11 @@ def hair_albedo(points: np.ndarray, color, seed: int) -> np.ndarray:
 
 
 def shading(normals: np.ndarray) -> np.ndarray:
-    """Baked Lambert lighting in the canonical frame: ambient plus one key light, (N,) factors."""
+    """Baked Lambert lighting in the canonical frame: ambient plus one key light, (N,) factors.
+
+    Two-sided: the normals of open cloth and hair sheets may point either way.
+    """
     light = np.array([0.35, 0.55, 0.76])
     light = light / np.linalg.norm(light)
     n = normals / (np.linalg.norm(normals, axis=1, keepdims=True) + 1e-12)
-    return 0.62 + 0.38 * np.clip(n @ light, 0, 1)
+    return 0.62 + 0.38 * np.abs(n @ light)

@@ -16,7 +16,7 @@ from delta.body.anny_convert import (
     sample_phenotypes,
 )
 from delta.body.lbs import batch_rodrigues, lbs
-from delta.body.model import REGION, load_body_model
+from delta.body.model import REGION, load_body_model, load_metadata
 
 pytestmark = pytest.mark.slow
 C = torch.as_tensor(ANNY_TO_SMPLX)
@@ -133,6 +133,7 @@ def test_saved_model_round_trip(tmp_path, anny_conversion):
     assert loaded.joint_names == anny_conversion.model.joint_names
     with np.load(path, allow_pickle=False) as data:  # no pickled objects inside
         assert "meta_explained_variance" in data.files
+    np.testing.assert_allclose(load_metadata(path)["explained_variance"], anny_conversion.explained_variance)
 
 
 @pytest.mark.parametrize("sign", [-5.0, 5.0])
