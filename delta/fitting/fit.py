@@ -64,10 +64,9 @@ class KeypointModel:
 
     def __call__(self, betas: torch.Tensor, pose: torch.Tensor, transl: torch.Tensor) -> torch.Tensor:
         """(S,), (F, J, 3), (F, 3) -> (F, K, 3) keypoints."""
-        m, F = self.model, pose.shape[0]
-        b = betas[None].expand(F, -1)
-        joints = m.joints_template + torch.einsum("s,jcs->jc", betas, m.joints_shapedirs[..., : betas.shape[0]])
-        verts = m.v_template[self.vids] + torch.einsum("s,vcs->vc", betas, m.shapedirs[self.vids][..., : b.shape[1]])
+        m, F, S = self.model, pose.shape[0], betas.shape[0]
+        joints = m.joints_template + torch.einsum("s,jcs->jc", betas, m.joints_shapedirs[..., :S])
+        verts = m.v_template[self.vids] + torch.einsum("s,vcs->vc", betas, m.shapedirs[self.vids][..., :S])
         posed_joints, A = rigid_transforms(batch_rodrigues(pose), joints.expand(F, -1, -1), m.parents)
         posed_verts, _ = skin(verts.expand(F, -1, -1), m.weights[self.vids], A)
         kp = torch.einsum("kj,fjc->fkc", self.jw, posed_joints) + torch.einsum("kv,fvc->fkc", self.vw, posed_verts)
@@ -151,7 +150,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     def project(kp3d):
         if pinhole:
             return camera.project(kp3d)[0]
-        cam = OrthographicCamera(cam_params[0].exp()[:, None].squeeze(-1), cam_params[1], camera.width, camera.height)
+        cam = OrthographicCamera(cam_params[0].exp(), cam_params[1], camera.width, camera.height)
         return cam.project(kp3d)[0]
 
     def loss(stage: int) -> torch.Tensor:

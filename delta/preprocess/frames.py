@@ -129,11 +129,23 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
                          "(set preprocess.matting.model and preprocess.matting.path)")  # fmt: skip
     und = Undistorter(source.camera)
     person = source.provided["person"]
-    empty = [i for i, _ in source.frames if not (person(i) > 127).any()]
-    frames = [(i, s) for i, s in source.frames if i not in set(empty)]
-    if not frames:
-        raise DeltaError(f"{source.video}: no selected frame shows a person")
-    box = square_box((und.image(person(i), mask=True) for i, _ in frames), margin, size)
+    # one streamed pass over the masks: which frames show nobody, and the box around everybody
+    empty: list[int] = []
+
+    def shown():
+        for i, _ in source.frames:
+            m = und.image(person(i), mask=True)
+            if (m > 127).any():
+                yield m
+            else:
+                empty.append(i)
+
+    try:
+        box = square_box(shown(), margin, size)
+    except DeltaError as exc:
+        raise DeltaError(f"{source.video}: no selected frame shows a person ({exc})") from exc
+    skipped = set(empty)
+    frames = [(i, s) for i, s in source.frames if i not in skipped]
     camera = crop_camera(und.camera(source.camera), box)
     masks = tuple(m for m in MASKS if m in source.provided)
     with atomic_path(out_path) as tmp, h5py.File(tmp, "w") as h5:

@@ -150,29 +150,29 @@ def generate(
         with h5py.File(tmp_frames, "w", track_order=False) as fh, h5py.File(tmp_meshes, "w") as mh:
             dsets = _frame_datasets(fh, F, H, W, len(kp_map.names))
             mesh_dsets = _mesh_datasets(mh, model, rest_v, layers, F)
+            # the scene's topology, texture coordinates and labels never change: build them once
+            offsets = np.cumsum([0, len(rest_v)] + [len(l.vertices) for l in layers])
+            static = dict(
+                faces=np.concatenate([body_faces] + [l.faces + o for l, o in zip(layers, offsets[1:])]),
+                face_object=np.concatenate([np.zeros(len(body_faces), int)]
+                                           + [np.full(len(l.faces), k) for k, l in enumerate(layers, start=1)]),
+                canonical=np.concatenate([rest_v] + [l.vertices for l in layers]),
+                canonical_normals=np.concatenate(canon_n),
+                vertex_label=np.concatenate(labels_v).astype(np.uint8),
+            )  # fmt: skip
+            weights = [torch.from_numpy(l.weights) for l in layers]
             for f in range(F):
                 pose = torch.from_numpy(poses[f : f + 1])
                 with torch.no_grad():
                     posed = lbs(model, betas, pose, transl=torch.from_numpy(transl[f : f + 1]))
-                verts, faces, objects = [posed.vertices[0].numpy()], [body_faces], [np.zeros(len(body_faces), int)]
-                offset = len(verts[0])
+                verts = [posed.vertices[0].numpy()]
                 for k, layer in enumerate(layers, start=1):
                     moved = layer.vertices + nonrigid_offsets(layer, canon_n[k], f / spec.fps, rates[f], spec.sway)
-                    lv, _ = skin(torch.from_numpy(moved)[None], torch.from_numpy(layer.weights), posed.joint_transforms)
+                    lv, _ = skin(torch.from_numpy(moved)[None], weights[k - 1], posed.joint_transforms)
                     verts.append(lv[0].numpy())
-                    faces.append(layer.faces + offset)
-                    objects.append(np.full(len(layer.faces), k))
-                    offset += len(layer.vertices)
-                    mesh_dsets[layer.name][f] = lv[0].numpy().astype(np.float32)
+                    mesh_dsets[layer.name][f] = verts[-1].astype(np.float32)
                 mesh_dsets["body"][f] = verts[0].astype(np.float32)
-                scene = SceneMesh(
-                    vertices=np.concatenate(verts),
-                    faces=np.concatenate(faces),
-                    face_object=np.concatenate(objects),
-                    canonical=np.concatenate([rest_v] + [l.vertices for l in layers]),
-                    canonical_normals=np.concatenate(canon_n),
-                    vertex_label=np.concatenate(labels_v).astype(np.uint8),
-                )
+                scene = SceneMesh(vertices=np.concatenate(verts), **static)
                 frame = render(scene, camera, albedo, textures.shading, spec.background, spec.supersample)
                 writer.write(cv2.cvtColor(np.round(frame.image * 255).astype(np.uint8), cv2.COLOR_RGB2BGR))
                 kp3d = kp_map(posed.joints, posed.vertices)[0]
