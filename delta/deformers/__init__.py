@@ -1,0 +1,1 @@
+"""Backward deformation from posed space to the canonical space."""

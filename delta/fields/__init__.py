@@ -1,0 +1,1 @@
+"""Neural fields: encodings, MLPs, the exterior NeRF, vertex fields and the deformation network."""

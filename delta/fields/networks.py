@@ -1,0 +1,125 @@
+"""The avatar's networks: exterior NeRF F_h, vertex fields F_d / F_t, deformation F_e.
+
+Each is an encoding (``pe`` = the paper's MLP with positional encoding, ``grid`` =
+multi-resolution dense grids with a small MLP, fast on a CPU) followed by an MLP head.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+from torch import nn
+
+from delta.fields.encodings import make_encoding, positional_encoding
+
+#: Densities are exp(raw) with raw capped here: σ ≤ e^15 ≈ 3.3e6, gradients stay finite.
+MAX_LOG_DENSITY = 15.0
+
+
+@dataclasses.dataclass
+class FieldSpec:
+    """Architecture of one field (a preset fills these)."""
+
+    encoding: str = "grid"
+    """``pe`` (PE + deep MLP, the paper's) or ``grid`` (dense multi-resolution grids + small MLP)."""
+    num_freqs: int = 10
+    """PE frequencies (``pe``)."""
+    levels: int = 6
+    features: int = 4
+    base_res: int = 16
+    max_res: int = 128
+    depth: int = 2
+    """Hidden layers of the MLP head."""
+    width: int = 64
+    skip: int = -1
+    """Hidden layer after which the encoding is concatenated again (-1: none; the paper: 4)."""
+
+
+class MLP(nn.Module):
+    """ReLU MLP with an optional skip connection re-injecting the input."""
+
+    def __init__(self, in_dim: int, out_dim: int, depth: int, width: int, skip: int = -1):
+        super().__init__()
+        self.skip = skip
+        layers, d = [], in_dim
+        for i in range(depth):
+            layers.append(nn.Linear(d, width))
+            d = width + (in_dim if i == skip else 0)
+        self.hidden = nn.ModuleList(layers)
+        self.out = nn.Linear(d, out_dim)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = x
+        for i, layer in enumerate(self.hidden):
+            h = torch.relu(layer(h))
+            if i == self.skip:
+                h = torch.cat([h, x], dim=-1)
+        return self.out(h)
+
+
+def _encoder_and_head(spec: FieldSpec, bounds: torch.Tensor, out_dim: int, extra_in: int = 0):
+    enc = make_encoding(spec.encoding, bounds, num_freqs=spec.num_freqs, levels=spec.levels,
+                        features=spec.features, base_res=spec.base_res, max_res=spec.max_res)  # fmt: skip
+    return enc, MLP(enc.out_dim + extra_in, out_dim, spec.depth, spec.width, spec.skip)
+
+
+class NeRFField(nn.Module):
+    """F_h: canonical point -> (colour in [0, 1], density ≥ 0); no view direction."""
+
+    def __init__(self, spec: FieldSpec, bounds: torch.Tensor, density_bias: float = -2.0):
+        super().__init__()
+        self.encoding, self.head = _encoder_and_head(spec, bounds, 4)
+        with torch.no_grad():
+            self.head.out.bias[3] = density_bias  # start nearly empty
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(N, 3) -> rgb (N, 3), sigma (N,)."""
+        out = self.head(self.encoding(x))
+        return torch.sigmoid(out[:, :3]), torch.exp(out[:, 3].clamp(max=MAX_LOG_DENSITY))
+
+
+class VertexField(nn.Module):
+    """F_d (offsets) or F_t (albedo): canonical template vertex -> (V, C).
+
+    ``kind="offset"``: tanh(raw) · scale, starting at exactly 0; ``kind="albedo"``: sigmoid(raw),
+    starting at ``init`` (e.g. the subject's average skin colour).
+    """
+
+    def __init__(self, spec: FieldSpec, bounds: torch.Tensor, kind: str, scale: float = 0.04,
+                 init: torch.Tensor | None = None):  # fmt: skip
+        super().__init__()
+        if kind not in ("offset", "albedo"):
+            raise ValueError(f"unknown vertex field kind '{kind}'")
+        self.kind, self.scale = kind, scale
+        self.encoding, self.head = _encoder_and_head(spec, bounds, 3)
+        with torch.no_grad():
+            self.head.out.weight.mul_(0.0 if kind == "offset" else 0.1)
+            self.head.out.bias.zero_()
+            if init is not None:
+                c = init.float().clamp(0.02, 0.98)
+                self.head.out.bias.copy_(torch.log(c / (1 - c)))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        raw = self.head(self.encoding(x))
+        return torch.tanh(raw) * self.scale if self.kind == "offset" else torch.sigmoid(raw)
+
+
+class DeformationField(nn.Module):
+    """F_e: (canonical point, kNN-weighted posed body point) -> Δx_c, starting at exactly 0.
+
+    The posed body point (detached) tells the network the pose; its output is scaled
+    by ``scale`` so that early training barely moves the canonical point.
+    """
+
+    def __init__(self, spec: FieldSpec, bounds: torch.Tensor, scale: float = 0.05, pose_freqs: int = 4):
+        super().__init__()
+        self.scale, self.pose_freqs = scale, pose_freqs
+        self.encoding, self.head = _encoder_and_head(spec, bounds, 3, extra_in=3 * (1 + 2 * pose_freqs))
+        with torch.no_grad():
+            self.head.out.weight.zero_()
+            self.head.out.bias.zero_()
+
+    def forward(self, x_c: torch.Tensor, posed_ref: torch.Tensor) -> torch.Tensor:
+        cond = positional_encoding(posed_ref.detach(), self.pose_freqs)
+        return torch.tanh(self.head(torch.cat([self.encoding(x_c), cond], dim=-1))) * self.scale

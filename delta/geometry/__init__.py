@@ -1,0 +1,1 @@
+"""Differentiable geometry queries: ray-mesh hits and interpolation."""

@@ -1,0 +1,1 @@
+"""The hybrid avatar composing body, fields, deformer and renderer."""

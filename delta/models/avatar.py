@@ -1,0 +1,147 @@
+"""The hybrid avatar: body mesh with learned offsets and albedo + canonical NeRF exterior.
+
+Per-frame pose and camera (and the shared shape) are parameters refined during
+training; the networks are F_d (offsets), F_t (albedo), F_h (NeRF, only when the
+capture has an exterior) and F_e (non-rigid deformation, stage 2).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import torch
+from torch import nn
+
+from delta.body.lbs import lbs
+from delta.body.model import BodyModel
+from delta.cameras.models import OrthographicCamera, PinholeCamera
+from delta.deformers import knn as deformer
+from delta.fields.networks import DeformationField, FieldSpec, NeRFField, VertexField
+from delta.losses import mesh_edges
+from delta.render.hybrid import PosedMesh, RayRender, RenderSettings, render_rays
+
+
+@dataclasses.dataclass
+class AvatarSpec:
+    """Architecture of the avatar (a preset fills it)."""
+
+    nerf: Optional[FieldSpec]
+    """The exterior field; None: the capture has no exterior, no NeRF is built."""
+    offsets: FieldSpec
+    albedo: FieldSpec
+    deformation: Optional[FieldSpec] = None
+    """F_e; None in stage 1."""
+    offset_scale: float = 0.04
+    """Largest offset (m)."""
+    nerf_margin: float = 0.3
+    """The NeRF's box: the canonical template's box plus this margin (m)."""
+    deformation_scale: float = 0.05
+    render: RenderSettings = dataclasses.field(default_factory=RenderSettings)
+
+
+@dataclasses.dataclass
+class InitParams:
+    """Initial per-frame parameters (from the init fit), N frames."""
+
+    betas: torch.Tensor
+    """(S,) shape."""
+    poses: torch.Tensor
+    """(N, J, 3) axis-angle."""
+    transl: torch.Tensor
+    """(N, 3)."""
+    camera: object
+    """PinholeCamera (fixed) or OrthographicCamera with (N,) scale, (N, 2) translation."""
+
+
+def _box(points: torch.Tensor, margin: float) -> torch.Tensor:
+    return torch.stack([points.amin(0) - margin, points.amax(0) + margin])
+
+
+class HybridAvatar(nn.Module):
+    def __init__(self, body: BodyModel, spec: AvatarSpec, init: InitParams, skin_color: torch.Tensor,
+                 background: torch.Tensor, resolution: int):  # fmt: skip
+        super().__init__()
+        self.body, self.spec, self.resolution = body, spec, resolution
+        self.register_buffer("background", background.float().clone())
+        self.betas = nn.Parameter(init.betas.float().clone())
+        self.poses = nn.Parameter(init.poses.float().clone())
+        self.transl = nn.Parameter(init.transl.float().clone())
+        self.pinhole = isinstance(init.camera, PinholeCamera)
+        if self.pinhole:
+            cam = init.camera
+            for k in ("K", "R", "t"):
+                self.register_buffer(f"cam_{k}", getattr(cam, k).float().clone())
+        else:
+            self.ortho_scale = nn.Parameter(init.camera.scale.float().clone())
+            self.ortho_trans = nn.Parameter(init.camera.trans.float().clone())
+        template = body.v_template.float()
+        self.register_buffer("edges", mesh_edges(body.faces))
+        cano = lbs(body, torch.zeros(1, 1), body.canonical_pose[None].float())
+        self.register_buffer("canonical_T", cano.vertex_transforms_3x4[0].clone())
+        self.register_buffer("canonical_vertices", cano.vertices[0].clone())
+        tbox = _box(template, 0.05)
+        self.offset_field = VertexField(spec.offsets, tbox, "offset", spec.offset_scale)
+        self.albedo_field = VertexField(spec.albedo, tbox, "albedo", init=skin_color)
+        nbox = _box(self.canonical_vertices, spec.nerf_margin)
+        self.nerf = NeRFField(spec.nerf, nbox) if spec.nerf is not None else None
+        self.deformation = None
+        if spec.deformation is not None:
+            self.deformation = DeformationField(spec.deformation, nbox, spec.deformation_scale)
+
+    # ------------------------------------------------------------ parts
+    def camera(self, frame: int):
+        n = self.resolution
+        if self.pinhole:
+            return PinholeCamera(self.cam_K, self.cam_R, self.cam_t, self.cam_K.new_zeros(5), n, n)
+        return OrthographicCamera(self.ortho_scale[frame], self.ortho_trans[frame], n, n)
+
+    def offsets(self) -> torch.Tensor:
+        """(V, 3) canonical offsets F_d(t)."""
+        return self.offset_field(self.body.v_template)
+
+    def albedo(self) -> torch.Tensor:
+        """(V, 3) vertex albedo F_t(t)."""
+        return self.albedo_field(self.body.v_template)
+
+    def pose_body(self, frame: int, offsets: Optional[torch.Tensor] = None):
+        """LBS output of one frame (batch of 1)."""
+        return lbs(self.body, self.betas[None], self.poses[frame : frame + 1], offsets=offsets,
+                   transl=self.transl[frame : frame + 1])  # fmt: skip
+
+    def posed_mesh(self, frame: int) -> tuple[PosedMesh, torch.Tensor, torch.Tensor]:
+        """The posed interior of one frame, with the offsets and posed vertices for the regularisers."""
+        offsets = self.offsets()
+        out = self.pose_body(frame, offsets)
+        verts = out.vertices[0]
+        uv, _ = self.camera(frame).project(verts)
+        skinning = None
+        if self.nerf is not None:
+            disp = out.rest_vertices[0] - self.body.v_template
+            skinning = deformer.prepare(verts, out.vertex_transforms_3x4[0], disp, self.canonical_T, self.body.weights)
+        mesh = PosedMesh(verts, self.body.faces, self.albedo(), uv, skinning)
+        return mesh, offsets, out
+
+    def render(self, frame: int, pixels: torch.Tensor, generator: torch.Generator | None = None,
+               mesh: Optional[PosedMesh] = None) -> RayRender:  # fmt: skip
+        """Render pixel centres (R, 2) of a frame."""
+        if mesh is None:
+            mesh = self.posed_mesh(frame)[0]
+        origins, dirs = self.camera(frame).rays(pixels)
+        return render_rays(mesh, origins, dirs, pixels, self.background, self.spec.render, self.nerf,
+                           self.deformation, generator)  # fmt: skip
+
+    def param_groups(self, lr: dict) -> list[dict]:
+        """Optimiser groups: networks, shape, per-frame pose, per-frame camera (lr keys: fields, nerf, pose, camera, shape)."""
+        groups = [
+            {"params": list(self.offset_field.parameters()) + list(self.albedo_field.parameters()), "lr": lr["fields"]},
+            {"params": [self.betas], "lr": lr["shape"]},
+            {"params": [self.poses, self.transl], "lr": lr["pose"]},
+        ]
+        if self.nerf is not None:
+            groups.append({"params": list(self.nerf.parameters()), "lr": lr["nerf"]})
+        if self.deformation is not None:
+            groups.append({"params": list(self.deformation.parameters()), "lr": lr["nerf"]})
+        if not self.pinhole:
+            groups.append({"params": [self.ortho_scale, self.ortho_trans], "lr": lr["camera"]})
+        return groups

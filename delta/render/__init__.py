@@ -1,0 +1,1 @@
+"""Differentiable rendering pieces: silhouettes and volume rendering."""

@@ -1,0 +1,1 @@
+"""Training stages: data, presets, trainer, checkpoints."""

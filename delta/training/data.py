@@ -1,0 +1,129 @@
+"""Training data: a frame record resized to the preset's resolution, and ray sampling.
+
+Targets follow the evaluation convention of the anchors: the image composited on the
+background colour with the person alpha (white by default).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import torch
+
+from delta import DeltaError
+from delta.cameras.models import OrthographicCamera, PinholeCamera
+from delta.data.record import FrameRecord
+
+
+@dataclasses.dataclass
+class FrameData:
+    """All frames of a subject at the training resolution (N frames, H = W = n)."""
+
+    images: torch.Tensor
+    """(N, n, n, 3) targets in [0, 1], composited on the background."""
+    person: torch.Tensor
+    """(N, n, n) person alpha in [0, 1]."""
+    exterior: torch.Tensor
+    """(N, n, n) clothing or hair in [0, 1]."""
+    interior: torch.Tensor
+    """(N, n, n) visible body (person minus exterior)."""
+    boxes: torch.Tensor
+    """(N, 4) int64 pixel box (i0, i1, j0, j1) around the person plus a margin."""
+    train: np.ndarray
+    """Indices of the training frames."""
+    split: np.ndarray
+    """(N,) split of each frame (0 train, 1 test view, 2 test pose)."""
+    frame_ids: np.ndarray
+    camera: object
+    """The record's camera rescaled to n (pinhole) or the record's per-frame orthographic camera."""
+    skin_color: torch.Tensor
+    """(3,) average colour of the visible body over the training frames."""
+
+    @property
+    def resolution(self) -> int:
+        return int(self.images.shape[1])
+
+
+def _resize(a: np.ndarray, n: int) -> np.ndarray:
+    return a if a.shape[0] == n else cv2.resize(a, (n, n), interpolation=cv2.INTER_AREA)
+
+
+def _box(mask: np.ndarray, margin: float) -> tuple[int, int, int, int]:
+    n = mask.shape[0]
+    rows, cols = np.flatnonzero(mask.any(1)), np.flatnonzero(mask.any(0))
+    if len(rows) == 0:
+        return 0, n, 0, n
+    pad = int(np.ceil(margin * max(rows[-1] - rows[0], cols[-1] - cols[0], 1)))
+    return max(rows[0] - pad, 0), min(rows[-1] + 1 + pad, n), max(cols[0] - pad, 0), min(cols[-1] + 1 + pad, n)
+
+
+def rescale_camera(camera, source: int, n: int):
+    """A record camera of a source×source image, for an n×n image of the same crop."""
+    if isinstance(camera, PinholeCamera):
+        K = camera.K.clone()
+        K[:2] *= n / source
+        return PinholeCamera(K, camera.R, camera.t, camera.dist, n, n)
+    return OrthographicCamera(camera.scale, camera.trans, n, n)
+
+
+def load_frames(record_path, resolution: int, background=(1.0, 1.0, 1.0), box_margin: float = 0.1) -> FrameData:
+    """Read and resize a frame record (N × resolution² × 7 floats stay in memory)."""
+    bg = np.asarray(background, dtype=np.float32)
+    with FrameRecord(record_path) as rec:
+        n_frames, src = len(rec), rec.size
+        has = {m: m in rec.h5 for m in ("clothing", "hair")}
+        if not (has["clothing"] or has["hair"]):
+            raise DeltaError(f"{record_path}: no 'clothing' or 'hair' mask; the parse step must run first")
+        imgs, person, ext = [], [], []
+        for i in range(n_frames):
+            a = _resize(rec.h5["person"][i].astype(np.float32) / 255.0, resolution)
+            img = _resize(rec.h5["images"][i].astype(np.float32) / 255.0, resolution)
+            e = sum(_resize(rec.h5[m][i].astype(np.float32), resolution) for m in has if has[m])
+            imgs.append(img * a[..., None] + bg * (1 - a[..., None]))
+            person.append(a)
+            ext.append(np.minimum(np.minimum(e, 1.0), a))
+        split, frame_ids = rec.h5["split"][:], rec.h5["frame_ids"][:]
+        camera = rescale_camera(rec.camera(), src, resolution)
+    images, person_t, ext_t = (torch.from_numpy(np.stack(x)) for x in (imgs, person, ext))
+    interior = (person_t - ext_t).clamp(0, 1)
+    train = np.flatnonzero(split == 0)
+    if len(train) == 0:
+        raise DeltaError(f"{record_path}: no training frames (split 0)")
+    w = interior[train].reshape(-1)
+    skin = (images[train].reshape(-1, 3) * w[:, None]).sum(0) / w.sum().clamp_min(1e-6)
+    boxes = torch.tensor([_box(p > 0.5, box_margin) for p in person.__iter__()], dtype=torch.int64)
+    return FrameData(images, person_t, ext_t, interior, boxes, train, split, frame_ids, camera, skin)
+
+
+@dataclasses.dataclass
+class RayBatch:
+    frame: int
+    pixels: torch.Tensor
+    """(R, 2) pixel centres (u, v)."""
+    rgb: torch.Tensor
+    """(R, 3) targets."""
+    person: torch.Tensor
+    exterior: torch.Tensor
+    interior: torch.Tensor
+    patch: int = 0
+    """The first patch² rays form a patch (row-major), 0 when none."""
+
+
+def sample_rays(data: FrameData, frame: int, num: int, generator: torch.Generator, patch: int = 0) -> RayBatch:
+    """``num`` random pixels inside the frame's person box (rays elsewhere see only background),
+    preceded by one ``patch``×``patch`` block of neighbouring pixels when ``patch`` > 0."""
+    i0, i1, j0, j1 = data.boxes[frame].tolist()
+    ii = torch.randint(i0, i1, (num,), generator=generator)
+    jj = torch.randint(j0, j1, (num,), generator=generator)
+    if patch:
+        pi = int(torch.randint(i0, max(i1 - patch, i0) + 1, (1,), generator=generator))
+        pj = int(torch.randint(j0, max(j1 - patch, j0) + 1, (1,), generator=generator))
+        gi, gj = torch.meshgrid(torch.arange(patch) + pi, torch.arange(patch) + pj, indexing="ij")
+        n = data.resolution
+        ii = torch.cat([gi.reshape(-1).clamp(max=n - 1), ii])
+        jj = torch.cat([gj.reshape(-1).clamp(max=n - 1), jj])
+    pixels = torch.stack([jj.float() + 0.5, ii.float() + 0.5], dim=-1)
+    return RayBatch(frame, pixels, data.images[frame, ii, jj], data.person[frame, ii, jj],
+                    data.exterior[frame, ii, jj], data.interior[frame, ii, jj], patch)  # fmt: skip

@@ -1,0 +1,135 @@
+"""Speed/accuracy presets of the training stages, and their overrides.
+
+A preset is a nested dict; the config's ``training`` section and a subject's own
+``training`` key are deep-merged over it (later wins), then turned into typed settings.
+``paper`` follows the SCARF/DELTA settings (512², 4096 rays, 96 samples, PE(10) 8×256 NeRF).
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+from delta import DeltaError
+from delta.fields.networks import FieldSpec
+from delta.losses import LossWeights
+from delta.models.avatar import AvatarSpec
+from delta.render.hybrid import RenderSettings
+
+_GRID_NERF = {"encoding": "grid", "levels": 5, "features": 2, "base_res": 12, "max_res": 96, "depth": 2, "width": 64}
+_GRID_OFFSETS = {"encoding": "grid", "levels": 3, "features": 2, "base_res": 8, "max_res": 32, "depth": 1, "width": 32}
+_GRID_ALBEDO = {"encoding": "grid", "levels": 5, "features": 2, "base_res": 12, "max_res": 96, "depth": 1, "width": 64}
+_PE_DEFORM = {"encoding": "pe", "num_freqs": 6, "depth": 3, "width": 64}
+
+PRESETS: dict[str, dict] = {
+    "fast": {
+        "resolution": 128,
+        "nerf": _GRID_NERF,
+        "offsets": _GRID_OFFSETS,
+        "albedo": _GRID_ALBEDO,
+        "deformation": _PE_DEFORM,
+        "render": {"samples": 24, "sil_sigma": 0.5},
+        "stage1": {"iterations": 1200, "rays": 1024},
+        "stage2": {"iterations": 400, "rays": 1024, "patch": 24},
+    },
+    "balanced": {
+        "resolution": 256,
+        "nerf": {**_GRID_NERF, "levels": 6, "features": 4, "max_res": 128},
+        "offsets": _GRID_OFFSETS,
+        "albedo": {**_GRID_ALBEDO, "max_res": 160},
+        "deformation": _PE_DEFORM,
+        "render": {"samples": 48, "sil_sigma": 1.0},
+        "stage1": {"iterations": 4000, "rays": 2048},
+        "stage2": {"iterations": 1500, "rays": 2048, "patch": 32},
+    },
+    "paper": {
+        "resolution": 512,
+        "nerf": {"encoding": "pe", "num_freqs": 10, "depth": 8, "width": 256, "skip": 4},
+        "offsets": {"encoding": "pe", "num_freqs": 6, "depth": 4, "width": 128},
+        "albedo": {"encoding": "pe", "num_freqs": 10, "depth": 6, "width": 256, "skip": 3},
+        "deformation": {"encoding": "pe", "num_freqs": 6, "depth": 6, "width": 128},
+        "render": {"samples": 96, "sil_sigma": 2.0, "box_margin": 0.3, "max_dist": 10.0},
+        "stage1": {"iterations": 50000, "rays": 4096, "lr": {"nerf": 5e-4, "fields": 5e-4}},
+        "stage2": {"iterations": 20000, "rays": 4096, "patch": 48, "lr": {"nerf": 5e-4, "fields": 5e-4}},
+    },
+}
+
+_STAGE_DEFAULTS = {
+    "iterations": 1000, "rays": 1024, "patch": 0, "checkpoint_every": 100, "preview_every": 400, "log_every": 10,
+    "lr": {"fields": 5e-3, "nerf": 1e-2, "pose": 2e-4, "camera": 2e-4, "shape": 2e-3},
+}  # fmt: skip
+_COMMON = {
+    "seed": 0, "background": [1.0, 1.0, 1.0], "box_margin": 0.1, "offset_scale": 0.04, "nerf_margin": 0.3,
+    "semantic": "idmrf", "exterior": "auto", "weights": {}, "render": {}, "stage1": {}, "stage2": {},
+}  # fmt: skip
+
+
+@dataclasses.dataclass
+class StageSettings:
+    iterations: int
+    rays: int
+    """Rays a step (inside the person's box)."""
+    patch: int
+    """Side of the patch rendered for the semantic loss (0: none)."""
+    checkpoint_every: int
+    preview_every: int
+    log_every: int
+    lr: dict
+
+
+@dataclasses.dataclass
+class TrainSettings:
+    preset: str
+    resolution: int
+    seed: int
+    background: list
+    box_margin: float
+    """Rays are drawn inside the person's box grown by this fraction."""
+    exterior: str
+    """``auto`` (a NeRF only when the capture shows clothing or hair), ``yes``, ``no``."""
+    semantic: str
+    """Stage-2 semantic loss: ``idmrf`` (body), ``perceptual`` (head) or ``none``."""
+    avatar: AvatarSpec
+    """Stage-1 architecture (no F_e)."""
+    deformation: FieldSpec
+    """F_e, added in stage 2."""
+    weights: LossWeights
+    stage1: StageSettings
+    stage2: StageSettings
+    raw: dict
+    """The merged dict these settings came from (written beside checkpoints)."""
+
+
+def deep_merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in (over or {}).items():
+        out[k] = deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else copy.deepcopy(v)
+    return out
+
+
+def _fields(d: dict, key: str) -> FieldSpec:
+    try:
+        return FieldSpec(**d[key])
+    except TypeError as err:
+        raise DeltaError(f"training.{key}: {err}") from None
+
+
+def resolve(preset: str, *overrides: dict) -> TrainSettings:
+    """The preset's settings with overrides deep-merged in order."""
+    if preset not in PRESETS:
+        raise DeltaError(f"unknown preset '{preset}'; choose one of {sorted(PRESETS)}")
+    d = deep_merge(_COMMON, PRESETS[preset])
+    for o in overrides:
+        d = deep_merge(d, o or {})
+    stages = {s: deep_merge(_STAGE_DEFAULTS, d[s]) for s in ("stage1", "stage2")}
+    try:
+        render = RenderSettings(**d["render"])
+        weights = LossWeights(**d["weights"])
+        stage = {s: StageSettings(**v) for s, v in stages.items()}
+    except TypeError as err:
+        raise DeltaError(f"training settings: {err}") from None
+    avatar = AvatarSpec(nerf=_fields(d, "nerf"), offsets=_fields(d, "offsets"), albedo=_fields(d, "albedo"),
+                        deformation=None, offset_scale=d["offset_scale"], nerf_margin=d["nerf_margin"],
+                        render=render)  # fmt: skip
+    return TrainSettings(preset, d["resolution"], d["seed"], d["background"], d["box_margin"], d["exterior"],
+                         d["semantic"], avatar, _fields(d, "deformation"), weights, stage["stage1"], stage["stage2"], d)  # fmt: skip

@@ -1,0 +1,128 @@
+"""Entry points of the training rules: results/{dataset}/{subject}/stage1/ and stage2/.
+
+Stage 1 starts from the init fit (init/params.npz); stage 2 from stage 1's model.pt,
+adding F_e and the semantic loss. Each writes ``model.pt`` (the rule's output, written
+last), ``losses.csv``, ``settings.json``, previews, and keeps ``checkpoint.pt`` for resuming.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from delta import DeltaError
+from delta.body.model import load_body_model
+from delta.cameras.models import OrthographicCamera
+from delta.io import atomic_path, save_json
+from delta.models.avatar import HybridAvatar, InitParams
+from delta.training.data import FrameData, load_frames
+from delta.training.presets import TrainSettings, resolve
+from delta.training.trainer import train_stage
+
+log = logging.getLogger(__name__)
+#: Below this fraction of exterior pixels (of the person, over the training frames) there is no NeRF.
+MIN_EXTERIOR_FRACTION = 0.01
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "cuda" and not torch.cuda.is_available():
+        raise DeltaError("device: cuda is configured but torch sees no CUDA device (use 'auto' or 'cpu')")
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    return torch.device(name)
+
+
+def load_init(path: str | Path, data: FrameData) -> InitParams:
+    """The init fit's parameters, checked against the frame record."""
+    with np.load(path, allow_pickle=False) as z:
+        p = {k: z[k] for k in z.files}
+    for key in ("betas", "poses", "transl", "frame_ids"):
+        if key not in p:
+            raise DeltaError(f"{path}: missing '{key}'; rerun the fit_init rule")
+    if not np.array_equal(p["frame_ids"], data.frame_ids):
+        raise DeltaError(f"{path}: its frames ({len(p['frame_ids'])}) differ from the frame record's "
+                         f"({len(data.frame_ids)}); rerun fit_init")  # fmt: skip
+    t = lambda k: torch.from_numpy(np.asarray(p[k], dtype=np.float32))  # noqa: E731
+    camera = data.camera
+    if str(p.get("camera_model", "pinhole")) == "orthographic":
+        camera = OrthographicCamera(t("ortho_scale"), t("ortho_trans"), data.resolution, data.resolution)
+    return InitParams(t("betas"), t("poses"), t("transl"), camera)
+
+
+def wants_exterior(st: TrainSettings, data: FrameData) -> bool:
+    """Model only what the scene requires: a NeRF only where clothing or hair is seen."""
+    if st.exterior != "auto":
+        return st.exterior == "yes"
+    frac = float(data.exterior[data.train].sum() / data.person[data.train].sum().clamp_min(1.0))
+    log.info("exterior pixels: %.1f%% of the person%s", 100 * frac,
+             "" if frac >= MIN_EXTERIOR_FRACTION else " -> no NeRF is built")  # fmt: skip
+    return frac >= MIN_EXTERIOR_FRACTION
+
+
+def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, stage: int, device) -> HybridAvatar:
+    spec = st.avatar
+    if not wants_exterior(st, data):
+        spec = type(spec)(**{**spec.__dict__, "nerf": None})
+    if stage == 2:
+        spec = type(spec)(**{**spec.__dict__, "deformation": st.deformation if spec.nerf is not None else None})
+    bg = torch.tensor(st.background, dtype=torch.float32)
+    torch.manual_seed(st.seed)  # network initialisation
+    return HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution).to(device)
+
+
+def semantic_loss(st: TrainSettings, weights_dir: str | None, device):
+    if st.semantic == "none" or st.weights.semantic == 0:
+        return None
+    from delta.perceptual.idmrf import SemanticLoss
+
+    return SemanticLoss(kind=st.semantic, weights=weights_dir).to(device)
+
+
+def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str, preset: str,
+              overrides: list[dict], device: str = "cpu", perceptual_dir: str | None = None) -> dict:  # fmt: skip
+    """Train one stage; ``start`` is init/params.npz (stage 1) or stage 1's model.pt (stage 2)."""
+    st = resolve(preset, *overrides)
+    dev = pick_device(device)
+    data = load_frames(record, st.resolution, st.background, st.box_margin)
+    body = load_body_model(body_path).to(device=dev)
+    if stage == 1:
+        init = load_init(start, data)
+        model = build_avatar(body, st, init, data, 1, dev)
+    else:
+        prev = torch.load(start, map_location=dev, weights_only=False)
+        init = load_init_from_state(prev["model"], data)
+        model = build_avatar(body, st, init, data, 2, dev)
+        missing, unexpected = model.load_state_dict(prev["model"], strict=False)
+        if unexpected or any(not k.startswith("deformation.") for k in missing):
+            raise DeltaError(f"{start}: does not match this preset's stage-2 model "
+                             f"(missing {missing[:3]}, unexpected {unexpected[:3]})")  # fmt: skip
+    out = Path(out_dir)
+    save_json(out / "settings.json", {"preset": preset, "stage": stage, "settings": st.raw,
+                                      "nerf": model.nerf is not None, "device": str(dev)})  # fmt: skip
+    sem = semantic_loss(st, perceptual_dir, dev) if stage == 2 else None
+    t0 = time.time()
+    res = train_stage(stage, model, data, st, out, sem)
+    final = {"model": model.state_dict(), "stage": stage, "preset": preset, "settings": st.raw,
+             "nerf": model.nerf is not None, "deformation": model.deformation is not None,
+             "pinhole": model.pinhole, "steps": res.steps}  # fmt: skip
+    with atomic_path(out / "model.pt") as tmp:
+        torch.save(final, tmp)
+    last = res.losses.tail(max(1, len(res.losses) // 20)).mean(numeric_only=True)
+    summary = {"stage": stage, "steps": res.steps, "seconds": round(time.time() - t0, 1),
+               "train_psnr_last5pct": round(float(last.get("psnr", float("nan"))), 2)}  # fmt: skip
+    log.info("stage %d done: %s", stage, json.dumps(summary))
+    return summary
+
+
+def load_init_from_state(state: dict, data: FrameData) -> InitParams:
+    """Per-frame parameters as stage 1 left them (stage 2 starts from the refined ones)."""
+    camera = data.camera
+    if "ortho_scale" in state:
+        camera = OrthographicCamera(state["ortho_scale"].cpu(), state["ortho_trans"].cpu(),
+                                    data.resolution, data.resolution)  # fmt: skip
+    return InitParams(state["betas"].cpu(), state["poses"].cpu(), state["transl"].cpu(), camera)

@@ -1,0 +1,159 @@
+"""One training stage: the loop, the loss recipe, checkpoints that resume exactly, previews.
+
+Resume contract: a checkpoint holds the model, the optimiser, the step, the sampling
+generator's state and the loss rows so far; a stage rerun after an interruption
+continues from it and reaches the same parameters as an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Callable, Optional
+
+import cv2
+import numpy as np
+import pandas as pd
+import torch
+
+from delta import losses as L
+from delta.io import atomic_path
+from delta.models.avatar import HybridAvatar
+from delta.training.data import FrameData, RayBatch, sample_rays
+from delta.training.presets import StageSettings, TrainSettings
+
+log = logging.getLogger(__name__)
+CHECKPOINT = "checkpoint.pt"
+
+
+@dataclasses.dataclass
+class StageResult:
+    steps: int
+    seconds: float
+    losses: pd.DataFrame
+
+
+def loss_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, skin_color: torch.Tensor,
+               semantic: Optional[Callable] = None, generator=None) -> tuple[dict, object]:  # fmt: skip
+    """Render a ray batch and evaluate every term of the objective (unweighted)."""
+    mesh, offsets, out = model.posed_mesh(batch.frame)
+    r = model.render(batch.frame, batch.pixels, generator, mesh)
+    d = st.weights.huber_delta
+    terms = {
+        "pixel": L.pixel(r.rgb, batch.rgb, d),
+        "silhouette": L.silhouette(r.silhouette, batch.person, d),
+        "interior_mask": L.interior_mask(r.silhouette, batch.interior, d),
+        "skin": L.skin(r.mesh_rgb, batch.rgb, batch.interior, d),
+        "inside": L.inside(r.silhouette, batch.person, d),
+        "skin_inside": L.skin_inside(r.mesh_rgb, skin_color, batch.exterior, d),
+        "edge": L.edge(out.rest_vertices[0], out.rest_vertices[0] - offsets, model.edges),
+        "offset": L.offset(offsets, model.body.regions, st.weights.offset_region_weights),
+    }
+    if model.nerf is not None:
+        terms["exterior"] = L.exterior(r.nerf_mask, batch.exterior)
+    if semantic is not None and batch.patch:
+        p = batch.patch
+        img = lambda x: x[: p * p].T.reshape(1, 3, p, p)  # noqa: E731
+        terms["semantic"] = semantic(img(r.rgb), img(batch.rgb))
+    return terms, r
+
+
+def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    mse = float(((a - b) ** 2).mean())
+    return 10 * np.log10(1.0 / max(mse, 1e-10))
+
+
+def save_checkpoint(path: Path, model, optimizer, step: int, generator: torch.Generator, rows: list) -> None:
+    state = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
+             "generator": generator.get_state(), "rows": rows}  # fmt: skip
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSettings, out_dir: Path,
+                semantic: Optional[Callable] = None, max_steps: Optional[int] = None) -> StageResult:  # fmt: skip
+    """Run (or resume) a stage; ``max_steps`` stops early (tests use it to simulate an interruption)."""
+    cfg: StageSettings = st.stage1 if stage == 1 else st.stage2
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    device = model.background.device
+    generator = torch.Generator().manual_seed(st.seed * 1000 + stage)
+    optimizer = torch.optim.Adam(model.param_groups(cfg.lr), eps=1e-12, foreach=True)
+    start, rows = 0, []
+    ckpt = out_dir / CHECKPOINT
+    if ckpt.is_file():
+        state = torch.load(ckpt, map_location=device, weights_only=False)
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        generator.set_state(state["generator"])
+        start, rows = state["step"], state["rows"]
+        log.info("stage %d: resuming from %s at step %d", stage, ckpt, start)
+    skin_color = data.skin_color.to(device)
+    end = cfg.iterations if max_steps is None else min(cfg.iterations, max_steps)
+    t0, seen = time.time(), 0
+    for step in range(start, end):
+        frame = int(data.train[torch.randint(len(data.train), (1,), generator=generator)])
+        batch = _to(sample_rays(data, frame, cfg.rays, generator, cfg.patch if semantic else 0), device)
+        terms, r = loss_terms(model, batch, st, skin_color, semantic, generator)
+        loss = L.total(terms, st.weights)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        seen += 1
+        rows.append({"step": step + 1, "loss": float(loss.detach()), "psnr": _psnr(r.rgb.detach(), batch.rgb),
+                     "samples": r.samples_evaluated, **{k: float(v) for k, v in terms.items()}})  # fmt: skip
+        if (step + 1) % cfg.log_every == 0 or step + 1 == end:
+            _progress(stage, step + 1, cfg.iterations, rows[-1], seen / (time.time() - t0))
+        if (step + 1) % cfg.checkpoint_every == 0 or step + 1 == end:
+            save_checkpoint(ckpt, model, optimizer, step + 1, generator, rows)
+        if cfg.preview_every and ((step + 1) % cfg.preview_every == 0 or step + 1 == cfg.iterations):
+            write_preview(model, data, int(data.train[0]), out_dir / "previews" / f"step_{step + 1:06d}.png")
+    losses = pd.DataFrame(rows)
+    with atomic_path(out_dir / "losses.csv") as tmp:
+        losses.to_csv(tmp, index=False)
+    return StageResult(end, time.time() - t0, losses)
+
+
+def _to(batch: RayBatch, device) -> RayBatch:
+    return dataclasses.replace(batch, **{f: getattr(batch, f).to(device) for f in
+                                        ("pixels", "rgb", "person", "exterior", "interior")})  # fmt: skip
+
+
+def _progress(stage: int, step: int, total: int, row: dict, rate: float) -> None:
+    width = 30
+    done = int(width * step / total)
+    bar = "#" * done + "-" * (width - done)
+    print(f"stage {stage} [{bar}] {step}/{total} loss {row['loss']:.4f} psnr {row['psnr']:.2f} dB "
+          f"{rate:.2f} it/s", file=sys.stderr, flush=True)  # fmt: skip
+
+
+@torch.no_grad()
+def render_image(model: HybridAvatar, frame: int, chunk: int = 4096) -> dict[str, torch.Tensor]:
+    """Full-frame composite, mesh-only, NeRF-only images and NeRF mask, (n, n, ·) each."""
+    n = model.resolution
+    jj, ii = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="xy")
+    pixels = torch.stack([jj.reshape(-1) + 0.5, ii.reshape(-1) + 0.5], -1).float().to(model.background.device)
+    mesh = model.posed_mesh(frame)[0]
+    perturb = model.spec.render.perturb
+    model.spec.render.perturb = False
+    parts: dict[str, list] = {"rgb": [], "mesh": [], "nerf": [], "nerf_mask": [], "silhouette": []}
+    try:
+        for s in range(0, len(pixels), chunk):
+            r = model.render(frame, pixels[s : s + chunk], mesh=mesh)
+            for k, v in zip(parts, (r.rgb, r.mesh_rgb, r.nerf_rgb, r.nerf_mask, r.silhouette)):
+                parts[k].append(v)
+    finally:
+        model.spec.render.perturb = perturb
+    return {k: torch.cat(v).reshape(n, n, -1).squeeze(-1).cpu() for k, v in parts.items()}
+
+
+def write_preview(model: HybridAvatar, data: FrameData, frame: int, path: Path) -> None:
+    """[target | composite | mesh only | NeRF only] side by side."""
+    img = render_image(model, frame)
+    row = torch.cat([data.images[frame], img["rgb"], img["mesh"], img["nerf"]], dim=1)
+    bgr = cv2.cvtColor((row.clamp(0, 1).numpy() * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR)
+    with atomic_path(path) as tmp:
+        cv2.imwrite(str(tmp), bgr)

@@ -1,0 +1,169 @@
+"""Ray-mesh hits against analytic oracles; Embree and the torch brute force agree."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import trimesh
+
+from delta.geometry.raymesh import RayHits, embree_available, interpolate, moller_trumbore, ray_mesh_hits
+
+BACKENDS = ["torch", pytest.param("embree", marks=pytest.mark.skipif(not embree_available(), reason="no embreex"))]
+D = torch.float64
+
+
+def unit_square():
+    """Two triangles covering [0, 1]^2 at z = 0; face 0 holds x >= y, face 1 holds y >= x."""
+    v = torch.tensor([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], dtype=D)
+    f = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    return v, f
+
+
+def down_rays(xy, height=3.0, speed=2.0):
+    xy = torch.as_tensor(xy, dtype=D)
+    origins = torch.cat([xy, torch.full((len(xy), 1), height, dtype=D)], 1)
+    dirs = torch.tensor([[0.0, 0, -speed]], dtype=D).expand(len(xy), 3).clone()
+    return origins, dirs
+
+
+def square_bary(x, y):
+    """Analytic (face, barycentrics) of (x, y) on :func:`unit_square`."""
+    if x >= y:
+        return 0, [1 - x, x - y, y]
+    return 1, [1 - y, x, y - x]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_unit_square_t_and_barycentrics(backend):
+    v, f = unit_square()
+    xy = [[0.7, 0.2], [0.25, 0.6], [0.1, 0.05], [0.9, 0.95]]
+    origins, dirs = down_rays(xy, height=3.0, speed=2.0)
+    hits = ray_mesh_hits(v, f, origins, dirs, backend=backend)
+    assert isinstance(hits, RayHits) and hits.hit.all()
+    torch.testing.assert_close(hits.t, torch.full((4,), 1.5, dtype=D), rtol=0, atol=1e-12)
+    for i, (x, y) in enumerate(xy):
+        face, bary = square_bary(x, y)
+        assert hits.face[i] == face
+        torch.testing.assert_close(hits.bary[i], torch.tensor(bary, dtype=D), rtol=0, atol=1e-12)
+    colour = interpolate(hits, f, v[:, :2] * 10)  # interpolating positions gives the hit point back
+    torch.testing.assert_close(colour, torch.tensor(xy, dtype=D) * 10, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_misses_report_inf_and_minus_one(backend):
+    v, f = unit_square()
+    origins, dirs = down_rays([[2.0, 2.0], [0.5, 0.2]])
+    dirs[1] = -dirs[1]  # points away from the square: the plane is behind it (t < 0)
+    hits = ray_mesh_hits(v, f, origins, dirs, backend=backend)
+    assert not hits.hit.any()
+    assert torch.isinf(hits.t).all() and (hits.t > 0).all()
+    assert (hits.face == -1).all() and (hits.bary == 0).all()
+    assert (interpolate(hits, f, v) == 0).all()
+
+
+def _sphere_rays(n, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    far = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=D), dim=1) * 3
+    target = torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=D), dim=1)
+    target = target * 0.8 * torch.rand(n, 1, generator=g, dtype=D)  # inside the inscribed ball
+    origins = torch.where(torch.arange(n)[:, None] % 4 == 0, 0.5 * target, far)  # a quarter start inside
+    dirs = (target - origins) * (0.5 + torch.rand(n, 1, generator=g, dtype=D))
+    dirs[::4] = torch.randn(len(dirs[::4]), 3, generator=g, dtype=D)
+    return origins, dirs
+
+
+@pytest.mark.skipif(not embree_available(), reason="no embreex")
+def test_embree_and_torch_agree_on_icosphere():
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    v, f = torch.tensor(mesh.vertices, dtype=D), torch.tensor(mesh.faces)
+    origins, dirs = _sphere_rays(500)
+    a = ray_mesh_hits(v, f, origins, dirs, backend="embree")
+    b = ray_mesh_hits(v, f, origins, dirs, backend="torch")
+    assert a.hit.all() and b.hit.all()
+    torch.testing.assert_close(a.t, b.t, rtol=1e-6, atol=0)
+    differ = a.face != b.face  # only ties: rays through a shared edge or vertex
+    assert differ.sum() <= 2
+    # the exact hit: the interpolated position is on the ray at t
+    for h in (a, b):
+        torch.testing.assert_close(interpolate(h, f, v), origins + h.t[:, None] * dirs, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_first_hit_on_sphere_is_the_near_side(backend):
+    r, centre = 2.0, torch.tensor([0.5, -1.0, 2.0], dtype=D)
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=r)
+    v, f = torch.tensor(mesh.vertices, dtype=D) + centre, torch.tensor(mesh.faces)
+    # through a mesh vertex (on the sphere exactly) from distance d: t = d - r
+    unit = torch.tensor(mesh.vertices[[5, 100, 400]], dtype=D) / r
+    d = torch.tensor([5.0, 3.0, 10.0], dtype=D)
+    hits = ray_mesh_hits(v, f, centre + d[:, None] * unit, -unit * 0.5, backend=backend)
+    assert hits.hit.all()
+    torch.testing.assert_close(hits.t * 0.5, d - r, rtol=1e-12, atol=0)
+    # generic direction through the centre: near side within the tessellation error, not the far side
+    u = torch.nn.functional.normalize(torch.tensor([[0.3, 0.5, -0.8]], dtype=D), dim=1)
+    hits = ray_mesh_hits(v, f, centre + 6 * u, -u, backend=backend)
+    assert hits.hit.all() and 6 - r <= hits.t.item() <= 6 - r + 0.02 * r
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_gradcheck_single_triangle(backend):
+    tri = torch.tensor([[0.1, -0.2, 0.3], [1.2, 0.1, -0.1], [0.2, 1.1, 0.2]], dtype=D, requires_grad=True)
+    origins = torch.tensor([[0.4, 0.3, 2.0], [0.2, 0.1, -1.5]], dtype=D, requires_grad=True)
+    dirs = torch.tensor([[0.05, -0.1, -1.3], [0.1, 0.2, 0.9]], dtype=D, requires_grad=True)
+    f = torch.tensor([[0, 1, 2]])
+
+    def fn(vv, oo, dd):
+        hits = ray_mesh_hits(vv, f, oo, dd, backend=backend)
+        assert hits.hit.all()
+        return hits.t, hits.bary
+
+    assert torch.autograd.gradcheck(fn, (tri, origins, dirs))
+
+
+def _assert_finite_grads(t, bary, *inputs):
+    assert torch.isfinite(t).all() and torch.isfinite(bary).all()
+    inputs = [x for x in inputs if x.requires_grad]
+    grads = torch.autograd.grad((t.sum() + bary.sum() + (bary * bary).sum()), inputs, allow_unused=True)
+    assert all(g is None or torch.isfinite(g).all() for g in grads)
+
+
+def test_parallel_and_grazing_rays_stay_finite():
+    a, b, c = (torch.tensor(x, dtype=D, requires_grad=True) for x in ([0.0, 0, 0], [1.0, 0, 0], [0.0, 1, 0]))
+    origins = torch.tensor([[0.2, 0.2, 0.0], [-1.0, 0.0, 0.0], [-1.0, 0.3, 1e-9]], dtype=D, requires_grad=True)
+    dirs = torch.tensor([[1.0, 0, 0], [1.0, 0, 0], [1.0, 0, -1e-12]], dtype=D, requires_grad=True)
+    t, u, v, det = moller_trumbore(origins, dirs, a, b, c)
+    assert det[0] == 0 and det[1] == 0
+    _assert_finite_grads(t, torch.stack([u, v], -1), a, b, c, origins, dirs)
+    verts = torch.stack([a, b, c])
+    for backend in ["torch"] + (["embree"] if embree_available() else []):
+        hits = ray_mesh_hits(verts, torch.tensor([[0, 1, 2]]), origins, dirs, backend=backend)
+        assert not hits.hit[:2].any()  # exactly parallel (in the plane): no hit, no NaN
+        assert not torch.isnan(hits.t).any() and torch.isfinite(hits.bary).all()
+        _assert_finite_grads(hits.t[hits.hit], hits.bary, verts, origins, dirs)
+
+
+@pytest.mark.parametrize("offset", [0.0, 1000.0])
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_rays_through_vertices_and_edges_hit(backend, offset):
+    v, f = unit_square()
+    v = (v + offset).requires_grad_(True)
+    xy = torch.tensor([[0.0, 0], [1, 1], [1, 0], [0.5, 0.5], [0.3, 0.3], [0.5, 0], [1, 0.25], [0, 0.75]], dtype=D)
+    origins, dirs = down_rays(xy + offset, height=offset + 3)
+    origins.requires_grad_(True)
+    hits = ray_mesh_hits(v, f, origins, dirs, backend=backend)
+    assert hits.hit.all()
+    torch.testing.assert_close(hits.t, torch.full((len(xy),), 1.5, dtype=D), rtol=0, atol=1e-12)
+    assert (hits.bary >= -1e-6).all() and (hits.bary <= 1 + 1e-6).all()
+    torch.testing.assert_close(hits.bary.sum(1), torch.ones(len(xy), dtype=D))
+    torch.testing.assert_close(interpolate(hits, f, v[:, :2]) - offset, xy, rtol=0, atol=1e-10)
+    _assert_finite_grads(hits.t, hits.bary, v, origins, dirs)
+
+
+def test_dtype_follows_inputs_and_unknown_backend():
+    v, f = unit_square()
+    origins, dirs = down_rays([[0.3, 0.1]])
+    hits = ray_mesh_hits(v.float(), f, origins.float(), dirs.float(), backend="torch")
+    assert hits.t.dtype == torch.float32 and hits.bary.dtype == torch.float32
+    assert abs(hits.t.item() - 1.5) < 1e-6
+    with pytest.raises(ValueError, match="backend"):
+        ray_mesh_hits(v, f, origins, dirs, backend="optix")
