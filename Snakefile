@@ -14,6 +14,7 @@ include: "rules/body.smk"
 include: "rules/synthetic.smk"
 include: "rules/preprocess.smk"
 include: "rules/fitting.smk"
+include: "rules/training.smk"
 
 
 # cheap bookkeeping runs on the submitting machine, never as a cluster job

@@ -176,6 +176,16 @@ def cmd_fit_init(args: argparse.Namespace) -> None:
     save_json(Path(args.out) / "summary.json", summary)
 
 
+def cmd_train(args: argparse.Namespace) -> None:
+    import json
+
+    from delta.training.run import run_stage
+
+    _threads(args.threads)
+    run_stage(args.stage, args.record, args.body, args.start, args.out, args.preset,
+              [json.loads(args.overrides)], args.device, args.perceptual)  # fmt: skip
+
+
 def cmd_validate_config(args: argparse.Namespace) -> None:
     from delta.config import load_config
 
@@ -266,6 +276,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--threads", type=int, default=1)
     p.set_defaults(func=cmd_fit_init)
+
+    p = sub.add_parser("train", help="train (or resume) stage 1 or 2 of the hybrid avatar")
+    p.add_argument("--stage", type=int, choices=[1, 2], required=True)
+    p.add_argument("--record", required=True)
+    p.add_argument("--body", required=True)
+    p.add_argument("--start", required=True, help="init/params.npz (stage 1) or stage 1's model.pt (stage 2)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--preset", default="fast")
+    p.add_argument("--overrides", default="{}", help="JSON deep-merged over the preset")
+    p.add_argument("--perceptual", default=None, help="folder of the shift-tolerant VGG weights (stage 2)")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
+    p.add_argument("--threads", type=int, default=1)
+    p.set_defaults(func=cmd_train)
+
+    from delta.perceptual.weights import add_fetch_perceptual_arguments, cmd_fetch_perceptual
+
+    p = sub.add_parser("fetch-perceptual", help="fetch the shift-tolerant VGG16/AlexNet weights (stlpips-pytorch 0.0.2)")
+    add_fetch_perceptual_arguments(p)
+    p.set_defaults(func=cmd_fetch_perceptual)
 
     p = sub.add_parser("validate-config", help="check a config file against the workflow schema")
     p.add_argument("config")

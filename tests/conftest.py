@@ -147,3 +147,11 @@ def mediapipe_pose_model():
     if not all((MODELS_DIR / "mediapipe" / f"{m}.onnx").is_file() for m in MODELS):
         convert(MODELS_DIR / "mediapipe", REPO / "resources" / "envs" / "mediapipe-convert")
     return target
+
+
+@pytest.fixture(scope="session")
+def perceptual_weights():
+    """The folder of the shift-tolerant VGG16/AlexNet weights, fetched once from the registry when missing."""
+    from delta.perceptual import weights as W
+
+    return Path(W.ensure_weights(REPO / "resources" / "models" / "stlpips")["vgg"]).parent

@@ -36,7 +36,8 @@ class GridEncoding(nn.Module):
     """Multi-resolution dense feature grids over a box, trilinearly sampled (``grid_sample``).
 
     Level l has resolution round(base · growth^l), growth chosen so the last level is ``max_res``;
-    features of all levels are concatenated. Points outside the box read zero features.
+    features of all levels are concatenated. Features fade to zero within one cell outside the box
+    and are zero beyond it.
     """
 
     def __init__(self, bounds: torch.Tensor, levels: int = 6, features: int = 4,

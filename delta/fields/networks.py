@@ -94,7 +94,7 @@ class VertexField(nn.Module):
         self.kind, self.scale = kind, scale
         self.encoding, self.head = _encoder_and_head(spec, bounds, 3)
         with torch.no_grad():
-            self.head.out.weight.mul_(0.0 if kind == "offset" else 0.1)
+            self.head.out.weight.zero_()  # start exactly at zero offsets / the init colour
             self.head.out.bias.zero_()
             if init is not None:
                 c = init.float().clamp(0.02, 0.98)

@@ -97,7 +97,7 @@ def stratified_samples(
     u = torch.arange(num - 1, dtype=t_near.dtype, device=t_near.device).expand(*t_near.shape, num - 1)
     if perturb:
         u = u + torch.rand(u.shape, dtype=u.dtype, device=u.device, generator=generator)
-    t = t_near[..., None] + span[..., None] * u / (num - 1)
+    t = torch.minimum(t_near[..., None] + span[..., None] * u / (num - 1), t_far[..., None])  # rounding past t_far
     return torch.cat([t, t_far[..., None]], dim=-1)
 
 

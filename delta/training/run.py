@@ -80,7 +80,7 @@ def semantic_loss(st: TrainSettings, weights_dir: str | None, device):
         return None
     from delta.perceptual.idmrf import SemanticLoss
 
-    return SemanticLoss(kind=st.semantic, weights=weights_dir).to(device)
+    return SemanticLoss(kind=st.semantic, cache_dir=weights_dir).to(device)
 
 
 def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str, preset: str,

@@ -104,7 +104,7 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
         optimizer.step()
         seen += 1
         rows.append({"step": step + 1, "loss": float(loss.detach()), "psnr": _psnr(r.rgb.detach(), batch.rgb),
-                     "samples": r.samples_evaluated, **{k: float(v) for k, v in terms.items()}})  # fmt: skip
+                     "samples": r.samples_evaluated, **{k: float(v.detach()) for k, v in terms.items()}})  # fmt: skip
         if (step + 1) % cfg.log_every == 0 or step + 1 == end:
             _progress(stage, step + 1, cfg.iterations, rows[-1], seen / (time.time() - t0))
         if (step + 1) % cfg.checkpoint_every == 0 or step + 1 == end:

@@ -1,0 +1,242 @@
+"""Encodings and fields: known values, exact interpolation of hand-set grids, initial states, caps."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from delta.fields.encodings import GridEncoding, PositionalEncoding, make_encoding, positional_encoding
+from delta.fields.networks import MAX_LOG_DENSITY, MLP, DeformationField, FieldSpec, NeRFField, VertexField
+
+D = torch.float64
+BOUNDS = torch.tensor([[-1.0, 0.0, 2.0], [1.0, 3.0, 4.0]])
+SMALL_GRID = FieldSpec(encoding="grid", levels=2, features=2, base_res=4, max_res=8, depth=2, width=32)
+SMALL_PE = FieldSpec(encoding="pe", num_freqs=3, depth=2, width=32, skip=0)
+
+
+def inside_points(n: int, seed: int, dtype=torch.float32) -> torch.Tensor:
+    gen = torch.Generator().manual_seed(seed)
+    u = torch.rand(n, 3, generator=gen, dtype=dtype)
+    return BOUNDS[0].to(dtype) + u * (BOUNDS[1] - BOUNDS[0]).to(dtype)
+
+
+# ----------------------------------------------------------------- positional encoding
+def test_positional_encoding_values():
+    x = torch.tensor([[0.25, -0.5]], dtype=D)
+    pe = positional_encoding(x, 2)
+    s, pi = math.sqrt(0.5), math.pi
+    # [x | sin(π x), sin(2π x) | cos(π x), cos(2π x)], frequency-major, coordinates inside
+    expected = [0.25, -0.5, s, -1.0, 1.0, math.sin(-pi), s, 0.0, 0.0, -1.0]
+    torch.testing.assert_close(pe[0], torch.tensor(expected, dtype=D), rtol=0, atol=1e-15)
+    no_input = positional_encoding(x, 2, include_input=False)
+    torch.testing.assert_close(no_input, pe[:, 2:], rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("num_freqs,dim", [(0, 3), (1, 3), (4, 2), (10, 3)])
+def test_positional_encoding_dims_and_general_values(num_freqs, dim):
+    gen = torch.Generator().manual_seed(num_freqs)
+    x = torch.randn(5, dim, generator=gen, dtype=D)
+    pe = positional_encoding(x, num_freqs)
+    assert pe.shape == (5, dim * (1 + 2 * num_freqs))
+    assert positional_encoding(x, num_freqs, include_input=False).shape == (5, dim * 2 * num_freqs)
+    for k in range(num_freqs):
+        f = math.pi * 2.0**k
+        sin_block = pe[:, dim + k * dim : dim + (k + 1) * dim]
+        cos_block = pe[:, dim * (1 + num_freqs) + k * dim : dim * (1 + num_freqs) + (k + 1) * dim]
+        torch.testing.assert_close(sin_block, torch.sin(f * x), rtol=0, atol=1e-12)
+        torch.testing.assert_close(cos_block, torch.cos(f * x), rtol=0, atol=1e-12)
+
+
+def test_positional_encoding_module_normalises_to_the_box():
+    enc = PositionalEncoding(3, BOUNDS)
+    assert enc.out_dim == 21
+    x = torch.stack([BOUNDS[0], BOUNDS[1], BOUNDS.mean(0)])
+    out = enc(x)
+    torch.testing.assert_close(out[:, :3], torch.tensor([[-1.0] * 3, [1.0] * 3, [0.0] * 3]), rtol=0, atol=1e-6)
+    torch.testing.assert_close(out[2], positional_encoding(torch.zeros(1, 3), 3)[0], rtol=0, atol=1e-6)
+
+
+# ----------------------------------------------------------------- grid encoding
+def set_grids(enc: GridEncoding, fns) -> None:
+    """Set feature c of every level to fns[c](x, y, z) at the world positions of the grid nodes."""
+    lo, hi = enc.lo.double(), enc.hi.double()
+    with torch.no_grad():
+        for grid, r in zip(enc.grids, enc.resolutions):
+            node = [lo[a] + (hi[a] - lo[a]) * torch.arange(r, dtype=D) / (r - 1) for a in range(3)]
+            # layout (1, C, D, H, W): z along D, y along H, x along W
+            z, y, x = torch.meshgrid(node[2], node[1], node[0], indexing="ij")
+            for c, fn in enumerate(fns):
+                grid[0, c] = fn(x, y, z).float()
+
+
+def test_grid_resolutions():
+    enc = GridEncoding(BOUNDS, levels=6, features=4, base_res=16, max_res=128)
+    assert enc.resolutions[0] == 16 and enc.resolutions[-1] == 128
+    assert enc.resolutions == sorted(enc.resolutions) and enc.out_dim == 24
+    assert [tuple(g.shape) for g in enc.grids][-1] == (1, 4, 128, 128, 128)
+    assert GridEncoding(BOUNDS, levels=1, features=2, base_res=5, max_res=9).resolutions == [5]
+
+
+def test_grid_reproduces_trilinear_functions_exactly():
+    enc = GridEncoding(BOUNDS, levels=3, features=2, base_res=3, max_res=7)
+    linear = lambda x, y, z: x + 2 * y + 3 * z  # noqa: E731
+    trilinear = lambda x, y, z: x * (y - 1) * z  # noqa: E731  (in the span trilinear interpolation reproduces)
+    set_grids(enc, [linear, trilinear])
+    p = inside_points(200, 0)
+    out = enc(p)
+    assert out.shape == (200, 6)
+    x, y, z = p.double().unbind(-1)
+    for level in range(3):
+        torch.testing.assert_close(out[:, 2 * level].double(), linear(x, y, z), rtol=0, atol=2e-5)
+        torch.testing.assert_close(out[:, 2 * level + 1].double(), trilinear(x, y, z), rtol=0, atol=2e-5)
+    # at the box corners and centre too
+    corners = torch.tensor([[-1.0, 0.0, 2.0], [1.0, 3.0, 4.0], [1.0, 0.0, 4.0], [0.0, 1.5, 3.0]])
+    torch.testing.assert_close(enc(corners)[:, 0], corners @ torch.tensor([1.0, 2.0, 3.0]), rtol=0, atol=2e-5)
+    # float64 in, float64 out
+    assert enc(p.double()).dtype == D
+
+
+def test_grid_far_outside_reads_zero():
+    enc = GridEncoding(BOUNDS, levels=2, features=3, base_res=4, max_res=6, init_std=1.0)
+    with torch.no_grad():
+        for g in enc.grids:
+            g.add_(5.0)  # no zero features anywhere inside
+    far = torch.tensor([[5.0, 1.0, 3.0], [0.0, -4.0, 3.0], [0.0, 1.0, 100.0], [-1e6, 1e6, 1e6]])
+    assert torch.equal(enc(far), torch.zeros(4, 6))
+    assert bool((enc(inside_points(50, 1)).abs() > 0).all())
+
+
+def test_grid_fades_to_zero_within_one_cell_outside():
+    """Just outside the box the features fall linearly to 0 over one cell (zero padding), then stay 0."""
+    enc = GridEncoding(BOUNDS, levels=1, features=1, base_res=5, max_res=5)
+    set_grids(enc, [lambda x, y, z: torch.ones_like(x)])
+    cell_x = 2.0 / 4
+    xs = torch.tensor([1.0, 1.0 + 0.25 * cell_x, 1.0 + 0.5 * cell_x, 1.0 + cell_x, 1.0 + 2 * cell_x])
+    p = torch.stack([xs, torch.full_like(xs, 1.5), torch.full_like(xs, 3.0)], -1)
+    torch.testing.assert_close(enc(p)[:, 0], torch.tensor([1.0, 0.75, 0.5, 0.0, 0.0]), rtol=0, atol=1e-5)
+
+
+def test_grid_features_fade_to_zero_within_one_cell_outside_the_box():
+    enc = GridEncoding(BOUNDS, levels=1, features=1, base_res=5, max_res=5)
+    set_grids(enc, [lambda x, y, z: torch.ones_like(x)])
+    cell = float(BOUNDS[1, 0] - BOUNDS[0, 0]) / 4
+    just_out = float(BOUNDS[1, 0]) + 0.2 * cell
+    p = torch.tensor([[just_out, 1.5, 3.0], [float(BOUNDS[1, 0]) + 1.5 * cell, 1.5, 3.0]])
+    out = enc(p)[:, 0]
+    assert abs(out[0].item() - 0.8) < 1e-5 and out[1].item() == 0.0
+
+
+def test_make_encoding():
+    assert isinstance(make_encoding("pe", BOUNDS, num_freqs=4), PositionalEncoding)
+    assert make_encoding("pe", BOUNDS, num_freqs=4).out_dim == 27
+    g = make_encoding("grid", BOUNDS, levels=2, features=3, base_res=4, max_res=8)
+    assert isinstance(g, GridEncoding) and g.out_dim == 6 and g.resolutions == [4, 8]
+    with pytest.raises(ValueError):
+        make_encoding("hash", BOUNDS)
+
+
+# ----------------------------------------------------------------- networks
+def test_mlp_skip_connection_shapes():
+    mlp = MLP(5, 2, depth=3, width=8, skip=1)
+    assert mlp.hidden[2].in_features == 8 + 5 and mlp.out.in_features == 8
+    assert mlp(torch.randn(4, 5)).shape == (4, 2)
+
+
+@pytest.mark.parametrize("spec", [SMALL_GRID, SMALL_PE], ids=["grid", "pe"])
+def test_nerf_density_capped_and_finite(spec):
+    torch.manual_seed(0)
+    field = NeRFField(spec, BOUNDS)
+    x = inside_points(64, 2)
+    rgb, sigma = field(x)
+    assert rgb.shape == (64, 3) and sigma.shape == (64,)
+    assert bool((sigma >= 0).all()) and bool((rgb >= 0).all()) and bool((rgb <= 1).all())
+    with torch.no_grad():
+        field.head.out.bias.fill_(1e4)
+    rgb, sigma = field(x)
+    cap = math.exp(MAX_LOG_DENSITY)
+    assert MAX_LOG_DENSITY == 15.0
+    torch.testing.assert_close(sigma, torch.full_like(sigma, cap), rtol=1e-6, atol=0)
+    assert bool(torch.isfinite(sigma).all()) and bool(torch.isfinite(rgb).all())
+    (sigma.sum() + rgb.sum()).backward()
+    for p in field.parameters():
+        assert p.grad is None or bool(torch.isfinite(p.grad).all())
+    with torch.no_grad():
+        field.head.out.bias.fill_(-1e4)
+    _, sigma = field(x)
+    assert bool((sigma >= 0).all()) and bool(torch.isfinite(sigma).all()) and float(sigma.detach().max()) == 0.0
+
+
+def test_nerf_starts_nearly_empty():
+    torch.manual_seed(1)
+    field = NeRFField(SMALL_GRID, BOUNDS, density_bias=-2.0)
+    assert field.head.out.bias[3].item() == -2.0
+    _, sigma = field(inside_points(64, 3))
+    assert bool((sigma < math.exp(-2.0) * 3).all()) and bool((sigma > math.exp(-2.0) / 3).all())
+
+
+@pytest.mark.parametrize("spec", [SMALL_GRID, SMALL_PE], ids=["grid", "pe"])
+def test_offset_field_starts_at_exactly_zero(spec):
+    torch.manual_seed(2)
+    field = VertexField(spec, BOUNDS, "offset", scale=0.04)
+    out = field(inside_points(30, 4))
+    assert torch.equal(out, torch.zeros(30, 3))
+    # after a step it moves, and never beyond the scale
+    with torch.no_grad():
+        field.head.out.bias.fill_(100.0)
+    assert bool((field(inside_points(30, 4)).abs() <= 0.04).all())
+
+
+@pytest.mark.parametrize("spec", [SMALL_GRID, SMALL_PE], ids=["grid", "pe"])
+def test_albedo_field_starts_near_the_init_colour(spec):
+    torch.manual_seed(3)
+    colour = torch.tensor([0.8, 0.6, 0.5])
+    field = VertexField(spec, BOUNDS, "albedo", init=colour)
+    out = field(inside_points(30, 5))
+    torch.testing.assert_close(field.head.out.bias.detach(), torch.log(colour / (1 - colour)), rtol=0, atol=1e-6)
+    torch.testing.assert_close(out, colour.expand(30, 3), rtol=0, atol=2e-2)
+    # an init colour outside [0.02, 0.98] is clamped
+    clamped = VertexField(spec, BOUNDS, "albedo", init=torch.tensor([0.0, 1.0, 0.5]))
+    torch.testing.assert_close(torch.sigmoid(clamped.head.out.bias.detach()), torch.tensor([0.02, 0.98, 0.5]),
+                               rtol=0, atol=1e-6)  # fmt: skip
+
+
+def test_albedo_field_starts_exactly_at_the_init_colour():
+    torch.manual_seed(3)
+    colour = torch.tensor([0.8, 0.6, 0.5])
+    field = VertexField(SMALL_GRID, BOUNDS, "albedo", init=colour)
+    torch.testing.assert_close(field(inside_points(30, 5)), colour.expand(30, 3), rtol=0, atol=1e-5)
+
+
+def test_vertex_field_rejects_unknown_kind():
+    with pytest.raises(ValueError):
+        VertexField(SMALL_GRID, BOUNDS, "normals")
+
+
+@pytest.mark.parametrize("spec", [SMALL_GRID, SMALL_PE], ids=["grid", "pe"])
+def test_deformation_field_starts_at_zero_and_learns(spec):
+    torch.manual_seed(4)
+    field = DeformationField(spec, BOUNDS, scale=0.05)
+    x_c = inside_points(40, 6).requires_grad_()
+    posed_ref = torch.randn(40, 3, requires_grad=True)
+    out = field(x_c, posed_ref)
+    assert torch.equal(out, torch.zeros(40, 3))
+    target = torch.randn(40, 3, generator=torch.Generator().manual_seed(7))
+    ((out - 0.01 * target) ** 2).sum().backward()
+    # the output layer gets gradients at once; the pose cue is detached
+    assert field.head.out.weight.grad.abs().sum() > 0 and field.head.out.bias.grad.abs().sum() > 0
+    assert posed_ref.grad is None
+    for p in field.parameters():
+        assert p.grad is None or bool(torch.isfinite(p.grad).all())
+    # after one step every parameter (encoding, hidden layers) is reached, and so is x_c
+    opt = torch.optim.SGD(field.parameters(), lr=0.1)
+    opt.step()
+    opt.zero_grad()
+    x_c.grad = None
+    out = field(x_c, posed_ref)
+    assert out.abs().max() > 0 and bool((out.abs() <= 0.05).all())
+    ((out - 0.01 * target) ** 2).sum().backward()
+    for name, p in field.named_parameters():
+        assert p.grad is not None and p.grad.abs().sum() > 0, name
+    assert x_c.grad is not None and x_c.grad.abs().sum() > 0

@@ -1,0 +1,151 @@
+"""Every loss term against hand-computed values on tiny tensors."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from delta import losses
+from delta.body.model import REGION
+from delta.losses import LossWeights
+
+D = torch.float64
+
+
+def t(*values):
+    return torch.tensor(values, dtype=D)
+
+
+def close(actual, expected, atol=1e-14):
+    torch.testing.assert_close(actual, torch.tensor(expected, dtype=D), rtol=0, atol=atol)
+
+
+def test_huber_quadratic_regime():
+    # 0.5 (0.05² + 0.08² + 0²) / 3 = 0.5 (0.0025 + 0.0064) / 3
+    close(losses.huber(t(0.05, -0.08, 0.0), 0.1), 0.5 * 0.0089 / 3)
+
+
+def test_huber_linear_regime():
+    # δ (|x| - δ/2): 0.1 (0.3 - 0.05) = 0.025, 0.1 (2 - 0.05) = 0.195
+    close(losses.huber(t(0.3, -2.0), 0.1), (0.025 + 0.195) / 2)
+
+
+def test_huber_mixed_and_continuous_at_delta():
+    close(losses.huber(t(0.05, -0.3), 0.1), (0.00125 + 0.025) / 2)
+    close(losses.huber(t(0.1), 0.1), 0.005)  # both branches give δ²/2 at |x| = δ
+    close(losses.huber(t(0.1 + 1e-9), 0.1), 0.005 + 1e-10, atol=1e-15)
+    # other δ: 1.0 (|3| - 0.5) = 2.5
+    close(losses.huber(t(3.0), 1.0), 2.5)
+
+
+def test_huber_gradient_is_clipped():
+    x = t(0.05, -0.3, 2.0).requires_grad_()
+    losses.huber(x, 0.1).backward()
+    close(x.grad, [0.05 / 3, -0.1 / 3, 0.1 / 3])
+
+
+def test_huber_empty_is_zero_and_differentiable():
+    x = torch.zeros(0, 3, dtype=D, requires_grad=True)
+    out = losses.huber(x, 0.1)
+    assert out.shape == () and out.item() == 0.0
+    out.backward()
+    assert x.grad is not None and x.grad.shape == (0, 3)
+    # pixel on empty batches too
+    assert losses.pixel(torch.zeros(0, 3), torch.zeros(0, 3)).item() == 0.0
+
+
+def test_pixel():
+    rgb = t([0.5, 0.5, 0.5], [1.0, 0.0, 0.2])
+    target = t([0.45, 0.5, 0.8], [1.0, 0.1, 0.2])
+    # residuals 0.05, 0, -0.3, 0, -0.1, 0 -> 0.00125, 0, 0.025, 0, 0.005, 0
+    close(losses.pixel(rgb, target, 0.1), (0.00125 + 0.025 + 0.005) / 6, atol=1e-12)
+
+
+def test_exterior():
+    close(losses.exterior(t(0.2, 1.0, 0.0, 0.5), t(0.0, 1.0, 1.0, 0.25)), (0.2 + 0.0 + 1.0 + 0.25) / 4)
+
+
+def test_silhouette():
+    # residuals 0.05, -1.0, 0 -> 0.00125, 0.095, 0
+    close(losses.silhouette(t(0.05, 0.0, 1.0), t(0.0, 1.0, 1.0), 0.1), (0.00125 + 0.095) / 3, atol=1e-12)
+
+
+def test_interior_mask():
+    sil = t(0.5, 0.0, 0.95, 0.0)
+    interior = t(1.0, 1.0, 1.0, 0.0)
+    # interior * sil - interior: -0.5, -1, -0.05, 0 -> 0.045, 0.095, 0.00125, 0 (outside the body: free)
+    close(losses.interior_mask(sil, interior, 0.1), (0.045 + 0.095 + 0.00125) / 4, atol=1e-12)
+
+
+def test_skin():
+    mesh_rgb = t([0.5, 0.5, 0.5], [0.0, 0.0, 0.0])
+    target = t([0.45, 0.8, 0.5], [1.0, 1.0, 1.0])
+    interior = t(1.0, 0.0)  # the second ray is not on the visible body
+    # residuals 0.05, -0.3, 0 | 0, 0, 0 -> 0.00125, 0.025
+    close(losses.skin(mesh_rgb, target, interior, 0.1), (0.00125 + 0.025) / 6, atol=1e-12)
+    # a partial mask scales the residual: 0.5 * (-0.3) = -0.15 -> 0.01
+    close(losses.skin(mesh_rgb[:1], target[:1], t(0.5), 0.1), (0.5 * 0.025**2 + 0.01) / 3, atol=1e-12)
+
+
+def test_inside():
+    sil = t(1.0, 0.3, 0.0, 0.04)
+    person = t(0.0, 0.5, 1.0, 0.0)
+    # relu(sil - person): 1, 0, 0, 0.04 -> 0.095, 0, 0, 0.0008
+    close(losses.inside(sil, person, 0.1), (0.095 + 0.0008) / 4, atol=1e-12)
+
+
+def test_skin_inside():
+    mesh_rgb = t([0.7, 0.5, 0.3], [0.0, 0.0, 0.0])
+    skin_color = t(0.6, 0.5, 0.9)
+    ext = t(1.0, 0.0)
+    # residuals 0.1, 0, -0.6 | masked -> 0.005, 0, 0.055
+    close(losses.skin_inside(mesh_rgb, skin_color, ext, 0.1), (0.005 + 0.055) / 6, atol=1e-12)
+
+
+def test_edge_single_triangle():
+    ref = t([0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    verts = ref.clone()
+    verts[2] = t(0.0, 2.0, 0.0)  # vertex 2 moved by (0, 1, 0)
+    edges = torch.tensor([[0, 1], [1, 2], [0, 2]])
+    # edge 0-1 unchanged; 1-2: (v1-v2) - (u1-u2) = (0,-1,0); 0-2: (0,-1,0) -> (0 + 1 + 1) / 3
+    close(losses.edge(verts, ref, edges), 2.0 / 3)
+    # a rigid translation costs nothing
+    close(losses.edge(ref + t(3.0, -1.0, 2.0), ref, edges), 0.0)
+    # scaling by 2: edge differences equal the reference edges: (1 + 2 + 1) / 3
+    close(losses.edge(2 * ref, ref, edges), 4.0 / 3)
+
+
+def test_offset_region_weights():
+    offsets = t([0.1, 0.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.0, 0.3], [0.1, 0.1, 0.0])
+    regions = torch.tensor([REGION["body"], REGION["hands"], REGION["eyes"], REGION["feet"]])
+    weights = LossWeights().offset_region_weights
+    # 2·0.01 + 12·0.04 + 3·0.09 + 2·0.02 = 0.02 + 0.48 + 0.27 + 0.04 = 0.81, over V = 4
+    close(losses.offset(offsets, regions, weights), 0.81 / 4, atol=1e-12)
+    # regions not named in the dict weigh 1
+    close(losses.offset(offsets, regions, {"hands": 5.0}), (0.01 + 0.2 + 0.09 + 0.02) / 4, atol=1e-12)
+    assert weights == {"body": 2.0, "face": 3.0, "hands": 12.0, "feet": 2.0, "eyes": 3.0, "mouth": 3.0}
+
+
+def test_mesh_edges_two_triangles():
+    faces = torch.tensor([[0, 1, 2], [2, 1, 3]])
+    edges = losses.mesh_edges(faces)
+    assert edges.tolist() == [[0, 1], [0, 2], [1, 2], [1, 3], [2, 3]]
+    assert losses.mesh_edges(torch.tensor([[0, 1, 2]])).tolist() == [[0, 1], [0, 2], [1, 2]]
+
+
+def test_total_weights_and_missing_terms():
+    w = LossWeights(pixel=1.0, edge=500.0, inside=40.0)
+    terms = {"pixel": torch.tensor(2.0, dtype=D), "edge": torch.tensor(0.01, dtype=D)}
+    close(losses.total(terms, w), 2.0 + 5.0, atol=1e-12)
+    close(losses.total({"inside": torch.tensor(0.5, dtype=D)}, w), 20.0)
+    x = torch.tensor(0.3, dtype=D, requires_grad=True)
+    losses.total({"pixel": x, "edge": 2 * x}, w).backward()
+    close(x.grad, 1.0 + 1000.0)
+    with pytest.raises(ValueError):
+        losses.total({}, w)
+
+
+def test_default_weights_match_the_paper():
+    w = LossWeights()
+    assert (w.pixel, w.exterior, w.silhouette, w.interior_mask, w.skin) == (1.0, 0.5, 0.001, 30.0, 1.0)
+    assert (w.inside, w.skin_inside, w.edge, w.offset, w.huber_delta) == (40.0, 0.01, 500.0, 400.0, 0.1)

@@ -1,0 +1,125 @@
+"""Training: gradients reach every parameter group, exact resume, both stages end to end on tiny data."""
+
+import json
+
+import pandas as pd
+import pytest
+import torch
+
+from delta import DeltaError
+from delta.body.model import load_body_model
+from delta.training.data import load_frames, sample_rays
+from delta.training.presets import resolve
+from delta.training.run import build_avatar, load_init, run_stage
+from delta.training.trainer import CHECKPOINT, loss_terms, train_stage
+from delta import losses as L
+
+pytestmark = pytest.mark.slow
+
+TINY = {
+    "resolution": 32,
+    "render": {"samples": 8},
+    "stage1": {"iterations": 6, "rays": 128, "checkpoint_every": 2, "preview_every": 0, "log_every": 1},
+    "stage2": {"iterations": 4, "rays": 128, "patch": 16, "checkpoint_every": 2, "preview_every": 2},
+}
+
+
+def _model(inputs, settings, stage=1):
+    data = load_frames(inputs["record"], settings.resolution, settings.background, settings.box_margin)
+    body = load_body_model(inputs["body"])
+    return build_avatar(body, settings, load_init(inputs["init"], data), data, stage, torch.device("cpu")), data
+
+
+@pytest.mark.parametrize("subject", ["tight", "loose"])
+def test_every_parameter_group_gets_a_gradient(tiny_training, subject):
+    st = resolve("fast", TINY)
+    model, data = _model(tiny_training[subject], st)
+    frame = int(data.train[0])
+    batch = sample_rays(data, frame, 256, torch.Generator().manual_seed(0))
+    terms, r = loss_terms(model, batch, st, data.skin_color)
+    assert set(terms) == {"pixel", "silhouette", "interior_mask", "skin", "inside", "skin_inside", "edge",
+                          "offset", "exterior"}  # fmt: skip
+    assert all(torch.isfinite(v) for v in terms.values())
+    assert r.hit.any() and (~r.hit).any() and r.samples_evaluated > 0
+    L.total(terms, st.weights).backward()
+    grads = {
+        "pose": model.poses.grad[frame], "shape": model.betas.grad,
+        "nerf": torch.cat([p.grad.flatten() for p in model.nerf.parameters() if p.grad is not None]),
+        "offsets": torch.cat([p.grad.flatten() for p in model.offset_field.parameters() if p.grad is not None]),
+        "albedo": torch.cat([p.grad.flatten() for p in model.albedo_field.parameters() if p.grad is not None]),
+    }  # fmt: skip
+    if model.pinhole:
+        grads["translation"] = model.transl.grad[frame]
+    else:
+        grads["camera"] = torch.cat([model.ortho_scale.grad[frame : frame + 1], model.ortho_trans.grad[frame]])
+    for name, g in grads.items():
+        assert torch.isfinite(g).all() and g.abs().sum() > 0, f"no gradient reaches {name}"
+    # frames not in the batch get none
+    other = [f for f in range(len(data.frame_ids)) if f != frame][0]
+    assert model.poses.grad[other].abs().sum() == 0
+
+
+def test_interrupted_stage_resumes_to_the_same_parameters(tiny_training, tmp_path):
+    """Bit for bit on one thread (multi-threaded reductions differ in the last bits from run to run)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        _resume_equivalence(tiny_training, tmp_path)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _resume_equivalence(tiny_training, tmp_path):
+    st = resolve("fast", TINY)
+    inputs = tiny_training["loose"]
+    model_a, data = _model(inputs, st)
+    train_stage(1, model_a, data, st, tmp_path / "a")
+    model_b, _ = _model(inputs, st)
+    train_stage(1, model_b, data, st, tmp_path / "b", max_steps=4)  # "killed" after the checkpoint at step 4
+    assert torch.load(tmp_path / "b" / CHECKPOINT, weights_only=False)["step"] == 4
+    model_c, _ = _model(inputs, st)  # a fresh process: everything comes from the checkpoint
+    res = train_stage(1, model_c, data, st, tmp_path / "b")
+    assert res.steps == 6 and list(res.losses["step"]) == list(range(1, 7))
+    a, c = model_a.state_dict(), model_c.state_dict()
+    assert a.keys() == c.keys()
+    for k in a:
+        assert torch.equal(a[k], c[k]), f"{k} differs after resuming"
+    la = pd.read_csv(tmp_path / "a" / "losses.csv")
+    lc = pd.read_csv(tmp_path / "b" / "losses.csv")
+    pd.testing.assert_frame_equal(la, lc)
+
+
+def test_both_stages_end_to_end(tiny_training, tmp_path, perceptual_weights):
+    inputs = tiny_training["tight"]
+    s1 = run_stage(1, inputs["record"], inputs["body"], inputs["init"], str(tmp_path / "stage1"), "fast", [TINY])
+    assert s1["steps"] == 6
+    first = torch.load(tmp_path / "stage1" / "model.pt", weights_only=False)
+    assert first["nerf"] and not first["deformation"]
+    s2 = run_stage(2, inputs["record"], inputs["body"], str(tmp_path / "stage1" / "model.pt"),
+                   str(tmp_path / "stage2"), "fast", [TINY], perceptual_dir=str(perceptual_weights))  # fmt: skip
+    assert s2["steps"] == 4
+    second = torch.load(tmp_path / "stage2" / "model.pt", weights_only=False)
+    assert second["deformation"] and any(k.startswith("deformation.") for k in second["model"])
+    # stage 2 starts from stage 1: the shared parameters moved on from there, the body is the same size
+    assert second["model"]["betas"].shape == first["model"]["betas"].shape
+    losses = pd.read_csv(tmp_path / "stage2" / "losses.csv")
+    assert "semantic" in losses and losses["semantic"].notna().all() and (losses["semantic"] > 0).all()
+    assert len(list((tmp_path / "stage2" / "previews").glob("*.png"))) == 2
+    settings = json.loads((tmp_path / "stage2" / "settings.json").read_text())
+    assert settings["stage"] == 2 and settings["settings"]["resolution"] == 32
+
+
+def test_no_exterior_means_no_nerf(tiny_training):
+    st = resolve("fast", TINY, {"exterior": "no"})
+    model, data = _model(tiny_training["tight"], st)
+    assert model.nerf is None
+    batch = sample_rays(data, int(data.train[0]), 64, torch.Generator().manual_seed(0))
+    terms, r = loss_terms(model, batch, st, data.skin_color)
+    assert "exterior" not in terms and r.samples_evaluated == 0 and (r.nerf_mask == 0).all()
+
+
+def test_bad_settings_name_the_key():
+    with pytest.raises(DeltaError, match="unknown preset 'fastest'"):
+        resolve("fastest")
+    with pytest.raises(DeltaError, match="sampels"):
+        resolve("fast", {"render": {"sampels": 3}})
