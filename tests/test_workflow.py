@@ -75,6 +75,14 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
     for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", "tight")):
         report = (work / "results" / dataset / subject / "init" / "report.csv").read_text().splitlines()
         assert report[0] == "frame,flagged,residual_px,confident_keypoints" and len(report) > 5
+    # both training stages ran on every subject, resumable checkpoints beside their outputs
+    for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", "tight")):
+        for stage in (1, 2):
+            out = work / "results" / dataset / subject / f"stage{stage}"
+            assert (out / "model.pt").is_file() and (out / "checkpoint.pt").is_file()
+            assert len((out / "losses.csv").read_text().splitlines()) == 1 + (6 if stage == 1 else 4)
+            assert (work / "logs" / f"train_stage{stage}" / f"{dataset}_{subject}.log").is_file()
+            assert (work / "results/benchmarks" / f"train_stage{stage}" / f"{dataset}_{subject}.tsv").is_file()
     # a rerun has nothing to do
     again = snakemake(work, "--configfile", ".test/config/ci.yaml", "--dry-run")
     assert "Nothing to be done" in again.stdout + again.stderr

@@ -19,10 +19,13 @@ once per frame, then ``deform(frame, points)``.
 from __future__ import annotations
 
 import dataclasses
+from typing import Optional
 
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
+
+from delta.geometry import distance_grid
 
 
 @dataclasses.dataclass
@@ -37,6 +40,8 @@ class SkinningFrame:
     """(V, J) skinning weights."""
     tree: cKDTree
     """kNN structure over the detached posed vertices (non-differentiable selection)."""
+    near: Optional[distance_grid.DistanceGrid] = None
+    """Coarse distance field to the posed vertices (culling), when asked for."""
 
 
 @dataclasses.dataclass
@@ -62,26 +67,28 @@ def compose(P: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
     return torch.cat([P[..., :3] @ Q[..., :3], P[..., :3] @ Q[..., 3:] + P[..., 3:]], dim=-1)
 
 
-def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tensor,
-            canonical_T: torch.Tensor, weights: torch.Tensor) -> SkinningFrame:  # fmt: skip
+def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tensor, canonical_T: torch.Tensor,
+            weights: torch.Tensor, near_cell: float = 0.0, near_pad: float = 0.0) -> SkinningFrame:  # fmt: skip
     """Per-vertex maps posed -> canonical.
 
     Args:
         posed: (V, 3) posed vertices; posed_T: (V, 3, 4) their blended transforms G_i;
         displacement: (V, 3) d_i = rest_i - template_i; canonical_T: (V, 3, 4) G^c_i;
         weights: (V, J) skinning weights.
+        near_cell, near_pad: also build a distance grid of this cell size with this room (0: none).
     """
     inv = affine_inverse(posed_T)
     eye = torch.eye(3, dtype=inv.dtype, device=inv.device).expand_as(inv[..., :3])
     untranslate = torch.cat([eye, -displacement[..., None]], dim=-1)
     to_canonical = compose(canonical_T, compose(untranslate, inv))
-    tree = cKDTree(posed.detach().cpu().numpy().astype(np.float64))
-    return SkinningFrame(posed=posed, to_canonical=to_canonical, weights=weights, tree=tree)
+    pts = posed.detach().cpu().numpy().astype(np.float64)
+    near = distance_grid.build(pts, near_cell, near_pad) if near_cell > 0 else None
+    return SkinningFrame(posed=posed, to_canonical=to_canonical, weights=weights, tree=cKDTree(pts), near=near)
 
 
 def knn(frame: SkinningFrame, points: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Indices (N, k) of the k nearest posed vertices, nearest first, and differentiable distances (N, k)."""
-    _, idx = frame.tree.query(points.detach().cpu().numpy().astype(np.float64), k=k, workers=-1)
+    _, idx = frame.tree.query(points.detach().cpu().numpy().astype(np.float64), k=k, workers=1)
     idx = torch.from_numpy(np.asarray(idx, dtype=np.int64).reshape(len(points), k)).to(points.device)
     diff = points[:, None] - frame.posed[idx]
     # sqrt with a floor: finite gradient for a point exactly on a vertex

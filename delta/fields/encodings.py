@@ -35,9 +35,10 @@ class PositionalEncoding(nn.Module):
 class GridEncoding(nn.Module):
     """Multi-resolution dense feature grids over a box, trilinearly sampled (``grid_sample``).
 
-    Level l has resolution round(base · growth^l), growth chosen so the last level is ``max_res``;
-    features of all levels are concatenated. Features fade to zero within one cell outside the box
-    and are zero beyond it.
+    Level l has resolution round(base · growth^l) along the box's longest side, growth chosen so the
+    last level is ``max_res``; the other sides get the same cell size (a body's box is far from a
+    cube, so cubic grids would waste most cells). Features of all levels are concatenated.
+    Features fade to zero within one cell outside the box and are zero beyond it.
     """
 
     def __init__(self, bounds: torch.Tensor, levels: int = 6, features: int = 4,
@@ -47,8 +48,11 @@ class GridEncoding(nn.Module):
         self.register_buffer("hi", bounds[1].float().clone())
         growth = (max_res / base_res) ** (1 / max(levels - 1, 1))
         self.resolutions = [int(round(base_res * growth**i)) for i in range(levels)]
+        extent = (bounds[1] - bounds[0]).double()
+        ratio = (extent / extent.max()).tolist()
+        self.shapes = [tuple(max(2, int(math.ceil(r * a))) for a in ratio) for r in self.resolutions]  # (x, y, z)
         self.grids = nn.ParameterList(
-            nn.Parameter(init_std * torch.randn(1, features, r, r, r)) for r in self.resolutions
+            nn.Parameter(init_std * torch.randn(1, features, nz, ny, nx)) for nx, ny, nz in self.shapes
         )
         self.out_dim = levels * features
 

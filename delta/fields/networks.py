@@ -65,18 +65,28 @@ def _encoder_and_head(spec: FieldSpec, bounds: torch.Tensor, out_dim: int, extra
 
 
 class NeRFField(nn.Module):
-    """F_h: canonical point -> (colour in [0, 1], density ≥ 0); no view direction."""
+    """F_h: canonical point -> (colour in [0, 1], density ≥ 0); no view direction.
+
+    With the ``pe`` encoding one MLP outputs both (the paper's). With ``grid``, density and colour
+    read separate grids and heads: the density's gradients (exp activation, mask losses) are orders
+    of magnitude larger than the colour's and would otherwise swamp Adam's shared second moments,
+    leaving the colour nearly constant.
+    """
 
     def __init__(self, spec: FieldSpec, bounds: torch.Tensor, density_bias: float = -2.0):
         super().__init__()
-        self.encoding, self.head = _encoder_and_head(spec, bounds, 4)
+        self.split = spec.encoding == "grid"
+        self.encoding, self.head = _encoder_and_head(spec, bounds, 1 if self.split else 4)
+        if self.split:
+            self.color_encoding, self.color_head = _encoder_and_head(spec, bounds, 3)
         with torch.no_grad():
-            self.head.out.bias[3] = density_bias  # start nearly empty
+            self.head.out.bias[-1] = density_bias  # start nearly empty
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(N, 3) -> rgb (N, 3), sigma (N,)."""
         out = self.head(self.encoding(x))
-        return torch.sigmoid(out[:, :3]), torch.exp(out[:, 3].clamp(max=MAX_LOG_DENSITY))
+        color = self.color_head(self.color_encoding(x)) if self.split else out[:, :3]
+        return torch.sigmoid(color), torch.exp(out[:, -1].clamp(max=MAX_LOG_DENSITY))
 
 
 class VertexField(nn.Module):

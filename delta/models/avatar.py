@@ -54,6 +54,15 @@ class InitParams:
     """PinholeCamera (fixed) or OrthographicCamera with (N,) scale, (N, 2) translation."""
 
 
+def knn_vertex_ids(body: BodyModel, which: str) -> torch.Tensor:
+    """Vertices backward skinning searches: ``all``, or ``base`` (those an upsampled mesh kept from its base)."""
+    if which == "all" or body.embed_bary is None:
+        return torch.arange(body.num_vertices)
+    if which != "base":
+        raise ValueError(f"render.knn_vertices: '{which}' (expected 'base' or 'all')")
+    return torch.nonzero(body.embed_bary.max(1).values > 1 - 1e-6).squeeze(1)
+
+
 def _box(points: torch.Tensor, margin: float) -> torch.Tensor:
     return torch.stack([points.amin(0) - margin, points.amax(0) + margin])
 
@@ -77,6 +86,7 @@ class HybridAvatar(nn.Module):
             self.ortho_trans = nn.Parameter(init.camera.trans.float().clone())
         template = body.v_template.float()
         self.register_buffer("edges", mesh_edges(body.faces))
+        self.register_buffer("knn_ids", knn_vertex_ids(body, spec.render.knn_vertices), persistent=False)
         cano = lbs(body, torch.zeros(1, 1), body.canonical_pose[None].float())
         self.register_buffer("canonical_T", cano.vertex_transforms_3x4[0].clone())
         self.register_buffer("canonical_vertices", cano.vertices[0].clone())
@@ -117,8 +127,11 @@ class HybridAvatar(nn.Module):
         uv, _ = self.camera(frame).project(verts)
         skinning = None
         if self.nerf is not None:
-            disp = out.rest_vertices[0] - self.body.v_template
-            skinning = deformer.prepare(verts, out.vertex_transforms_3x4[0], disp, self.canonical_T, self.body.weights)
+            ids = self.knn_ids
+            disp = out.rest_vertices[0, ids] - self.body.v_template[ids]
+            rs = self.spec.render
+            skinning = deformer.prepare(verts[ids], out.vertex_transforms_3x4[0, ids], disp, self.canonical_T[ids],
+                                        self.body.weights[ids], rs.probe_cell, rs.max_dist + 2 * rs.probe_cell)
         mesh = PosedMesh(verts, self.body.faces, self.albedo(), uv, skinning)
         return mesh, offsets, out
 

@@ -11,9 +11,11 @@ from __future__ import annotations
 import dataclasses
 from typing import Callable, Optional
 
+import numpy as np
 import torch
 
 from delta.deformers import knn as deformer
+from delta.geometry import distance_grid
 from delta.geometry.raymesh import interpolate, ray_mesh_hits
 from delta.render.silhouette import soft_silhouette
 from delta.render.volume import composite, ray_box, stratified_samples
@@ -48,6 +50,12 @@ class RenderSettings:
     sil_sigma: float = 1.0
     """Softness of the silhouette in pixels²."""
     sil_k: int = 16
+    probe: int = 32
+    """Probe points a ray that find where it passes within ``max_dist`` of the body; samples go there only."""
+    probe_cell: float = 0.02
+    """Voxel size of the distance grid the probes read (m)."""
+    knn_vertices: str = "base"
+    """Backward skinning over the ``base`` mesh's vertices (before upsampling; 4× fewer) or ``all``."""
     perturb: bool = True
 
 
@@ -88,11 +96,39 @@ def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixe
     t_in, t_out, in_box = ray_box(origins, dirs, lo, hi)
     t_far = torch.where(hits.hit, torch.minimum(hits.t, t_out), t_out)
     t_far = torch.where(in_box | hits.hit, t_far, t_in)
-    t = stratified_samples(t_in, torch.maximum(t_far, t_in), settings.samples, settings.perturb, generator)
+    t_near, t_far = body_span(mesh.skinning, origins, dirs, t_in, torch.maximum(t_far, t_in), hits.hit, settings)
+    t = stratified_samples(t_near, t_far, settings.samples, settings.perturb, generator)
     sigma, rgb, n = _query(mesh, origins, dirs, t, settings, nerf, nonrigid)
     out = composite(t, sigma, rgb, mesh_rgb)
     nerf_rgb = (out.weights[:, :-1, None] * rgb).sum(1) + (1 - out.nerf_mask[:, None]) * background
     return RayRender(out.rgb, out.nerf_mask, nerf_rgb, mesh_rgb, hits.hit, sil, n)
+
+
+@torch.no_grad()
+def body_span(skinning, origins, dirs, t_in, t_far, hit, settings: RenderSettings):
+    """Shrink [t_in, t_far] to where the ray passes within ``max_dist`` of the body (non-differentiable).
+
+    ``probe`` evenly spaced points are checked against the posed vertices; the span runs from one probe
+    spacing before the first close point to one after the last (to t_far for rays ending on the mesh).
+    Rays never close to the body get an empty span at t_far: they render the background (or mesh) only.
+    """
+    n = settings.probe
+    u = torch.linspace(0, 1, n, dtype=t_in.dtype, device=t_in.device)
+    tp = t_in[:, None] + (t_far - t_in)[:, None] * u
+    pts = (origins[:, None] + tp[..., None] * dirs[:, None]).reshape(-1, 3).cpu().numpy()
+    if skinning.near is not None:
+        close = distance_grid.lookup(skinning.near, pts) < settings.max_dist
+    else:
+        close = np.isfinite(skinning.tree.query(pts, k=1, distance_upper_bound=settings.max_dist)[0])
+    close = torch.from_numpy(close).view(-1, n).to(t_in.device)
+    step = (t_far - t_in) / (n - 1)
+    idx = torch.arange(n, device=t_in.device).expand_as(close)
+    first = torch.where(close, idx, n).amin(1)
+    last = torch.where(close, idx, -1).amax(1)
+    any_close = last >= 0
+    lo = (t_in + (first - 1).clamp_min(0) * step).where(any_close, t_far)
+    hi = torch.where(hit, t_far, torch.minimum(t_in + (last + 1) * step, t_far)).where(any_close, t_far)
+    return lo, torch.maximum(hi, lo)
 
 
 def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: NeRF, nonrigid):

@@ -1,0 +1,1 @@
+"""Evaluation: image metrics, held-out renders, geometry against ground truth, mesh export."""
