@@ -21,6 +21,7 @@ include: "rules/training.smk"
 localrules:
     all,
     synthetic_peoplesnapshot,
+    fetch_perceptual,
 
 
 rule all:

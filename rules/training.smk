@@ -7,7 +7,9 @@ rule fetch_perceptual:
         vgg=PATHS["perceptual_vgg"],
         alex=PATHS["perceptual_alex"],
     params:
-        out=TRAIN["perceptual_dir"],
+        out=lambda w, output: str(Path(output.vgg).parent),
+    conda:
+        "../workflow/envs/delta.yaml"
     log:
         log_path("fetch_perceptual"),
     shell:
@@ -56,7 +58,7 @@ rule train_stage2:
         preset=training_preset,
         overrides=training_overrides_json,
         device=config["device"],
-        perceptual=TRAIN["perceptual_dir"],
+        perceptual=lambda w: str(Path(PATHS["perceptual_vgg"]).parent),
     conda:
         "../workflow/envs/delta.yaml"
     log:

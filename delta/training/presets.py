@@ -34,13 +34,13 @@ PRESETS: dict[str, dict] = {
     },
     "balanced": {
         "resolution": 256,
-        "nerf": {**_GRID_NERF, "levels": 6, "features": 4, "max_res": 128},
+        "nerf": {**_GRID_NERF, "levels": 6, "max_res": 192},
         "offsets": _GRID_OFFSETS,
-        "albedo": {**_GRID_ALBEDO, "max_res": 160},
+        "albedo": {**_GRID_ALBEDO, "levels": 6, "max_res": 192},
         "deformation": _PE_DEFORM,
         "render": {"samples": 32, "sil_sigma": 1.0, "max_dist": 0.1},
-        "stage1": {"iterations": 4000, "rays": 2048},
-        "stage2": {"iterations": 1500, "rays": 2048, "patch": 32},
+        "stage1": {"iterations": 2500, "rays": 4096},
+        "stage2": {"iterations": 800, "rays": 2048, "patch": 48},
     },
     "paper": {
         "resolution": 512,

@@ -123,3 +123,37 @@ def test_bad_settings_name_the_key():
         resolve("fastest")
     with pytest.raises(DeltaError, match="sampels"):
         resolve("fast", {"render": {"sampels": 3}})
+
+
+def test_a_killed_training_process_resumes_to_the_same_result(tiny_training, tmp_path):
+    """`delta train` killed (SIGKILL) after its first checkpoint, rerun: same model as a run never killed."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    inputs = tiny_training["loose"]
+    over = json.dumps({**TINY, "stage1": {**TINY["stage1"], "iterations": 14, "checkpoint_every": 2}})
+
+    def cmd(out):
+        return [sys.executable, "-m", "delta.cli", "train", "--stage", "1", "--record", inputs["record"],
+                "--body", inputs["body"], "--start", inputs["init"], "--out", str(out), "--overrides", over,
+                "--threads", "1"]  # fmt: skip
+
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    subprocess.run(cmd(tmp_path / "whole"), check=True, env=env, capture_output=True)
+    proc = subprocess.Popen(cmd(tmp_path / "killed"), env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ckpt = tmp_path / "killed" / CHECKPOINT
+    deadline = time.time() + 120
+    while not ckpt.exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGKILL)
+    assert proc.wait() == -signal.SIGKILL, "the run finished before it could be killed"
+    assert not (tmp_path / "killed" / "model.pt").exists()
+    assert torch.load(ckpt, weights_only=False)["step"] < 14
+    subprocess.run(cmd(tmp_path / "killed"), check=True, env=env, capture_output=True)
+    a = torch.load(tmp_path / "whole" / "model.pt", weights_only=False)["model"]
+    b = torch.load(tmp_path / "killed" / "model.pt", weights_only=False)["model"]
+    for k in a:
+        assert torch.equal(a[k], b[k]), f"{k} differs after the kill and resume"

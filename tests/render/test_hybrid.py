@@ -1,0 +1,88 @@
+"""Rendering rays through the hybrid avatar: culling far from the body, the mesh stop, misses."""
+
+import torch
+import trimesh
+
+from delta.deformers import knn as deformer
+from delta.render.hybrid import PosedMesh, RenderSettings, render_rays
+
+BG = torch.tensor([1.0, 1.0, 1.0])
+MESH_RGB = torch.tensor([0.2, 0.4, 0.6])
+NERF_RGB = torch.tensor([0.9, 0.1, 0.1])
+
+
+def sphere_avatar(radius=0.3):
+    """A sphere 'body' posed with identity transforms (posed space = canonical space)."""
+    s = trimesh.creation.icosphere(subdivisions=3, radius=radius)
+    v = torch.tensor(s.vertices, dtype=torch.float32)
+    f = torch.tensor(s.faces, dtype=torch.int64)
+    eye = torch.eye(3, 4).expand(len(v), 3, 4)
+    skin = deformer.prepare(v, eye, torch.zeros_like(v), eye, torch.ones(len(v), 1), near_cell=0.01, near_pad=0.2)
+    uv = v[:, :2] * 100  # any projection: the silhouette is not under test here
+    return PosedMesh(v, f, MESH_RGB.expand(len(v), 3), uv, skin)
+
+
+def shell_nerf(radius, thickness, sigma):
+    """Density ``sigma`` in a shell just outside the sphere, everywhere beyond it too (to catch leaks)."""
+    calls = []
+
+    def nerf(x):
+        calls.append(len(x))
+        r = x.norm(dim=-1)
+        dens = torch.where(r > radius, torch.full_like(r, sigma), torch.zeros_like(r))
+        dens = torch.where(r < radius - 1e-3, torch.full_like(r, 1e6), dens)  # inside the body: must never be seen
+        return NERF_RGB.expand(len(x), 3), dens
+
+    return nerf, calls
+
+
+def rays(offsets):
+    """Rays along -z at x offsets from the sphere's axis, starting at z = 2."""
+    o = torch.tensor([[x, 0.0, 2.0] for x in offsets])
+    d = torch.tensor([[0.0, 0.0, -1.0]] * len(offsets))
+    return o, d
+
+
+def render(offsets, sigma=0.0, max_dist=0.1):
+    mesh = sphere_avatar()
+    nerf, calls = shell_nerf(0.3, 0.05, sigma)
+    o, d = rays(offsets)
+    st = RenderSettings(samples=16, box_margin=0.3, max_dist=max_dist, perturb=False)
+    out = render_rays(mesh, o, d, o[:, :2] * 100, BG, st, nerf)
+    return out, calls
+
+
+def test_rays_far_from_the_body_cost_nothing_and_show_the_background():
+    out, calls = render([0.55, 0.8], sigma=50.0)  # 0.25 m and 0.5 m from the surface, max_dist 0.1
+    assert not out.hit.any()
+    assert out.samples_evaluated == 0 and sum(calls) == 0
+    torch.testing.assert_close(out.rgb, BG.expand(2, 3))
+    assert (out.nerf_mask == 0).all()
+
+
+def test_a_ray_hitting_the_mesh_ends_there():
+    out, _ = render([0.0], sigma=0.0)
+    assert out.hit.all()
+    torch.testing.assert_close(out.rgb, MESH_RGB[None])  # no density: all transmittance reaches the mesh
+
+
+def test_nothing_behind_the_mesh_contributes():
+    # huge density everywhere inside the sphere; the ray stops at the surface, so none of it is seen
+    out, calls = render([0.0, 0.1], sigma=0.0)
+    assert out.hit.all() and sum(calls) > 0
+    torch.testing.assert_close(out.rgb, MESH_RGB.expand(2, 3))
+
+
+def test_exterior_in_front_of_the_mesh_is_rendered():
+    out, _ = render([0.0], sigma=1e4)  # an opaque shell in front of the body
+    assert out.hit.all()
+    assert float(out.nerf_mask[0]) > 0.99
+    torch.testing.assert_close(out.rgb, NERF_RGB[None], atol=1e-2, rtol=0)
+
+
+def test_a_ray_grazing_past_the_body_sees_the_exterior_only_near_it():
+    out, calls = render([0.35], sigma=30.0)  # misses the sphere, passes 5 cm from it
+    assert not out.hit.any() and out.samples_evaluated > 0
+    assert 0 < float(out.nerf_mask[0]) < 1
+    expected = out.nerf_mask[0] * NERF_RGB + (1 - out.nerf_mask[0]) * BG  # the rest ends on the background
+    torch.testing.assert_close(out.rgb[0], expected, atol=1e-5, rtol=0)
