@@ -182,8 +182,9 @@ def cmd_train(args: argparse.Namespace) -> None:
     from delta.training.run import run_stage
 
     _threads(args.threads)
+    over = json.loads(args.overrides)
     run_stage(args.stage, args.record, args.body, args.start, args.out, args.preset,
-              [json.loads(args.overrides)], args.device, args.perceptual)  # fmt: skip
+              over if isinstance(over, list) else [over], args.device, args.perceptual)  # fmt: skip
 
 
 def cmd_validate_config(args: argparse.Namespace) -> None:
@@ -284,7 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--start", required=True, help="init/params.npz (stage 1) or stage 1's model.pt (stage 2)")
     p.add_argument("--out", required=True)
     p.add_argument("--preset", default="fast")
-    p.add_argument("--overrides", default="{}", help="JSON deep-merged over the preset")
+    p.add_argument("--overrides", default="{}", help="JSON object (or list of objects) deep-merged over the preset")
     p.add_argument("--perceptual", default=None, help="folder of the shift-tolerant VGG weights (stage 2)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     p.add_argument("--threads", type=int, default=1)
