@@ -84,7 +84,7 @@ def one(subject: str, preset: str, out: Path, extra: dict, refine: int) -> dict:
                              torch.device("cpu"))  # fmt: skip
         model.load_state_dict(state["model"])
         test = np.flatnonzero(data.split == 1)
-        for tag, steps in (("", 0), ("_refined", refine)) if refine else (("", 0),):
+        for tag, steps in (("", 0), ("_refined", refine)) if refine and stage == 2 else (("", 0),):
             scores = score_frames(model, data, test, refine_steps=steps)
             row[f"s{stage}_psnr{tag}"] = round(float(np.mean([s.psnr for s in scores])), 2)
             row[f"s{stage}_l1{tag}"] = round(float(np.mean([s.l1 for s in scores])), 4)

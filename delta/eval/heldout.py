@@ -43,7 +43,7 @@ def _iou(a: torch.Tensor, b: torch.Tensor) -> float:
 def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, rays: int = 1024,
                  lr: float = 2e-3, seed: int = 0) -> None:  # fmt: skip
     """Fit one frame's pose, translation and camera with everything else frozen."""
-    params = [model.poses, model.transl] + ([] if model.pinhole else [model.ortho_scale, model.ortho_trans])
+    params = model.per_frame_parameters()
     frozen = {p: p.requires_grad for p in model.parameters()}
     for p in model.parameters():
         p.requires_grad_(any(p is q for q in params))

@@ -144,6 +144,10 @@ class HybridAvatar(nn.Module):
         return render_rays(mesh, origins, dirs, pixels, self.background, self.spec.render, self.nerf,
                            self.deformation, generator)  # fmt: skip
 
+    def per_frame_parameters(self) -> list[torch.Tensor]:
+        """Parameters with one slice per frame (pose, translation, orthographic camera)."""
+        return [self.poses, self.transl] + ([] if self.pinhole else [self.ortho_scale, self.ortho_trans])
+
     def param_groups(self, lr: dict) -> list[dict]:
         """Optimiser groups: networks, shape, per-frame pose, per-frame camera (lr keys: fields, nerf, pose, camera, shape)."""
         groups = [

@@ -56,7 +56,7 @@ PRESETS: dict[str, dict] = {
 
 _STAGE_DEFAULTS = {
     "iterations": 1000, "rays": 1024, "patch": 0, "checkpoint_every": 100, "preview_every": 400, "log_every": 10,
-    "lr": {"fields": 5e-3, "nerf": 1e-2, "pose": 2e-4, "camera": 2e-4, "shape": 2e-3},
+    "lr": {"fields": 5e-3, "nerf": 1e-2, "pose": 5e-4, "camera": 5e-4, "shape": 2e-3},
 }  # fmt: skip
 _COMMON = {
     "seed": 0, "background": [1.0, 1.0, 1.0], "box_margin": 0.1, "offset_scale": 0.04, "nerf_margin": 0.3,

@@ -7,6 +7,7 @@ continues from it and reaches the same parameters as an uninterrupted run.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import sys
@@ -101,7 +102,8 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
         loss = L.total(terms, st.weights)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        optimizer.step()
+        with frame_locked(model.per_frame_parameters(), frame):
+            optimizer.step()
         seen += 1
         rows.append({"step": step + 1, "loss": float(loss.detach()), "psnr": _psnr(r.rgb.detach(), batch.rgb),
                      "samples": r.samples_evaluated, **{k: float(v.detach()) for k, v in terms.items()}})  # fmt: skip
@@ -115,6 +117,22 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
     with atomic_path(out_dir / "losses.csv") as tmp:
         losses.to_csv(tmp, index=False)
     return StageResult(end, time.time() - t0, losses)
+
+
+@contextlib.contextmanager
+def frame_locked(params: list[torch.Tensor], frame: int):
+    """Only ``frame``'s slice of per-frame parameters may change in this step.
+
+    Adam's momentum would otherwise keep moving every other frame's pose and camera, with no
+    gradient there to correct the drift (frames are visited one at a time).
+    """
+    saved = [p.detach().clone() for p in params]
+    yield
+    with torch.no_grad():
+        for p, old in zip(params, saved):
+            keep = torch.ones(p.shape[0], dtype=torch.bool, device=p.device)
+            keep[frame] = False
+            p[keep] = old[keep]
 
 
 def _to(batch: RayBatch, device) -> RayBatch:

@@ -157,3 +157,15 @@ def test_a_killed_training_process_resumes_to_the_same_result(tiny_training, tmp
     b = torch.load(tmp_path / "killed" / "model.pt", weights_only=False)["model"]
     for k in a:
         assert torch.equal(a[k], b[k]), f"{k} differs after the kill and resume"
+
+
+def test_only_the_visited_frames_move(tiny_training, tmp_path):
+    """Per-frame pose and camera change only in the steps that render their frame (no momentum drift)."""
+    st = resolve("fast", TINY, {"stage1": {"iterations": 3}})
+    model, data = _model(tiny_training["loose"], st)
+    before = [p.detach().clone() for p in model.per_frame_parameters()]
+    res = train_stage(1, model, data, st, tmp_path)
+    moved = set()
+    for p, old in zip(model.per_frame_parameters(), before):
+        moved |= {int(i) for i in torch.nonzero((p.detach() != old).flatten(1).any(1))}
+    assert 1 <= len(moved) <= 3 and moved <= {int(f) for f in data.train}
