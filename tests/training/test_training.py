@@ -2,6 +2,7 @@
 
 import json
 
+import numpy as np
 import pandas as pd
 import pytest
 import torch
@@ -169,3 +170,23 @@ def test_only_the_visited_frames_move(tiny_training, tmp_path):
     for p, old in zip(model.per_frame_parameters(), before):
         moved |= {int(i) for i in torch.nonzero((p.detach() != old).reshape(len(old), -1).any(1))}
     assert 1 <= len(moved) <= 3 and moved <= {int(f) for f in data.train}
+
+
+def test_cuda_asked_for_without_a_gpu_is_a_clear_error(monkeypatch):
+    from delta.training.run import pick_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(DeltaError, match="device: cuda is configured but torch sees no CUDA device"):
+        pick_device("cuda")
+    assert pick_device("auto") == torch.device("cpu")
+
+
+def test_init_fit_from_another_record_is_refused(tiny_training, tmp_path):
+    from delta.io import save_npz
+
+    st = resolve("fast", TINY)
+    data = load_frames(tiny_training["tight"]["record"], st.resolution)
+    z = dict(np.load(tiny_training["tight"]["init"]))
+    save_npz(tmp_path / "init.npz", **{**z, "frame_ids": z["frame_ids"][:-1], "poses": z["poses"][:-1]})
+    with pytest.raises(DeltaError, match="differ from the frame record's"):
+        load_init(tmp_path / "init.npz", data)
