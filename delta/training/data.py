@@ -93,7 +93,7 @@ def load_frames(record_path, resolution: int, background=(1.0, 1.0, 1.0), box_ma
         raise DeltaError(f"{record_path}: no training frames (split 0)")
     w = interior[train].reshape(-1)
     skin = (images[train].reshape(-1, 3) * w[:, None]).sum(0) / w.sum().clamp_min(1e-6)
-    boxes = torch.tensor([_box(p > 0.5, box_margin) for p in person.__iter__()], dtype=torch.int64)
+    boxes = torch.tensor([_box(p > 0.5, box_margin) for p in person], dtype=torch.int64)
     return FrameData(images, person_t, ext_t, interior, boxes, train, split, frame_ids, camera, skin)
 
 

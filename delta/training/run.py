@@ -7,6 +7,7 @@ last), ``losses.csv``, ``settings.json``, previews, and keeps ``checkpoint.pt`` 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -67,9 +68,9 @@ def wants_exterior(st: TrainSettings, data: FrameData) -> bool:
 def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, stage: int, device) -> HybridAvatar:
     spec = st.avatar
     if not wants_exterior(st, data):
-        spec = type(spec)(**{**spec.__dict__, "nerf": None})
-    if stage == 2:
-        spec = type(spec)(**{**spec.__dict__, "deformation": st.deformation if spec.nerf is not None else None})
+        spec = dataclasses.replace(spec, nerf=None)
+    if stage == 2 and spec.nerf is not None:
+        spec = dataclasses.replace(spec, deformation=st.deformation)
     bg = torch.tensor(st.background, dtype=torch.float32)
     torch.manual_seed(st.seed)  # network initialisation
     return HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution).to(device)
