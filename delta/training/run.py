@@ -127,3 +127,38 @@ def load_init_from_state(state: dict, data: FrameData) -> InitParams:
         camera = OrthographicCamera(state["ortho_scale"].cpu(), state["ortho_trans"].cpu(),
                                     data.resolution, data.resolution)  # fmt: skip
     return InitParams(state["betas"].cpu(), state["poses"].cpu(), state["transl"].cpu(), camera)
+
+
+@dataclasses.dataclass
+class Trained:
+    """A trained avatar loaded back with the frames and settings it was trained with."""
+
+    model: HybridAvatar
+    data: FrameData
+    settings: TrainSettings
+    stage: int
+    preset: str
+
+
+def load_trained(model_path: str | Path, record: str | Path, body_path: str | Path, device: str = "cpu") -> Trained:
+    """Rebuild a stage's avatar from its model.pt (the settings it was trained with travel inside)."""
+    dev = pick_device(device)
+    state = torch.load(model_path, map_location=dev, weights_only=False)
+    for key in ("model", "stage", "preset", "settings"):
+        if key not in state:
+            raise DeltaError(f"{model_path}: missing '{key}'; not a model.pt written by 'delta train'")
+    st = resolve(state["preset"], state["settings"])
+    data = load_frames(record, st.resolution, st.background, st.box_margin)
+    spec = st.avatar if state.get("nerf", True) else dataclasses.replace(st.avatar, nerf=None)
+    if state.get("deformation"):
+        spec = dataclasses.replace(spec, deformation=st.deformation)
+    bg = torch.tensor(st.background, dtype=torch.float32)
+    body = load_body_model(body_path).to(device=dev)
+    init = load_init_from_state(state["model"], data)
+    model = HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution).to(dev)
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as e:
+        raise DeltaError(f"{model_path}: does not match {body_path} or {record}: {str(e)[:300]}") from None
+    model.eval()
+    return Trained(model, data, st, int(state["stage"]), str(state["preset"]))
