@@ -58,6 +58,16 @@ PATHS = {
     "stage_dir": "results/{dataset}/{subject}/stage{stage}",
     "stage_model": "results/{dataset}/{subject}/stage{stage}/model.pt",
     "stage_losses": "results/{dataset}/{subject}/stage{stage}/losses.csv",
+    "loss_plot": "results/{dataset}/{subject}/stage{stage}/losses.png",
+    "eval_metrics": "results/{dataset}/{subject}/eval/metrics.csv",
+    "eval_summary": "results/{dataset}/{subject}/eval/summary.json",
+    "export_dir": "results/{dataset}/{subject}/export",
+    "export_json": "results/{dataset}/{subject}/export/export.json",
+    "export_glb": "results/{dataset}/{subject}/export/avatar.glb",
+    "turntable": "results/{dataset}/{subject}/export/turntable.mp4",
+    "novel_pose": "results/{dataset}/{subject}/export/novel_pose.mp4",
+    "sidebyside": "results/{dataset}/{subject}/export/sidebyside",
+    "dataset_metrics": "results/{dataset}/metrics.csv",
     "perceptual_vgg": f"{config['training']['perceptual_dir']}/vgg_shift_tolerant.pth",
     "perceptual_alex": f"{config['training']['perceptual_dir']}/alex_shift_tolerant.pth",
     "log": "logs/{rule}/{name}.log",
@@ -273,3 +283,12 @@ def synth_runtime(wildcards, attempt):
 
 def prepare_mem_mb(wildcards, attempt):
     return _grow(1500 + 0.01 * PRE["resolution"] ** 2, attempt)
+
+
+def train_gpu_resources():
+    """What a training job asks for besides CPUs: one GPU (of ``cluster.gpu_model`` if set) where the config
+    says cuda; ``auto`` asks for none and uses a GPU only where the node has one."""
+    if config["device"] != "cuda":
+        return {}
+    model = config["cluster"]["gpu_model"]
+    return {"gpu": 1, **({"gpu_model": model} if model else {})}

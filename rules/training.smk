@@ -39,6 +39,7 @@ rule train_stage1:
     resources:
         mem_mb=train_mem_mb,
         runtime=train_runtime(1),
+        **train_gpu_resources(),
     shell:
         "delta train --stage 1 --record {input.record} --body {input.body} --start {input.init}"
         " --out {params.out} --preset {params.preset} --overrides {params.overrides:q}"
@@ -69,6 +70,7 @@ rule train_stage2:
     resources:
         mem_mb=train_mem_mb,
         runtime=train_runtime(2),
+        **train_gpu_resources(),
     shell:
         "delta train --stage 2 --record {input.record} --body {input.body} --start {input.stage1}"
         " --out {params.out} --preset {params.preset} --overrides {params.overrides:q}"

@@ -157,6 +157,30 @@ def test_cluster_profiles_build_the_dag(tmp_path, profile):
     assert "synthesize" in out and "prepare_frames" in out
 
 
+def _job_resources(dry_run_output: str, rule: str) -> dict:
+    """The ``resources:`` line of a rule's first job in a dry run, as a dict."""
+    block = dry_run_output.split(f"rule {rule}:", 1)[1]
+    line = next(ln for ln in block.splitlines() if ln.strip().startswith("resources:"))
+    return dict(kv.split("=", 1) for kv in line.split(":", 1)[1].strip().split(", "))
+
+
+@pytest.mark.parametrize(
+    "device,gpu_model,expected",
+    [("cuda", "", {"gpu": "1"}), ("cuda", "a100", {"gpu": "1", "gpu_model": "a100"}), ("auto", "a100", {}), ("cpu", "", {})],
+)  # fmt: skip
+def test_training_jobs_request_a_gpu_only_for_cuda(tmp_path, device, gpu_model, expected):
+    work = workflow_copy(tmp_path)
+    (work / "gpu.yaml").write_text(yaml.safe_dump({"device": device, "cluster": {"gpu_model": gpu_model}}))
+    res = snakemake(work, "--profile", "workflow/profiles/slurm", "--executor", "dryrun", "--dry-run",
+                    "--configfile", ".test/config/config.yaml", "gpu.yaml")  # fmt: skip
+    assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
+    for rule in ("train_stage1", "train_stage2"):
+        res_ = _job_resources(res.stdout, rule)
+        assert {k: v for k, v in res_.items() if k.startswith("gpu")} == expected
+        assert int(res_["mem_mb"]) > 1000 and int(res_["runtime"]) >= 10
+    assert "gpu" not in _job_resources(res.stdout, "fit_init")  # CPU-only stages ask for none
+
+
 @pytest.mark.slow
 def test_generic_video_runs_the_offline_default_steps(tmp_path, tiny_captures, mediapipe_pose_model):
     """A dataset of plain videos: matting and keypoints come from the converted MediaPipe model."""
