@@ -36,10 +36,12 @@ def build(points: np.ndarray, cell: float, pad: float) -> DistanceGrid:
 
 def lookup(grid: DistanceGrid, points: np.ndarray) -> np.ndarray:
     """Distances (M,) at points (M, 3): nearest voxel's value, +inf outside the grid."""
-    ijk = np.floor((points - grid.origin) / grid.cell + 0.5).astype(np.int64)
+    # bounds tested in float before the cast: points far out (a ray's box entry can be ~1e18 away) or
+    # non-finite ones would overflow int64, an undefined cast that may land inside the grid
+    fijk = np.floor((points - grid.origin) / grid.cell + 0.5)
     shape = np.array(grid.distance.shape)
-    inside = np.all((ijk >= 0) & (ijk < shape), axis=1)
+    inside = np.all((fijk >= 0) & (fijk < shape), axis=1)
     out = np.full(len(points), np.inf, dtype=np.float32)
-    i = ijk[inside]
+    i = fijk[inside].astype(np.int64)
     out[inside] = grid.distance[i[:, 0], i[:, 1], i[:, 2]]
     return out
