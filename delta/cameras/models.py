@@ -17,6 +17,9 @@ import dataclasses
 
 import torch
 
+MIN_DEPTH = 1e-6
+"""Smallest |camera depth| a pinhole projection divides by (world units)."""
+
 
 def distort(xy: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
     """Radial-tangential (OpenCV) distortion of normalised coordinates (..., 2), k = (k1, k2, p1, p2, k3)."""
@@ -97,7 +100,10 @@ class PinholeCamera:
         """(..., N, 3) world points -> (..., N, 2) pixel coordinates and (..., N) depth Z_c."""
         cam = points @ self.R.T.to(points.dtype) + self.t.to(points.dtype)
         z = cam[..., 2]
-        xy = distort(cam[..., :2] / z.unsqueeze(-1), self.dist.to(points.dtype))
+        # a point on the camera plane (z = 0, e.g. a body translated onto the camera) has no projection;
+        # |z| is floored at MIN_DEPTH (sign kept) so that it lands far off the image instead of at NaN
+        z_safe = torch.where(z < 0, -1.0, 1.0).to(z.dtype) * z.abs().clamp_min(MIN_DEPTH)
+        xy = distort(cam[..., :2] / z_safe.unsqueeze(-1), self.dist.to(points.dtype))
         K = self.K.to(points.dtype)
         uv = torch.stack([K[0, 0] * xy[..., 0] + K[0, 1] * xy[..., 1] + K[0, 2], K[1, 1] * xy[..., 1] + K[1, 2]], -1)
         return uv, z
