@@ -59,8 +59,9 @@ def pixel(rgb: torch.Tensor, target: torch.Tensor, delta: float = 0.1) -> torch.
 
 
 def exterior(nerf_mask: torch.Tensor, exterior_mask: torch.Tensor) -> torch.Tensor:
-    """‖S_v - S_e‖_1, averaged over rays."""
-    return (nerf_mask - exterior_mask).abs().mean()
+    """‖S_v - S_e‖_1, averaged over rays (0 for no rays, as :func:`huber`)."""
+    d = (nerf_mask - exterior_mask).abs()
+    return d.mean() if d.numel() else d.sum()  # the mean of nothing is NaN
 
 
 def silhouette(mesh_sil: torch.Tensor, person: torch.Tensor, delta: float = 0.1) -> torch.Tensor:
