@@ -9,12 +9,16 @@ min_version("8.0")
 configfile: "config/config.yaml"
 
 
+report: "workflow/report/workflow.rst"
+
+
 include: "rules/common.smk"
 include: "rules/body.smk"
 include: "rules/synthetic.smk"
 include: "rules/preprocess.smk"
 include: "rules/fitting.smk"
 include: "rules/training.smk"
+include: "rules/eval.smk"
 
 
 # cheap bookkeeping runs on the submitting machine, never as a cluster job
@@ -22,6 +26,8 @@ localrules:
     all,
     synthetic_peoplesnapshot,
     fetch_perceptual,
+    plot_losses,
+    aggregate_metrics,
 
 
 rule all:

@@ -187,6 +187,64 @@ def cmd_train(args: argparse.Namespace) -> None:
               over if isinstance(over, list) else [over], args.device, args.perceptual)  # fmt: skip
 
 
+def cmd_export(args: argparse.Namespace) -> None:
+    from delta.export.run import export_avatar
+    from delta.export.settings import ExportSettings
+
+    _threads(args.threads)
+    try:
+        settings = ExportSettings(grid=args.grid, threshold=args.threshold, smooth=args.smooth,
+                                  decimate=args.decimate, turntable_frames=args.turntable_frames,
+                                  min_component_faces=args.min_component_faces, fps=args.fps,
+                                  sidebyside=args.sidebyside)  # fmt: skip
+    except ValueError as e:
+        raise DeltaError(str(e)) from None
+    export_avatar(args.model, args.record, args.body, args.out, settings, args.device)
+
+
+def cmd_evaluate(args: argparse.Namespace) -> None:
+    from delta.eval.evaluate import (EvalSettings, clothing_distance, evaluate, summarize, train_body_error_mm,
+                                     write_csv)
+    from delta.io import save_json
+    from delta.training.run import load_trained
+
+    _threads(args.threads)
+    if args.lpips_alex and len(args.lpips_alex) != 2:
+        raise DeltaError("--lpips-alex takes two files: torchvision's AlexNet weights and lpips' alex.pth")
+    st = EvalSettings(splits=tuple(args.splits), max_frames=args.max_frames, refine_steps=args.refine_steps,
+                      report_unrefined=not args.refined_only, perceptual_dir=args.perceptual,
+                      lpips_alex=tuple(args.lpips_alex) if args.lpips_alex else None)  # fmt: skip
+    t0 = time.perf_counter()
+    trained = load_trained(args.model, args.record, args.body, args.device)
+    df = evaluate(trained, args.record, st, args.gt_meshes, args.subject)
+    summary = {"subject": args.subject, "model": args.model, "stage": trained.stage, "preset": trained.preset,
+               "settings": {"splits": list(st.splits), "max_frames": st.max_frames, "refine_steps": st.refine_steps},
+               "scores": summarize(df)}  # fmt: skip
+    if args.gt_meshes:
+        summary["train_body_err_mm"] = round(train_body_error_mm(trained, args.gt_meshes), 2)
+        surface = Path(args.export_dir or "") / "clothing_nerf_space.ply"
+        if args.export_dir and surface.exists():
+            frames = sorted({int(f) for f in df["frame"]})
+            summary["geometry"] = clothing_distance(trained, surface, args.gt_meshes, frames)
+    summary["seconds"] = round(time.perf_counter() - t0, 1)
+    write_csv(df, args.out)
+    if args.summary:
+        save_json(args.summary, summary)
+    log.info("evaluated %d rows in %.0f s -> %s", len(df), summary["seconds"], args.out)
+
+
+def cmd_plot_losses(args: argparse.Namespace) -> None:
+    from delta.eval.plots import plot_losses
+
+    plot_losses(args.losses, args.out, args.title)
+
+
+def cmd_aggregate(args: argparse.Namespace) -> None:
+    from delta.eval.aggregate import aggregate
+
+    aggregate(args.dataset, args.subjects, args.summaries, args.exports, args.benchmarks, args.out)
+
+
 def cmd_validate_config(args: argparse.Namespace) -> None:
     from delta.config import load_config
 
@@ -292,10 +350,63 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_train)
 
     from delta.perceptual.weights import add_fetch_perceptual_arguments, cmd_fetch_perceptual
+    from delta.export.settings import ExportSettings
 
     p = sub.add_parser("fetch-perceptual", help="fetch the shift-tolerant VGG16/AlexNet weights (stlpips-pytorch 0.0.2)")
     add_fetch_perceptual_arguments(p)
     p.set_defaults(func=cmd_fetch_perceptual)
+
+    p = sub.add_parser("export", help="export a trained avatar: meshes (PLY, GLB), videos, side-by-side images")
+    p.add_argument("--model", required=True, help="a stage's model.pt")
+    p.add_argument("--record", required=True, help="the frame record it was trained on")
+    p.add_argument("--body", required=True)
+    p.add_argument("--out", required=True, help="folder for the meshes, videos, sidebyside/ and export.json")
+    d = ExportSettings()
+    p.add_argument("--grid", type=int, default=d.grid, help="marching-cubes cells along the longest side")
+    p.add_argument("--threshold", type=float, default=d.threshold, help="density of the clothing surface (1/m)")
+    p.add_argument("--smooth", type=int, default=d.smooth, help="Taubin smoothing steps (0: none)")
+    p.add_argument("--decimate", type=int, default=d.decimate, help="target clothing face count (0: none)")
+    p.add_argument("--min-component-faces", type=int, default=d.min_component_faces)
+    p.add_argument("--turntable-frames", type=int, default=d.turntable_frames)
+    p.add_argument("--fps", type=int, default=d.fps)
+    p.add_argument("--sidebyside", type=int, default=d.sidebyside, help="test frames shown as reference | render | error")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
+    p.add_argument("--threads", type=int, default=1)
+    p.set_defaults(func=cmd_export)
+
+    p = sub.add_parser("evaluate", help="score a trained avatar on the test frames (eval/metrics.csv)")
+    p.add_argument("--model", required=True, help="a stage's model.pt")
+    p.add_argument("--record", required=True)
+    p.add_argument("--body", required=True)
+    p.add_argument("--out", required=True, help="per-frame metrics.csv")
+    p.add_argument("--summary", help="summary.json: means per split, refined or not")
+    p.add_argument("--subject", default="")
+    p.add_argument("--gt-meshes", help="synthetic ground truth gt/meshes.h5 (body vertex error)")
+    p.add_argument("--export-dir", help="the subject's export/ (clothing Chamfer against the ground truth)")
+    p.add_argument("--splits", nargs="+", default=["test_view", "test_pose"])
+    p.add_argument("--max-frames", type=int, default=0, help="at most this many frames per split (0: all)")
+    p.add_argument("--refine-steps", type=int, default=30, help="test-time refinement steps (0: off)")
+    p.add_argument("--refined-only", action="store_true", help="with refinement, skip the unrefined rows")
+    p.add_argument("--perceptual", help="folder with alex_shift_tolerant.pth (ST-LPIPS column)")
+    p.add_argument("--lpips-alex", nargs="+", metavar="FILE", help="torchvision AlexNet .pth and lpips alex.pth")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, default=2)
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("plot-losses", help="loss curves of a training stage (PNG)")
+    p.add_argument("--losses", required=True, help="a stage's losses.csv")
+    p.add_argument("--out", required=True)
+    p.add_argument("--title", default="")
+    p.set_defaults(func=cmd_plot_losses)
+
+    p = sub.add_parser("aggregate", help="one row per subject plus a mean row: results/{dataset}/metrics.csv")
+    p.add_argument("--dataset", required=True)
+    p.add_argument("--subjects", nargs="+", required=True)
+    p.add_argument("--summaries", nargs="+", required=True, help="eval/summary.json per subject (same order)")
+    p.add_argument("--exports", nargs="*", default=[], help="export/export.json per subject (same order)")
+    p.add_argument("--benchmarks", nargs="*", default=[], help="rule=path.tsv: the training rules' benchmark files")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_aggregate)
 
     p = sub.add_parser("validate-config", help="check a config file against the workflow schema")
     p.add_argument("config")

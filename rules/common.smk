@@ -260,6 +260,7 @@ def all_targets():
         [body_model_file(), PATHS["body_summary"].format(model=BODY["name"], level=BODY["upsample_level"])]
         + synthetic_targets()
         + record_targets()
+        + dataset_metrics_targets()
     )
 
 

@@ -155,3 +155,53 @@ def perceptual_weights():
     from delta.perceptual import weights as W
 
     return Path(W.ensure_weights(REPO / "resources" / "models" / "stlpips")["vgg"]).parent
+
+
+# ----------------------------------------------------------- tiny training
+def init_from_gt(capture, record_path, out_path):
+    """The ground-truth body parameters of the record's frames, written as an init fit would."""
+    from delta.data.record import FrameRecord
+    from delta.io import save_npz
+
+    gt = np.load(capture / "gt" / "params.npz")
+    with FrameRecord(record_path) as rec:
+        ids = rec.h5["frame_ids"][:]
+        cam = {"camera_model": np.array(rec.h5.attrs["camera_model"])}
+        if rec.h5.attrs["camera_model"] == "orthographic":
+            cam.update(ortho_scale=rec.h5["ortho_scale"][:], ortho_trans=rec.h5["ortho_trans"][:])
+    save_npz(out_path, betas=gt["betas"], poses=gt["poses"][ids], transl=gt["transl"][ids], frame_ids=ids, **cam)
+
+
+@pytest.fixture(scope="session")
+def tiny_training(tmp_path_factory, tiny_captures, anny_files):
+    """{subject: {"record", "init", "body"}} for the tiny pinhole (tight) and orthographic (loose) subjects."""
+    from delta.data.sources import synthetic_source
+    from delta.preprocess.frames import prepare
+
+    root = tmp_path_factory.mktemp("training")
+    out = {}
+    for name in ("tight", "loose"):
+        record = root / name / "frames.h5"
+        prepare(synthetic_source(tiny_captures / name, name), record, size=64)
+        init_from_gt(tiny_captures / name, record, root / name / "init.npz")
+        out[name] = {"record": str(record), "init": str(root / name / "init.npz"), "body": anny_files["body"],
+                     "capture": str(tiny_captures / name)}  # fmt: skip
+    return out
+
+
+#: a few stage-1 steps at 32²: enough for the code paths of evaluation and export, not for quality
+TINY_STAGE1 = {"resolution": 32, "render": {"samples": 8},
+               "stage1": {"iterations": 6, "rays": 128, "checkpoint_every": 6, "preview_every": 0}}  # fmt: skip
+
+
+@pytest.fixture(scope="session")
+def tiny_trained(tmp_path_factory, tiny_training):
+    """{subject: {..., "model"}}: a stage-1 model.pt trained for a few steps from the GT init."""
+    from delta.training.run import run_stage
+
+    root = tmp_path_factory.mktemp("trained")
+    out = {}
+    for name, inputs in tiny_training.items():
+        run_stage(1, inputs["record"], inputs["body"], inputs["init"], str(root / name), "fast", [TINY_STAGE1])
+        out[name] = dict(inputs, model=str(root / name / "model.pt"))
+    return out

@@ -155,7 +155,64 @@ class ShiftTolerantAlexNet(_SlicedBackbone):
         super().__init__(layers, (3, 7, 11, 13, 15))
 
 
-BACKBONES = {"vgg": ShiftTolerantVGG16, "alex": ShiftTolerantAlexNet}
+class AlexNet(_SlicedBackbone):
+    """torchvision's AlexNet trunk, the backbone of standard LPIPS; taps relu1..relu5.
+
+    Layers are numbered like torchvision's ``features.{i}`` (conv1 = 0 … relu5 = 11), so a
+    torchvision state dict maps key by key (:func:`lpips_alex_state`).
+    """
+
+    taps = ("relu1", "relu2", "relu3", "relu4", "relu5")
+    channels = (64, 192, 384, 256, 256)
+
+    def __init__(self):
+        layers = [
+            ("conv1", nn.Conv2d(3, 64, kernel_size=11, stride=4, padding=2)),
+            ("relu1", nn.ReLU()),
+            ("pool1", nn.MaxPool2d(kernel_size=3, stride=2)),
+            ("conv2", nn.Conv2d(64, 192, kernel_size=5, padding=2)),
+            ("relu2", nn.ReLU()),
+            ("pool2", nn.MaxPool2d(kernel_size=3, stride=2)),
+            ("conv3", nn.Conv2d(192, 384, kernel_size=3, padding=1)),
+            ("relu3", nn.ReLU()),
+            ("conv4", nn.Conv2d(384, 256, kernel_size=3, padding=1)),
+            ("relu4", nn.ReLU()),
+            ("conv5", nn.Conv2d(256, 256, kernel_size=3, padding=1)),
+            ("relu5", nn.ReLU()),
+        ]
+        super().__init__(layers, (2, 5, 8, 10, 12))
+
+
+BACKBONES = {"vgg": ShiftTolerantVGG16, "alex": ShiftTolerantAlexNet, "alex-lpips": AlexNet}
+#: standard LPIPS's scaling layer (inputs in [-1, 1] to ImageNet statistics)
+LPIPS_SHIFT = (-0.030, -0.088, -0.188)
+LPIPS_SCALE = (0.458, 0.448, 0.450)
+
+
+def lpips_alex_state(backbone: str | os.PathLike, lin: str | os.PathLike) -> dict[str, torch.Tensor]:
+    """An ST-LPIPS-layout state dict of standard LPIPS-Alex from the user's two files.
+
+    ``backbone``: torchvision's AlexNet weights (``alexnet-owt-7be5be79.pth``, keys
+    ``features.{i}.weight/bias``; the classifier is ignored); ``lin``: the ``lpips``
+    package's ``weights/v0.1/alex.pth`` (keys ``lin{k}.model.1.weight``).
+    """
+    trunk, heads = read_state_dict(backbone), read_state_dict(lin)
+    slice_of = {0: 1, 3: 2, 6: 3, 8: 4, 10: 5}
+    state = {}
+    for i, s in slice_of.items():
+        for kind in ("weight", "bias"):
+            key = f"features.{i}.{kind}"
+            if key not in trunk:
+                raise KeyError(f"{backbone}: no '{key}'; expected torchvision's AlexNet state dict")
+            state[f"net.slice{s}.{i}.{kind}"] = trunk[key]
+    for k in range(5):
+        key = f"lin{k}.model.1.weight"
+        if key not in heads:
+            raise KeyError(f"{lin}: no '{key}'; expected the lpips package's alex.pth (v0.1)")
+        state[key] = heads[key]
+    state["scaling_layer.shift"] = torch.tensor(LPIPS_SHIFT).view(1, 3, 1, 1)
+    state["scaling_layer.scale"] = torch.tensor(LPIPS_SCALE).view(1, 3, 1, 1)
+    return state
 
 
 def read_state_dict(path: str | os.PathLike) -> dict[str, torch.Tensor]:

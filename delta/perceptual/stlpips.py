@@ -15,7 +15,7 @@ import os
 import torch
 from torch import nn
 
-from delta.perceptual.nets import BACKBONES, read_state_dict, split_state_dict
+from delta.perceptual.nets import BACKBONES, lpips_alex_state, read_state_dict, split_state_dict
 from delta.perceptual.weights import locate_weights
 
 
@@ -34,7 +34,7 @@ class STLPIPS(nn.Module):
     """
 
     def __init__(self, net: str = "alex", weights: str | os.PathLike | None = None,
-                 cache_dir: str | os.PathLike | None = None):  # fmt: skip
+                 cache_dir: str | os.PathLike | None = None, state: dict | None = None):  # fmt: skip
         super().__init__()
         if net not in BACKBONES:
             raise ValueError(f"net must be one of {sorted(BACKBONES)}, got {net!r}")
@@ -43,8 +43,12 @@ class STLPIPS(nn.Module):
         self.heads = nn.ModuleList(nn.Conv2d(c, 1, kernel_size=1, bias=False) for c in self.net.channels)
         self.register_buffer("shift", torch.zeros(1, 3, 1, 1))
         self.register_buffer("scale", torch.ones(1, 3, 1, 1))
-        path = weights if weights is not None else locate_weights(net, cache_dir)
-        backbone, heads, scaling = split_state_dict(read_state_dict(path))
+        if state is None:
+            path = weights if weights is not None else locate_weights(net, cache_dir)
+            state = read_state_dict(path)
+        else:
+            path = "<state dict>"
+        backbone, heads, scaling = split_state_dict(state)
         self.net.load_state_dict(backbone, strict=True)
         self.heads.load_state_dict(heads, strict=True)
         if set(scaling) != {"shift", "scale"}:
@@ -71,3 +75,9 @@ class STLPIPS(nn.Module):
         layers = [head((a - b) ** 2).mean(dim=(1, 2, 3)) for head, a, b in zip(self.heads, fx, fy)]
         dist = torch.stack(layers, dim=0).sum(dim=0)
         return (dist, layers) if per_layer else dist
+
+
+def lpips_alex(backbone: str | os.PathLike, lin: str | os.PathLike) -> STLPIPS:
+    """Standard LPIPS-Alex (Zhang et al. 2018, v0.1) from the user's weight files (see
+    :func:`delta.perceptual.nets.lpips_alex_state`); same formula as ST-LPIPS, plain AlexNet."""
+    return STLPIPS("alex-lpips", state=lpips_alex_state(backbone, lin))

@@ -1,0 +1,245 @@
+"""Score a trained avatar on a subject's test frames: ``results/{dataset}/{subject}/eval/``.
+
+One row per (frame, refined) in ``metrics.csv``: PSNR / SSIM / L1 of the whole image and
+per region, ST-LPIPS (alex), LPIPS-Alex when the user gave its weights, IoU of the NeRF
+mask with the record's exterior mask and of the mesh silhouette with the person mask, and,
+when ground truth is given (synthetic captures), the body vertex error. The convention
+travels in every row: background colour, full image, resolution, whether the test frame's
+pose and camera were refined (with the model frozen) before scoring.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from pathlib import Path
+from typing import Optional
+
+import cv2
+import h5py
+import numpy as np
+import pandas as pd
+import torch
+import trimesh
+
+from delta import DeltaError
+from delta.body.model import REGION
+from delta.data.record import FrameRecord
+from delta.eval import metrics as M
+from delta.eval.geometry import mesh_distance, vertex_error
+from delta.eval.heldout import refine_frame
+from delta.geometry.raymesh import ray_mesh_hits
+from delta.io import atomic_path
+from delta.training.run import Trained
+from delta.training.trainer import render_image
+
+log = logging.getLogger(__name__)
+SPLITS = {"train": 0, "test_view": 1, "test_pose": 2}
+FACE_REGIONS = (REGION["face"], REGION["eyes"], REGION["mouth"])
+
+
+@dataclasses.dataclass
+class EvalSettings:
+    splits: tuple[str, ...] = ("test_view", "test_pose")
+    """Which frames are scored (frames of these splits in the record)."""
+    max_frames: int = 0
+    """At most this many frames per split, evenly spaced (0: all)."""
+    refine_steps: int = 30
+    """Test-time refinement of each test frame's pose and camera, model frozen (0: off)."""
+    report_unrefined: bool = True
+    """With refinement on, also score each frame before it (both rows are written)."""
+    refine_rays: int = 1024
+    perceptual_dir: Optional[str] = None
+    """Folder of alex_shift_tolerant.pth (ST-LPIPS); None: no perceptual column."""
+    lpips_alex: Optional[tuple[str, str]] = None
+    """(torchvision AlexNet weights, lpips alex.pth): standard LPIPS-Alex when the user has them."""
+
+
+def pick_frames(split: np.ndarray, names: tuple[str, ...], max_frames: int) -> list[tuple[int, str]]:
+    out = []
+    for name in names:
+        if name not in SPLITS:
+            raise DeltaError(f"evaluation.splits: unknown split '{name}' (expected one of {sorted(SPLITS)})")
+        idx = np.flatnonzero(split == SPLITS[name])
+        if max_frames and len(idx) > max_frames:
+            idx = idx[np.linspace(0, len(idx) - 1, max_frames).round().astype(int)]
+        out += [(int(i), name) for i in idx]
+    return out
+
+
+def region_masks(record_path: str | Path, frames: list[int], n: int) -> dict[str, torch.Tensor]:
+    """Clothing and hair masks (F, n, n) of the given frames, resized as the training data is."""
+    out = {}
+    with FrameRecord(record_path) as rec:
+        for name in ("clothing", "hair"):
+            if name in rec.h5:
+                ms = [cv2.resize(rec.h5[name][f].astype(np.float32), (n, n), interpolation=cv2.INTER_AREA)
+                      for f in frames]  # fmt: skip
+                out[name] = torch.from_numpy(np.stack(ms)) > 0.5
+    return out
+
+
+@torch.no_grad()
+def face_pixels(model, frame: int, mesh_vertices: torch.Tensor) -> torch.Tensor:
+    """(n, n) bool: pixel centres whose ray first hits a face / eyes / mouth triangle of the body."""
+    n = model.resolution
+    jj, ii = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="xy")
+    pixels = torch.stack([jj.reshape(-1) + 0.5, ii.reshape(-1) + 0.5], -1).float().to(mesh_vertices.device)
+    origins, dirs = model.camera(frame).rays(pixels)
+    hits = ray_mesh_hits(mesh_vertices, model.body.faces, origins, dirs)
+    labels = model.body.regions[model.body.faces[hits.face.clamp_min(0), 0]]
+    face = hits.hit & torch.isin(labels, torch.tensor(FACE_REGIONS, device=labels.device))
+    return face.reshape(n, n).cpu()
+
+
+class Perceptual:
+    """The perceptual distances asked for, on (H, W, 3) images in [0, 1]."""
+
+    def __init__(self, st: EvalSettings, device):
+        from delta.perceptual.stlpips import STLPIPS, lpips_alex
+
+        self.nets = {}
+        if st.perceptual_dir:
+            self.nets["stlpips_alex"] = STLPIPS("alex", cache_dir=st.perceptual_dir).to(device)
+        if st.lpips_alex:
+            self.nets["lpips_alex"] = lpips_alex(*st.lpips_alex).to(device)
+
+    @torch.no_grad()
+    def __call__(self, a: torch.Tensor, b: torch.Tensor) -> dict[str, float]:
+        x, y = (t.permute(2, 0, 1)[None].float() for t in (a, b))
+        return {k: float(net(x.to(next(net.buffers()).device), y.to(next(net.buffers()).device)))
+                for k, net in self.nets.items()}  # fmt: skip
+
+
+def score_image(img: dict, gt: torch.Tensor, masks: dict[str, torch.Tensor], perceptual: Perceptual) -> dict:
+    """Whole-image and per-region scores of one render (dict from render_image)."""
+    rgb = img["rgb"].clamp(0, 1)
+    row = {"psnr": M.psnr(rgb, gt), "ssim": M.ssim(rgb, gt), "l1": M.l1(rgb, gt)}
+    row |= perceptual(rgb, gt)
+    for name, m in masks.items():
+        row[f"psnr_{name}"] = M.psnr(rgb, gt, m)
+        row[f"ssim_{name}"] = M.ssim(rgb, gt, m)
+        row[f"l1_{name}"] = M.l1(rgb, gt, m)
+    return row
+
+
+def gt_body_vertices(meshes_h5: str | Path, frame_ids) -> dict[int, np.ndarray]:
+    with h5py.File(meshes_h5, "r") as f:
+        if "body_vertices" not in f:
+            raise DeltaError(f"{meshes_h5}: no 'body_vertices'; not a synthetic capture's gt/meshes.h5")
+        return {int(i): f["body_vertices"][int(i)] for i in frame_ids}
+
+
+def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: str | Path | None = None,
+             subject: str = "") -> pd.DataFrame:  # fmt: skip
+    """One row per scored (frame, refined)."""
+    model, data = trained.model, trained.data
+    frames = pick_frames(data.split, st.splits, st.max_frames)
+    if not frames:
+        raise DeltaError(f"{record}: no frames of the splits {list(st.splits)} to evaluate")
+    dev = model.background.device
+    perceptual = Perceptual(st, dev)
+    regions = region_masks(record, [f for f, _ in frames], data.resolution)
+    gt = gt_body_vertices(gt_meshes, data.frame_ids[[f for f, _ in frames]]) if gt_meshes else {}
+    passes = [False, True] if st.refine_steps and st.report_unrefined else [bool(st.refine_steps)]
+    bg = "white" if tuple(trained.settings.background) == (1.0, 1.0, 1.0) else str(tuple(trained.settings.background))
+    rows = []
+    for k, (f, split) in enumerate(frames):
+        for refined in passes:
+            if refined:
+                refine_frame(model, data, f, st.refine_steps, rays=st.refine_rays, seed=f)
+            with torch.no_grad():
+                mesh, offsets, out = model.posed_mesh(f)
+            img = render_image(model, f)
+            masks = {"body": data.interior[f] > 0.5, "face": face_pixels(model, f, mesh.vertices) & (data.interior[f] > 0.5)}
+            masks |= {name: m[k] for name, m in regions.items()}
+            row = {"subject": subject, "frame": f, "frame_id": int(data.frame_ids[f]), "split": split,
+                   "refined": refined, "refine_steps": st.refine_steps if refined else 0, "stage": trained.stage,
+                   "preset": trained.preset, "background": bg, "image": "full", "resolution": data.resolution}  # fmt: skip
+            row |= score_image(img, data.images[f], masks, perceptual)
+            row["nerf_iou"] = M.iou(img["nerf_mask"] > 0.5, data.exterior[f] > 0.5) if model.nerf is not None else np.nan
+            row["mesh_iou"] = M.iou(img["silhouette"] > 0.5, data.person[f] > 0.5)
+            if gt:
+                ref = gt[int(data.frame_ids[f])]
+                row["body_err_mm"] = 1000 * vertex_error(mesh.vertices.cpu().numpy(), ref) if ref.shape == tuple(
+                    mesh.vertices.shape) else np.nan  # fmt: skip
+            rows.append(row)
+        log.info("frame %d (%s): %s", f, split, {k: round(v, 3) for k, v in rows[-1].items() if k.startswith(("psnr", "ssim"))
+                                                  and isinstance(v, float)})  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def write_csv(df: pd.DataFrame, path: str | Path) -> None:
+    with atomic_path(path) as tmp:
+        df.to_csv(tmp, index=False)
+
+
+def train_body_error_mm(trained: Trained, gt_meshes: str | Path, every: int = 10) -> float:
+    """Body vertex error (mm, centroid-aligned) over every ``every``-th training frame: the body
+    under the clothing as training left it."""
+    model, data = trained.model, trained.data
+    frames = data.train[::every]
+    gt = gt_body_vertices(gt_meshes, data.frame_ids[frames])
+    errs = []
+    with torch.no_grad():
+        offsets = model.offsets()
+        for f in frames:
+            v = model.pose_body(int(f), offsets).vertices[0].cpu().numpy()
+            ref = gt[int(data.frame_ids[f])]
+            if ref.shape != v.shape:
+                return float("nan")
+            errs.append(vertex_error(v, ref))
+    return 1000 * float(np.mean(errs))
+
+
+def gt_exterior(meshes_h5: str | Path, frame_id: int) -> trimesh.Trimesh | None:
+    """The GT clothing and hair layers of one frame as one mesh (None when the capture has none)."""
+    with h5py.File(meshes_h5, "r") as f:
+        layers = json.loads(f.attrs.get("layers", "[]"))
+        parts = [trimesh.Trimesh(f[f"{n}_vertices"][int(frame_id)], f[f"{n}_faces"][:], process=False) for n in layers]
+    return trimesh.util.concatenate(parts) if parts else None
+
+
+def clothing_distance(trained: Trained, nerf_space_mesh: str | Path, gt_meshes: str | Path, frames: list[int],
+                      samples: int = 20000) -> dict:  # fmt: skip
+    """Chamfer distance (mm) and normal consistency of the exported clothing surface, posed as each
+    frame by forward skinning, against the GT clothing and hair of that frame. Both are moved by the
+    offset that aligns the fitted body's centroid with the GT body's (as the body error is)."""
+    from delta.export.meshes import MeshPart, pose_clothing
+
+    model, data = trained.model, trained.data
+    surface = trimesh.load(nerf_space_mesh, process=False)
+    if len(surface.faces) == 0:
+        return {}
+    part = MeshPart(np.asarray(surface.vertices), np.asarray(surface.faces), np.zeros((len(surface.vertices), 3)))
+    gt_body = gt_body_vertices(gt_meshes, data.frame_ids[frames])
+    rows = []
+    with torch.no_grad():
+        offsets = model.offsets()
+        for f in frames:
+            fid = int(data.frame_ids[f])
+            ref = gt_exterior(gt_meshes, fid)
+            if ref is None:
+                return {}
+            out = model.pose_body(int(f), offsets)
+            posed = pose_clothing(model, part, out)
+            shift = gt_body[fid].mean(0) - out.vertices[0].cpu().numpy().mean(0)
+            pred = trimesh.Trimesh(posed.vertices + shift, posed.faces, process=False)
+            rows.append(mesh_distance(pred, ref, samples, seed=f))
+    return {"clothing_chamfer_mm": 1000 * float(np.mean([r.chamfer for r in rows])),
+            "clothing_accuracy_mm": 1000 * float(np.mean([r.accuracy for r in rows])),
+            "clothing_completeness_mm": 1000 * float(np.mean([r.completeness for r in rows])),
+            "clothing_normal_consistency": float(np.mean([r.normal_consistency for r in rows])),
+            "clothing_frames": len(rows)}  # fmt: skip
+
+
+def summarize(df: pd.DataFrame) -> dict:
+    """Mean of every score per (split, refined), e.g. ``{"test_view": {"refined": {...}, "unrefined": {...}}}``."""
+    scores = [c for c in df.columns if df[c].dtype.kind == "f"]
+    out: dict = {}
+    for (split, refined), g in df.groupby(["split", "refined"]):
+        out.setdefault(split, {})["refined" if refined else "unrefined"] = {
+            c: (None if np.isnan(v) else round(float(v), 5)) for c, v in g[scores].mean().items()
+        } | {"frames": int(len(g))}
+    return out
