@@ -88,6 +88,11 @@ class NeRFField(nn.Module):
         color = self.color_head(self.color_encoding(x)) if self.split else out[:, :3]
         return torch.sigmoid(color), torch.exp(out[:, -1].clamp(max=MAX_LOG_DENSITY))
 
+    def density(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3) -> sigma (N,) alone (the colour branch is skipped with the ``grid`` encoding)."""
+        out = self.head(self.encoding(x))
+        return torch.exp(out[:, -1].clamp(max=MAX_LOG_DENSITY))
+
 
 class VertexField(nn.Module):
     """F_d (offsets) or F_t (albedo): canonical template vertex -> (V, C).

@@ -2,7 +2,8 @@
 
 The recipe (R rays, S samples per ray, V vertices): ray–mesh hits -> mesh colour and
 soft silhouette -> samples on [t_n, t_f] inside the body's box, t_f at the mesh ->
-backward skinning (invalid samples cost nothing) -> optional non-rigid offsets ->
+backward skinning (invalid samples cost nothing) -> optional occupancy test in the
+canonical space (samples in empty cells cost nothing more) -> optional non-rigid offsets ->
 NeRF -> mesh-integrated compositing.
 """
 
@@ -17,6 +18,7 @@ import torch
 from delta.deformers import knn as deformer
 from delta.geometry import distance_grid
 from delta.geometry.raymesh import interpolate, ray_mesh_hits
+from delta.render.occupancy import OccupancySettings
 from delta.render.silhouette import soft_silhouette
 from delta.render.volume import composite, ray_box, stratified_samples
 
@@ -57,6 +59,8 @@ class RenderSettings:
     knn_vertices: str = "base"
     """Backward skinning over the ``base`` mesh's vertices (before upsampling; 4× fewer) or ``all``."""
     perturb: bool = True
+    occupancy: OccupancySettings = dataclasses.field(default_factory=OccupancySettings)
+    """The canonical occupancy grid that skips samples in empty space (training updates it)."""
 
 
 @dataclasses.dataclass
@@ -79,12 +83,15 @@ class RayRender:
 
 NeRF = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 Deform = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
+Occupied = Callable[[torch.Tensor], torch.Tensor]
+"""Canonical points (N, 3) -> (N,) bool: may have density (False: skipped)."""
 
 
 def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixels: torch.Tensor,
                 background: torch.Tensor, settings: RenderSettings, nerf: Optional[NeRF] = None,
-                nonrigid: Optional[Deform] = None, generator: torch.Generator | None = None) -> RayRender:  # fmt: skip
-    """Render rays (R, 3) through pixels (R, 2) of one frame."""
+                nonrigid: Optional[Deform] = None, generator: torch.Generator | None = None,
+                occupied: Optional[Occupied] = None) -> RayRender:  # fmt: skip
+    """Render rays (R, 3) through pixels (R, 2) of one frame; ``occupied`` skips samples in empty canonical space."""
     hits = ray_mesh_hits(mesh.vertices, mesh.faces, origins, dirs)
     mesh_rgb = torch.where(hits.hit[:, None], interpolate(hits, mesh.faces, mesh.albedo), background)
     sil = soft_silhouette(mesh.uv, mesh.faces, pixels, sigma=settings.sil_sigma, k=settings.sil_k)
@@ -98,7 +105,7 @@ def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixe
     t_far = torch.where(in_box | hits.hit, t_far, t_in)
     t_near, t_far = body_span(mesh.skinning, origins, dirs, t_in, torch.maximum(t_far, t_in), hits.hit, settings)
     t = stratified_samples(t_near, t_far, settings.samples, settings.perturb, generator)
-    sigma, rgb, n = _query(mesh, origins, dirs, t, settings, nerf, nonrigid)
+    sigma, rgb, n = _query(mesh, origins, dirs, t, settings, nerf, nonrigid, occupied)
     out = composite(t, sigma, rgb, mesh_rgb)
     nerf_rgb = (out.weights[:, :-1, None] * rgb).sum(1) + (1 - out.nerf_mask[:, None]) * background
     return RayRender(out.rgb, out.nerf_mask, nerf_rgb, mesh_rgb, hits.hit, sil, n)
@@ -131,8 +138,12 @@ def body_span(skinning, origins, dirs, t_in, t_far, hit, settings: RenderSetting
     return lo, torch.maximum(hi, lo)
 
 
-def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: NeRF, nonrigid):
-    """Densities and colours of the NeRF samples (all but the last), zero where culled."""
+def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: NeRF, nonrigid, occupied=None):
+    """Densities and colours of the NeRF samples (all but the last), zero where culled.
+
+    Culling, cheapest first: rays with an empty span, samples beyond ``max_dist`` of the body (kNN),
+    then samples whose canonical point is in an empty occupancy cell (before F_e and the NeRF).
+    """
     R, S = t.shape
     tn = t[:, :-1]
     points = origins[:, None] + tn[..., None] * dirs[:, None]  # (R, S - 1, 3)
@@ -143,7 +154,10 @@ def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: Ne
     idx = torch.nonzero(live).squeeze(1)
     if len(idx):
         d = deformer.deform(mesh.skinning, flat[idx], settings.k, settings.sigma, settings.max_dist)
-        keep = torch.nonzero(d.valid).squeeze(1)
+        valid = d.valid
+        if occupied is not None:
+            valid = valid & occupied(d.canonical)
+        keep = torch.nonzero(valid).squeeze(1)
         idx = idx[keep]
         if len(idx):
             x_c = d.canonical[keep]

@@ -1,0 +1,106 @@
+"""An occupancy grid over the NeRF's canonical box: skip samples where the exterior is empty.
+
+instant-NGP / nerfacc style. A coarse grid (``resolution`` cells along the box's longest
+side, near-cubic cells) keeps a decaying maximum of the NeRF density at its cells,
+
+    d_c <- max(decay · d_c, σ(centre_c + jitter)),      occupied_c = d_c > threshold,
+
+re-evaluated every ``update_every`` training steps once ``warmup`` steps have passed. The
+renderer then drops samples whose canonical point (after backward skinning, before F_e and
+the NeRF) lands in an empty cell: they cost neither the NeRF query nor F_e, and contribute
+σ = 0 exactly as if the NeRF had returned ~0 there. Points outside the box are kept (the
+grid says nothing about them). With F_e (stage 2) the occupied set is dilated by F_e's
+largest displacement, since the check happens before F_e moves the point.
+
+Non-differentiable; its buffers live in the model's state, so checkpoints resume exactly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Callable
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+@dataclasses.dataclass
+class OccupancySettings:
+    enabled: bool = False
+    resolution: int = 64
+    """Cells along the longest side of the NeRF's box."""
+    update_every: int = 16
+    """Training steps between re-evaluations of the density at the cells."""
+    threshold: float = 0.5
+    """Density σ (1/m) above which a cell is occupied (σΔ = 0.01 at Δ = 2 cm)."""
+    decay: float = 0.95
+    """Per update, the kept maximum decays by this factor before the new density is folded in."""
+    warmup: int = 100
+    """Steps of each stage before the first update; no sample is skipped before it."""
+
+
+class OccupancyGrid(nn.Module):
+    def __init__(self, bounds: torch.Tensor, settings: OccupancySettings, dilation: float = 0.0):
+        """``bounds`` (2, 3) box; ``dilation``: grow the occupied set by this much (m) around occupied cells."""
+        super().__init__()
+        self.threshold, self.decay = float(settings.threshold), float(settings.decay)
+        lo, hi = bounds[0].float(), bounds[1].float()
+        extent = hi - lo
+        self.shape = tuple(max(1, int(math.ceil(settings.resolution * float(e / extent.max())))) for e in extent)
+        self.register_buffer("lo", lo.clone())
+        self.register_buffer("hi", hi.clone())
+        cell = float((extent / torch.tensor(self.shape)).min())
+        self.dilation = int(math.ceil(dilation / cell - 1e-9)) if dilation > 0 else 0
+        self.register_buffer("density", torch.zeros(self.shape))
+        self.register_buffer("occupied", torch.ones(self.shape, dtype=torch.bool))
+        self.register_buffer("active", torch.tensor(False))
+
+    @property
+    def cell(self) -> torch.Tensor:
+        """(3,) cell size along x, y, z."""
+        return (self.hi - self.lo) / torch.tensor(self.shape, dtype=self.lo.dtype, device=self.lo.device)
+
+    def centres(self) -> torch.Tensor:
+        """(N, 3) cell centres, x-major (the flattening of ``density``)."""
+        axes = [torch.arange(n, dtype=self.lo.dtype, device=self.lo.device) + 0.5 for n in self.shape]
+        ijk = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        return self.lo + ijk * self.cell
+
+    def reset(self) -> None:
+        """Forget everything (a stage's start): every cell occupied, the grid not used until the next update."""
+        self.density.zero_()
+        self.occupied.fill_(True)
+        self.active.fill_(False)
+
+    @torch.no_grad()
+    def update(self, density_fn: Callable[[torch.Tensor], torch.Tensor], seed: int, chunk: int = 65536) -> None:
+        """Fold σ at jittered cell centres into the decaying maximum; the grid is used from now on.
+
+        The jitter comes from ``seed`` alone (the step), so a resumed run makes the same update.
+        """
+        gen = torch.Generator().manual_seed(int(seed))
+        x = self.centres()
+        x = x + ((torch.rand(x.shape, generator=gen) - 0.5).to(x) * self.cell)
+        new = torch.cat([density_fn(x[s : s + chunk]).float() for s in range(0, len(x), chunk)])
+        self.density.copy_(torch.maximum(self.density * self.decay, new.view(self.shape)))
+        occ = self.density > self.threshold
+        if self.dilation:
+            k = 2 * self.dilation + 1
+            occ = F.max_pool3d(occ[None, None].float(), k, stride=1, padding=self.dilation)[0, 0] > 0
+        self.occupied.copy_(occ)
+        self.active.fill_(True)
+
+    def contains(self, points: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: the point lies in an occupied cell, or outside the grid (never skipped)."""
+        shape = torch.tensor(self.shape, device=points.device)
+        fijk = torch.floor((points.detach() - self.lo) / self.cell)
+        inside = ((fijk >= 0) & (fijk < shape)).all(-1)
+        ijk = torch.where(inside[:, None], fijk, torch.zeros_like(fijk)).long()
+        occ = self.occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+        return occ | ~inside
+
+    def fraction(self) -> float:
+        """Share of the cells that are occupied."""
+        return float(self.occupied.sum()) / self.occupied.numel()

@@ -1,0 +1,111 @@
+"""The canonical occupancy grid: which cells it marks, and that skipping samples changes nothing they held."""
+
+import torch
+
+from delta.render.hybrid import RenderSettings, render_rays
+from delta.render.occupancy import OccupancyGrid, OccupancySettings
+from tests.render.test_hybrid import BG, sphere_avatar
+
+BOX = torch.tensor([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
+SLAB = 0.1  # a cell boundary of the 10-cell grid over BOX
+
+
+def slab_density(x: torch.Tensor, sigma: float = 40.0) -> torch.Tensor:
+    """σ where x > SLAB (aligned with cell boundaries), exactly 0 elsewhere."""
+    return torch.where(x[:, 0] > SLAB, torch.full_like(x[:, 0], sigma), torch.zeros_like(x[:, 0]))
+
+
+def grid(**kw) -> OccupancyGrid:
+    return OccupancyGrid(BOX, OccupancySettings(enabled=True, resolution=10, **kw))
+
+
+def test_known_density_marks_exactly_its_cells():
+    g = grid(threshold=1.0)
+    assert g.shape == (10, 10, 10) and not bool(g.active) and g.occupied.all()
+    g.update(slab_density, seed=3)
+    expected = torch.zeros(10, 10, 10, dtype=torch.bool)
+    expected[6:] = True  # cells [0.1, 0.2], ..., [0.4, 0.5] along x
+    assert bool(g.active) and torch.equal(g.occupied, expected)
+    assert g.fraction() == 0.4
+    pts = torch.tensor([[0.15, 0.0, 0.0], [0.05, 0.3, -0.2], [0.45, -0.45, 0.45], [2.0, 0.0, 0.0]])
+    assert g.contains(pts).tolist() == [True, False, True, True]  # outside the box: never skipped
+
+
+def test_occupancy_decays_before_a_cell_is_freed():
+    g = grid(threshold=1.0, decay=0.5)
+    g.update(lambda x: torch.full_like(x[:, 0], 10.0), seed=0)
+    occupied = []
+    for step in range(1, 5):  # the density has vanished: kept maxima 5, 2.5, 1.25, 0.625
+        g.update(lambda x: torch.zeros_like(x[:, 0]), seed=step)
+        occupied.append(g.fraction())
+    assert occupied == [1.0, 1.0, 1.0, 0.0]
+    assert torch.allclose(g.density, torch.full((10, 10, 10), 0.625))
+
+
+def test_dilation_grows_the_occupied_set_by_whole_cells():
+    g = OccupancyGrid(BOX, OccupancySettings(enabled=True, resolution=10, threshold=1.0), dilation=0.05)
+    g.update(slab_density, seed=1)
+    assert g.dilation == 1 and g.occupied[5:].all() and not g.occupied[:5].any()
+
+
+def test_reset_forgets_everything():
+    g = grid()
+    g.update(slab_density, seed=0)
+    g.reset()
+    assert not bool(g.active) and g.occupied.all() and (g.density == 0).all()
+
+
+def _nerf(a: torch.Tensor, b: torch.Tensor, calls: list):
+    def nerf(x):
+        calls.append(len(x))
+        sigma = a * slab_density(x, 1.0)
+        sigma = torch.where(x.norm(dim=-1) < 0.3 - 1e-3, torch.full_like(sigma, 1e6), sigma)
+        return torch.sigmoid(b * x), sigma
+
+    return nerf
+
+
+def _render(occupied, a, b, calls):
+    mesh = sphere_avatar()
+    o = torch.tensor([[x, 0.0, 2.0] for x in (-0.32, -0.1, 0.05, 0.15, 0.33, 0.36)])
+    d = torch.tensor([[0.0, 0.0, -1.0]] * len(o))
+    st = RenderSettings(samples=24, box_margin=0.3, max_dist=0.1, perturb=False)
+    return render_rays(mesh, o, d, o[:, :2] * 100, BG, st, _nerf(a, b, calls), occupied=occupied)
+
+
+def test_all_occupied_renders_exactly_as_without_a_grid():
+    a, b = torch.tensor(30.0), torch.tensor([1.0, 2.0, 3.0])
+    g = grid()
+    g.update(lambda x: torch.full_like(x[:, 0], 5.0), seed=0)
+    plain, culled = _render(None, a, b, []), _render(g.contains, a, b, [])
+    assert plain.samples_evaluated == culled.samples_evaluated > 0
+    assert torch.equal(plain.rgb, culled.rgb) and torch.equal(plain.nerf_mask, culled.nerf_mask)
+
+
+def test_skipping_empty_cells_keeps_colour_and_gradients():
+    a0, b0 = torch.tensor(30.0), torch.tensor([1.0, 2.0, 3.0])
+    g = grid(threshold=0.5)
+    g.update(lambda x: slab_density(x) + 1e6 * (x.norm(dim=-1) < 0.3).float(), seed=0)
+    out = {}
+    for name, occ in (("plain", None), ("culled", g.contains)):
+        a, b = a0.clone().requires_grad_(), b0.clone().requires_grad_()
+        r = _render(occ, a, b, [])
+        (r.rgb * torch.tensor([1.0, 2.0, 3.0])).sum().backward()
+        out[name] = (r, a.grad, b.grad)
+    (p, pa, pb), (c, ca, cb) = out["plain"], out["culled"]
+    assert 0 < c.samples_evaluated < p.samples_evaluated  # empty cells were skipped ...
+    assert 0 < float(p.nerf_mask.detach().max()) < 1
+    torch.testing.assert_close(c.rgb, p.rgb, atol=1e-6, rtol=0)  # ... and held nothing
+    torch.testing.assert_close(c.nerf_mask, p.nerf_mask, atol=1e-6, rtol=0)
+    assert pa.abs() > 0 and pb.abs().sum() > 0
+    torch.testing.assert_close(ca, pa, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(cb, pb, rtol=1e-5, atol=1e-7)
+
+
+def test_a_grid_that_is_wrong_changes_the_render():
+    """The check is real: a grid marking the dense slab empty removes its colour."""
+    a, b = torch.tensor(30.0), torch.tensor([1.0, 2.0, 3.0])
+    g = grid(threshold=0.5)
+    g.update(lambda x: 1e6 * (x.norm(dim=-1) < 0.3).float(), seed=0)  # sees the body only
+    plain, culled = _render(None, a, b, []), _render(g.contains, a, b, [])
+    assert float((plain.nerf_mask - culled.nerf_mask).abs().max()) > 0.1
