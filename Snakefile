@@ -19,6 +19,7 @@ include: "rules/preprocess.smk"
 include: "rules/fitting.smk"
 include: "rules/training.smk"
 include: "rules/eval.smk"
+include: "rules/tradeoff.smk"
 
 
 # cheap bookkeeping runs on the submitting machine, never as a cluster job
@@ -28,6 +29,7 @@ localrules:
     fetch_perceptual,
     plot_losses,
     aggregate_metrics,
+    tradeoff_table,
 
 
 rule all:

@@ -239,6 +239,40 @@ def cmd_plot_losses(args: argparse.Namespace) -> None:
     plot_losses(args.losses, args.out, args.title)
 
 
+def cmd_profile_step(args: argparse.Namespace) -> None:
+    from delta.io import save_json
+    from delta.training.profile import profile_steps
+    from delta.training.run import load_trained
+
+    _threads(args.threads)
+    tr = load_trained(args.model, args.record, args.body, args.device)
+    tr.model.train()
+    p = profile_steps(tr.model, tr.data, tr.settings, tr.stage, args.steps)
+    save_json(args.out, {"stage": tr.stage, "flops": p.flops, "seconds": p.seconds, "samples": p.samples,
+                         "rays": p.rays, "flop_per_s": p.flops_per_s, "samples_per_s": p.samples_per_s,
+                         "threads": args.threads, "preset": tr.preset, "settings": tr.settings.raw})  # fmt: skip
+    log.info("step: %.3g FLOP, %.3f s, %.0f samples -> %.3g FLOP/s", p.flops, p.seconds, p.samples, p.flops_per_s)
+
+
+def cmd_matmul_peak(args: argparse.Namespace) -> None:
+    from delta.io import save_json
+    from delta.training.profile import matmul_peak
+
+    _threads(args.threads)
+    peak = matmul_peak(args.size, device="cuda" if args.device == "cuda" else "cpu")
+    save_json(args.out, {"flop_per_s": peak, "size": args.size, "threads": args.threads, "device": args.device})
+    log.info("float32 matmul peak: %.3g FLOP/s on %d threads", peak, args.threads)
+
+
+def cmd_tradeoff(args: argparse.Namespace) -> None:
+    import json
+
+    from delta.eval.tradeoff import tradeoff
+
+    manifest = json.loads(Path(args.manifest).read_text()) if Path(args.manifest).is_file() else json.loads(args.manifest)
+    tradeoff(manifest, args.peak, args.reference, args.out, args.plot)
+
+
 def cmd_aggregate(args: argparse.Namespace) -> None:
     from delta.eval.aggregate import aggregate
 
@@ -398,6 +432,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.add_argument("--title", default="")
     p.set_defaults(func=cmd_plot_losses)
+
+    p = sub.add_parser("profile-step", help="FLOPs, time and samples of a training step of a trained model")
+    p.add_argument("--model", required=True)
+    p.add_argument("--record", required=True)
+    p.add_argument("--body", required=True)
+    p.add_argument("--out", required=True, help="profile.json")
+    p.add_argument("--steps", type=int, default=5)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, default=2)
+    p.set_defaults(func=cmd_profile_step)
+
+    p = sub.add_parser("matmul-peak", help="the machine's float32 matrix-multiply FLOP/s")
+    p.add_argument("--out", required=True)
+    p.add_argument("--size", type=int, default=1024)
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, default=2)
+    p.set_defaults(func=cmd_matmul_peak)
+
+    p = sub.add_parser("tradeoff", help="the trade-off table and plot: results/{dataset}/tradeoff.csv")
+    p.add_argument("--manifest", required=True, help="JSON (or a file of it): {subject: {variant: {files}}}")
+    p.add_argument("--peak", required=True, help="matmul-peak's JSON")
+    p.add_argument("--reference", default="reference", help="the variant the speed-ups are relative to")
+    p.add_argument("--out", required=True)
+    p.add_argument("--plot", required=True)
+    p.set_defaults(func=cmd_tradeoff)
 
     p = sub.add_parser("aggregate", help="one row per subject plus a mean row: results/{dataset}/metrics.csv")
     p.add_argument("--dataset", required=True)

@@ -42,7 +42,9 @@ def eval_args(wildcards, input):
     if EVAL["lpips_alex"]:
         args += " --lpips-alex " + " ".join(f"'{p}'" for p in EVAL["lpips_alex"])
     if "gt" in input.keys():
-        args += f" --gt-meshes {input.gt} --export-dir {Path(input.export).parent}"
+        args += f" --gt-meshes {input.gt}"
+    if "export" in input.keys():
+        args += f" --export-dir {Path(input.export).parent}"
     return args
 
 

@@ -36,7 +36,7 @@ def plot_losses(losses_csv: str | Path, out_png: str | Path, title: str = "") ->
         raise DeltaError(f"{losses_csv}: no 'step' column or no rows; not a losses.csv of 'delta train'")
     window = max(1, len(df) // 50)
     fig, (ax, bx) = plt.subplots(1, 2, figsize=(11, 4))
-    terms = [c for c in df.columns if c not in ("step", "psnr", "samples") and (df[c].abs() > 0).any()]
+    terms = [c for c in df.columns if c not in ("step", "psnr", "samples", "seconds") and (df[c].abs() > 0).any()]
     for c in terms:
         ax.plot(df["step"], smooth(df[c].to_numpy(), window), label=c, lw=2.0 if c == "loss" else 1.0)
     ax.set_yscale("log")

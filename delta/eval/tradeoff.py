@@ -1,0 +1,166 @@
+"""``results/{dataset}/tradeoff.csv`` and ``tradeoff.png``: what each preset and knob buys and costs.
+
+One row per (subject, variant): the knobs (preset, resolution, rays, samples, field backend,
+iterations, culling), wall time and peak memory of each stage (the rules' benchmark files),
+held-out scores (the variant's evaluation), throughput (NeRF samples/s and counted FLOP/s of
+a training step against the machine's measured matrix-multiply peak), whether the variant is
+on the Pareto front of (total training time, held-out PSNR) for its subject, and — against the
+reference variant (the paper's settings, no culling) — the speed-up to the same PSNR:
+
+    speedup = T_reference(P) / T_variant(P),  P = the reference's final training-ray PSNR,
+
+with T(P) the wall time at which a stage-1 run's smoothed training-ray PSNR first reaches P
+(from the ``seconds`` column of its losses.csv). Training-ray PSNR is the proxy because
+held-out PSNR is only measured at the end; the held-out PSNR of both is in the row.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from delta import DeltaError
+from delta.eval.aggregate import benchmark_row
+from delta.eval.plots import smooth
+from delta.io import atomic_path
+
+#: training-ray PSNR is noisy (one frame a step); this many steps are averaged
+PSNR_WINDOW = 25
+
+
+def time_to_psnr(losses: pd.DataFrame, target: float, window: int = PSNR_WINDOW) -> float:
+    """Seconds until the moving-average training-ray PSNR first reaches ``target`` (nan: never)."""
+    if losses.empty or "seconds" not in losses.columns:
+        return math.nan
+    psnr = smooth(losses["psnr"].to_numpy(), window)
+    idx = np.flatnonzero(psnr >= target)
+    return float(losses["seconds"].iloc[idx[0]]) if len(idx) else math.nan
+
+
+def final_psnr(losses: pd.DataFrame, window: int = PSNR_WINDOW) -> float:
+    return float(smooth(losses["psnr"].to_numpy(), window)[-1]) if not losses.empty else math.nan
+
+
+def pareto_front(cost: np.ndarray, gain: np.ndarray) -> np.ndarray:
+    """True where no other point is at least as cheap and as good, and strictly better in one."""
+    cost, gain = np.asarray(cost, float), np.asarray(gain, float)
+    ok = np.isfinite(cost) & np.isfinite(gain)
+    out = np.zeros(len(cost), bool)
+    for i in np.flatnonzero(ok):
+        dominated = ok & (cost <= cost[i]) & (gain >= gain[i]) & ((cost < cost[i]) | (gain > gain[i]))
+        out[i] = not dominated.any()
+    return out
+
+
+def knobs(settings: dict) -> dict:
+    """The knobs of a trained variant, from its profile.json (preset and merged settings)."""
+    raw = settings.get("settings", {})
+    render = raw.get("render", {})
+    return {"preset": settings.get("preset"), "resolution": raw.get("resolution"),
+            "rays": raw.get("stage1", {}).get("rays"), "samples": render.get("samples"),
+            "nerf_backend": raw.get("nerf", {}).get("encoding"),
+            "iterations": raw.get("stage1", {}).get("iterations"),
+            "max_dist": render.get("max_dist"),
+            "occupancy": bool(render.get("occupancy", {}).get("enabled", False))}  # fmt: skip
+
+
+def _read_json(path) -> dict:
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise DeltaError(f"{path}: cannot read ({e})") from None
+
+
+def variant_row(subject: str, variant: str, files: dict, peak: float) -> dict:
+    """``files``: summary, profile, losses1 [, losses2], bench1 [, bench2]."""
+    prof = _read_json(files["profile"])
+    row = {"subject": subject, "variant": variant} | knobs(prof)
+    total = 0.0
+    for stage in (1, 2):
+        if f"bench{stage}" in files:
+            b = benchmark_row(files[f"bench{stage}"])
+            row[f"stage{stage}_s"], row[f"stage{stage}_max_rss_mb"] = b["s"], b["max_rss_mb"]
+            total += b["s"]
+    row["train_s"] = total
+    row["stages"] = 2 if "bench2" in files else 1
+    scores = _read_json(files["summary"]).get("scores", {})
+    for split, passes in scores.items():
+        for name, vals in passes.items():
+            tag = "_refined" if name == "refined" else ""
+            for k in ("psnr", "ssim", "l1", "stlpips_alex", "nerf_iou", "body_err_mm"):
+                if k in vals:
+                    row[f"{split}_{k}{tag}"] = math.nan if vals[k] is None else vals[k]
+    row |= {"step_s": prof["seconds"], "samples_per_step": prof["samples"], "samples_per_s": prof["samples"] / prof["seconds"],
+            "flop_per_step": prof["flops"], "flop_per_s": prof["flops"] / prof["seconds"], "matmul_peak_flop_per_s": peak,
+            "peak_fraction": prof["flops"] / prof["seconds"] / peak}  # fmt: skip
+    losses = pd.read_csv(files["losses1"])
+    row["train_psnr_final"] = final_psnr(losses)
+    row["_losses1"] = files["losses1"]
+    return row
+
+
+def held_out_psnr(row: dict) -> float:
+    for key in ("test_view_psnr", "test_pose_psnr", "train_psnr"):
+        if key in row and not math.isnan(row[key]):
+            return row[key]
+    return math.nan
+
+
+def tradeoff(manifest: dict, peak_json: str | Path, reference: str, out_csv: str | Path, out_png: str | Path) -> pd.DataFrame:
+    """``manifest``: {subject: {variant: files}} (see :func:`variant_row`)."""
+    peak = float(_read_json(peak_json)["flop_per_s"])
+    rows = [variant_row(s, v, files, peak) for s, variants in manifest.items() for v, files in variants.items()]
+    df = pd.DataFrame(rows)
+    df["held_out_psnr"] = [held_out_psnr(r) for r in rows]
+    df["pareto"] = False
+    df["reference_psnr"] = math.nan
+    df["time_to_reference_psnr_s"] = math.nan
+    df["speedup_vs_reference"] = math.nan
+    for subject, g in df.groupby("subject"):
+        df.loc[g.index, "pareto"] = pareto_front(g["train_s"].to_numpy(), g["held_out_psnr"].to_numpy())
+        ref = g[g["variant"] == reference]
+        if ref.empty:
+            continue
+        target = float(ref["train_psnr_final"].iloc[0])
+        t_ref = time_to_psnr(pd.read_csv(ref["_losses1"].iloc[0]), target)
+        for i in g.index:
+            t = time_to_psnr(pd.read_csv(df.at[i, "_losses1"]), target)
+            df.loc[i, ["reference_psnr", "time_to_reference_psnr_s"]] = [target, t]
+            df.loc[i, "speedup_vs_reference"] = t_ref / t if t > 0 else math.nan
+    df = df.drop(columns="_losses1")
+    with atomic_path(out_csv) as tmp:
+        df.to_csv(tmp, index=False)
+    plot(df, out_png)
+    return df
+
+
+def plot(df: pd.DataFrame, out_png: str | Path) -> None:
+    """Held-out PSNR against training time per subject; the Pareto front joined by a line."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    subjects = sorted(df["subject"].unique())
+    fig, axes = plt.subplots(1, len(subjects), figsize=(5.5 * len(subjects), 4.2), squeeze=False)
+    for ax, subject in zip(axes[0], subjects):
+        g = df[df["subject"] == subject]
+        ax.scatter(g["train_s"] / 60, g["held_out_psnr"], c=np.where(g["pareto"], "C3", "C0"))
+        for _, r in g.iterrows():
+            ax.annotate(r["variant"], (r["train_s"] / 60, r["held_out_psnr"]), fontsize=7, xytext=(3, 3),
+                        textcoords="offset points")  # fmt: skip
+        front = g[g["pareto"]].sort_values("train_s")
+        ax.plot(front["train_s"] / 60, front["held_out_psnr"], color="C3", lw=1, label="Pareto front")
+        ax.set_xscale("log")
+        ax.set_xlabel("training time (min, both stages)")
+        ax.set_ylabel("held-out PSNR (dB)")
+        ax.set_title(subject)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(out_png) as tmp:
+        fig.savefig(tmp, dpi=90, format="png")
+    plt.close(fig)

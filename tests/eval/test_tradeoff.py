@@ -1,0 +1,83 @@
+"""The trade-off table: time to a PSNR, the Pareto front, speed-ups against the reference, throughput."""
+
+import json
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from delta.eval.tradeoff import pareto_front, time_to_psnr, tradeoff
+from delta.training.profile import matmul_peak, profile_steps
+
+
+def losses(seconds_per_step, psnr_per_step, steps=200):
+    s = np.arange(1, steps + 1)
+    return pd.DataFrame({"step": s, "psnr": 10 + psnr_per_step * s, "seconds": seconds_per_step * s})
+
+
+def test_time_to_psnr_reads_the_smoothed_curve():
+    df = losses(0.5, 0.1)  # PSNR 10 + 0.1 s; the 25-step average lags by 1.2 dB
+    t = time_to_psnr(df, 20.0)
+    first = int(np.argmax((df["psnr"].rolling(25, min_periods=1).mean() >= 20.0).to_numpy()))
+    assert t == pytest.approx(df["seconds"].iloc[first])
+    assert math.isnan(time_to_psnr(df, 99.0))
+
+
+def test_pareto_front():
+    cost = np.array([1.0, 2.0, 3.0, 2.0, np.nan])
+    gain = np.array([20.0, 25.0, 24.0, 22.0, 30.0])
+    # 3 is slower and worse than 2; 4 costs as much as 2 and is worse; nan is never on the front
+    assert pareto_front(cost, gain).tolist() == [True, True, False, False, False]
+
+
+def write_variant(root, name, sec_per_step, psnr_per_step, held_out, train_s, flops):
+    d = root / name
+    d.mkdir()
+    losses(sec_per_step, psnr_per_step).to_csv(d / "losses.csv", index=False)
+    (d / "bench.tsv").write_text(f"s\tmax_rss\n{train_s}\t900\n")
+    (d / "summary.json").write_text(json.dumps({"scores": {"test_view": {"unrefined": {"psnr": held_out, "ssim": 0.9}}}}))
+    (d / "profile.json").write_text(json.dumps({"flops": flops, "seconds": 0.5, "samples": 1000.0, "rays": 64,
+                                                "preset": "fast", "settings": {"resolution": 64, "render": {"samples": 8},
+                                                "nerf": {"encoding": "grid"}, "stage1": {"rays": 64}}}))  # fmt: skip
+    return {"summary": str(d / "summary.json"), "profile": str(d / "profile.json"), "losses1": str(d / "losses.csv"),
+            "bench1": str(d / "bench.tsv")}  # fmt: skip
+
+
+def test_speedup_against_the_reference(tmp_path):
+    # the reference climbs 0.05 dB/step at 2 s/step; "fast" 0.1 dB/step at 0.2 s/step
+    manifest = {"s": {"reference": write_variant(tmp_path, "ref", 2.0, 0.05, 21.0, 400.0, 1e9),
+                      "fast": write_variant(tmp_path, "fast", 0.2, 0.1, 23.0, 40.0, 1e8)}}  # fmt: skip
+    (tmp_path / "peak.json").write_text(json.dumps({"flop_per_s": 1e10}))
+    df = tradeoff(manifest, tmp_path / "peak.json", "reference", tmp_path / "t.csv", tmp_path / "t.png").set_index("variant")
+    target = df.loc["reference", "reference_psnr"]
+    ref = losses(2.0, 0.05)
+    t_ref, t_fast = time_to_psnr(ref, target), time_to_psnr(losses(0.2, 0.1), target)
+    assert df.loc["fast", "speedup_vs_reference"] == pytest.approx(t_ref / t_fast)
+    assert df.loc["fast", "speedup_vs_reference"] > 10
+    assert df.loc["reference", "speedup_vs_reference"] == pytest.approx(1.0)
+    assert df.loc["fast", "pareto"] and not df.loc["reference", "pareto"]  # slower and worse
+    assert df.loc["fast", "flop_per_s"] == pytest.approx(2e8) and df.loc["fast", "peak_fraction"] == pytest.approx(0.02)
+    assert df.loc["fast", "samples_per_s"] == pytest.approx(2000.0)
+    assert df.loc["fast", "nerf_backend"] == "grid" and df.loc["fast", "held_out_psnr"] == 23.0
+    assert (tmp_path / "t.png").stat().st_size > 1000 and (tmp_path / "t.csv").is_file()
+
+
+def test_matmul_peak_is_a_rate():
+    peak = matmul_peak(256, repeats=3)
+    assert 1e8 < peak < 1e14
+
+
+@pytest.mark.slow
+def test_profile_of_a_tiny_training_step(tiny_trained):
+    from delta.training.run import load_trained
+
+    t = tiny_trained["tight"]
+    tr = load_trained(t["model"], t["record"], t["body"])
+    before = {k: v.clone() for k, v in tr.model.state_dict().items()}
+    p = profile_steps(tr.model, tr.data, tr.settings, 1, steps=2)
+    # the NeRF and vertex-field MLPs alone: at least 2·(in·out) FLOPs per sample and layer, forward
+    assert p.flops > 2 * p.samples * 64 and p.seconds > 0 and p.samples > 0 and p.rays == 128
+    after = tr.model.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before)  # profiling never changes the model
