@@ -1,0 +1,79 @@
+"""Density grids and marching cubes (pure numpy / scikit-image, no model inside)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Callable
+
+import numpy as np
+from scipy.spatial import cKDTree
+from skimage import measure
+
+
+@dataclasses.dataclass
+class Grid:
+    """A regular grid of cubic cells over a box."""
+
+    origin: np.ndarray
+    """(3,) position of sample (0, 0, 0)."""
+    spacing: float
+    """Cell size (m)."""
+    shape: tuple[int, int, int]
+    """Samples along x, y, z."""
+
+    def points(self) -> np.ndarray:
+        """(N, 3) sample positions, x slowest, z fastest (the order of ``values.reshape(shape)``)."""
+        axes = [self.origin[i] + self.spacing * np.arange(self.shape[i]) for i in range(3)]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def make_grid(lo: np.ndarray, hi: np.ndarray, cells: int) -> Grid:
+    """Cubic cells, ``cells`` of them along the box's longest side."""
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    if not np.all(hi > lo):
+        raise ValueError(f"empty box {lo} .. {hi}")
+    h = float((hi - lo).max()) / cells
+    shape = tuple(int(np.ceil((hi[i] - lo[i]) / h)) + 1 for i in range(3))
+    return Grid(lo, h, shape)  # type: ignore[arg-type]
+
+
+def near_and_outside(points: np.ndarray, vertices: np.ndarray, normals: np.ndarray, max_dist: float) -> np.ndarray:
+    """(N,) bool: within ``max_dist`` of a body vertex and on the outer side of the nearest one.
+
+    The side test (x - v_nn) · n_nn > 0 is exact near the surface, which is where the
+    exterior lives; inside the body the NeRF is never rendered (rays stop at the mesh).
+    """
+    dist, idx = cKDTree(vertices).query(points, k=1, distance_upper_bound=max_dist, workers=1)
+    near = np.isfinite(dist)
+    out = np.zeros(len(points), dtype=bool)
+    i = idx[near]
+    out[near] = ((points[near] - vertices[i]) * normals[i]).sum(-1) > 0
+    return out
+
+
+def sample(grid: Grid, field: Callable[[np.ndarray], np.ndarray], mask: np.ndarray | None = None,
+           chunk: int = 65536) -> np.ndarray:  # fmt: skip
+    """Values of ``field`` (M, 3) -> (M,) on the grid, 0 where ``mask`` (N,) is False; shape ``grid.shape``."""
+    pts = grid.points()
+    values = np.zeros(len(pts), dtype=np.float32)
+    ids = np.arange(len(pts)) if mask is None else np.flatnonzero(mask)
+    for s in range(0, len(ids), chunk):
+        sel = ids[s : s + chunk]
+        values[sel] = field(pts[sel])
+    return values.reshape(grid.shape)
+
+
+def extract_surface(values: np.ndarray, grid: Grid, level: float) -> tuple[np.ndarray, np.ndarray]:
+    """Marching cubes of the ``level`` set, normals outward (towards lower values).
+
+    The volume is padded with zeros so that surfaces touching the box close. Returns
+    vertices (V, 3) float64 and faces (F, 3) int64, both empty when nothing reaches ``level``.
+    """
+    if not np.isfinite(values).all():
+        raise ValueError("density grid has non-finite values")
+    if values.size == 0 or values.max() <= level:
+        return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64)
+    padded = np.pad(values, 1, constant_values=min(0.0, float(values.min())))
+    verts, faces, _, _ = measure.marching_cubes(padded, level=level, spacing=(grid.spacing,) * 3)
+    # skimage orients faces so that normals point towards increasing values; flip them outwards
+    return verts + grid.origin - grid.spacing, faces[:, ::-1].astype(np.int64)

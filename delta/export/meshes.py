@@ -1,0 +1,161 @@
+"""The avatar's meshes: the body (canonical and posed, albedo as vertex colours) and the clothing/hair
+surface of the NeRF (marching cubes in the canonical space, cleaned with pymeshlab, posed by forward skinning).
+
+Canonical exports are in the subject's canonical space: the template with the subject's shape and
+offsets in the canonical pose (so that body and clothing line up). The NeRF itself lives in the
+mean-shape canonical space; its surface reaches the subject's canonical pose (or a frame's pose) by
+forward skinning, the inverse of the renderer's backward skinning. Stage 2's non-rigid F_e is
+conditioned on posed body points and is left out of the exported clothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from typing import Optional
+
+import numpy as np
+import pymeshlab
+import torch
+import trimesh
+
+from delta.body.lbs import LBSOutput, lbs
+from delta.deformers.knn import SkinningFrame
+from delta.export import marching
+from delta.export.settings import ExportSettings
+from delta.export.skinning import forward_skin, prepare_forward
+from delta.io import atomic_path
+from delta.models.avatar import HybridAvatar
+
+
+@dataclasses.dataclass
+class MeshPart:
+    """One exported mesh (V vertices, F faces)."""
+
+    vertices: np.ndarray
+    """(V, 3) float64 positions (m)."""
+    faces: np.ndarray
+    """(F, 3) int64 vertex indices, counter-clockwise seen from outside."""
+    colors: np.ndarray
+    """(V, 3) float RGB in [0, 1]."""
+
+    @property
+    def empty(self) -> bool:
+        return len(self.faces) == 0
+
+    def to_trimesh(self) -> trimesh.Trimesh:
+        rgba = np.concatenate([np.round(np.clip(self.colors, 0, 1) * 255), np.full((len(self.colors), 1), 255)], 1)
+        return trimesh.Trimesh(self.vertices, self.faces, vertex_colors=rgba.astype(np.uint8), process=False)
+
+
+def _np(t: torch.Tensor) -> np.ndarray:
+    return t.detach().cpu().double().numpy()
+
+
+@torch.no_grad()
+def canonical_pose(model: HybridAvatar, offsets: torch.Tensor) -> LBSOutput:
+    """The subject (shape and offsets) in the canonical pose, without translation."""
+    pose = model.body.canonical_pose[None].to(model.betas)
+    return lbs(model.body, model.betas[None], pose, offsets=offsets)
+
+
+@torch.no_grad()
+def body_mesh(model: HybridAvatar, frame: Optional[int] = None) -> tuple[MeshPart, LBSOutput]:
+    """The body with albedo colours in the canonical pose (``frame`` None) or posed as a frame."""
+    offsets = model.offsets()
+    out = canonical_pose(model, offsets) if frame is None else model.pose_body(frame, offsets)
+    part = MeshPart(_np(out.vertices[0]), model.body.faces.cpu().numpy().astype(np.int64), _np(model.albedo()))
+    return part, out
+
+
+def forward_frame(model: HybridAvatar, out: LBSOutput) -> SkinningFrame:
+    """Forward skinning from the NeRF's canonical space to a posed body, over the vertices the renderer uses."""
+    ids = model.knn_ids
+    template, cano_T = model.body.v_template[ids], model.canonical_T[ids]
+    # where backward skinning sends posed vertex i: G^c_i template_i (no canonical pose correctives)
+    canonical = (cano_T[..., :3] @ template[..., None]).squeeze(-1) + cano_T[..., 3]
+    disp = out.rest_vertices[0, ids] - template
+    return prepare_forward(canonical, cano_T, out.vertex_transforms_3x4[0, ids], disp, model.body.weights[ids])
+
+
+@torch.no_grad()
+def nerf_query(model: HybridAvatar, points: np.ndarray, chunk: int = 65536) -> tuple[np.ndarray, np.ndarray]:
+    """Colour (N, 3) and density (N,) of the NeRF at canonical points."""
+    dev = model.canonical_vertices.device
+    rgb, sigma = [], []
+    for s in range(0, len(points), chunk):
+        c, d = model.nerf(torch.from_numpy(points[s : s + chunk]).float().to(dev))
+        rgb.append(c.cpu().numpy())
+        sigma.append(d.cpu().numpy())
+    if not rgb:
+        return np.zeros((0, 3)), np.zeros(0)
+    return np.concatenate(rgb).astype(np.float64), np.concatenate(sigma).astype(np.float64)
+
+
+def clean(vertices: np.ndarray, faces: np.ndarray, settings: ExportSettings) -> tuple[np.ndarray, np.ndarray]:
+    """pymeshlab: drop small components, Taubin smoothing, quadric decimation to ``settings.decimate`` faces."""
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=vertices, face_matrix=faces.astype(np.int32)))
+    if settings.min_component_faces > 0:
+        ms.meshing_remove_connected_component_by_face_number(mincomponentsize=settings.min_component_faces)
+    if settings.smooth > 0 and ms.current_mesh().face_number() > 0:
+        ms.apply_coord_taubin_smoothing(stepsmoothnum=settings.smooth)
+    if 0 < settings.decimate < ms.current_mesh().face_number():
+        ms.meshing_decimation_quadric_edge_collapse(targetfacenum=settings.decimate, preservenormal=True,
+                                                    preservetopology=True, autoclean=True)  # fmt: skip
+    ms.meshing_remove_unreferenced_vertices()
+    m = ms.current_mesh()
+    return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64).reshape(-1, 3)
+
+
+def density_grid(model: HybridAvatar, settings: ExportSettings) -> tuple[np.ndarray, marching.Grid]:
+    """NeRF density on a grid over the canonical body's box plus ``max_dist``, 0 farther than ``max_dist``
+    from the body (the renderer never evaluates the NeRF there) and inside it (rays stop at the mesh)."""
+    cano = model.canonical_vertices.detach().cpu().numpy().astype(np.float64)
+    faces = model.body.faces.cpu().numpy()
+    normals = trimesh.Trimesh(cano, faces, process=False).vertex_normals
+    max_dist = float(model.spec.render.max_dist)
+    grid = marching.make_grid(cano.min(0) - max_dist, cano.max(0) + max_dist, settings.grid)
+    mask = marching.near_and_outside(grid.points(), cano, normals, max_dist)
+    values = marching.sample(grid, lambda p: nerf_query(model, p, settings.chunk)[1], mask, settings.chunk)
+    return values, grid
+
+
+def clothing_nerf_space(model: HybridAvatar, settings: ExportSettings) -> MeshPart:
+    """The clothing/hair surface {σ = threshold} in the NeRF's canonical space, cleaned, NeRF colours."""
+    if model.nerf is None:
+        raise ValueError("the avatar has no NeRF (no clothing or hair was modelled)")
+    values, grid = density_grid(model, settings)
+    verts, faces = marching.extract_surface(values, grid, settings.threshold)
+    if len(faces):
+        verts, faces = clean(verts, faces, settings)
+    colors = nerf_query(model, verts, settings.chunk)[0] if len(verts) else np.zeros((0, 3))
+    return MeshPart(verts, faces, colors)
+
+
+@torch.no_grad()
+def pose_clothing(model: HybridAvatar, part: MeshPart, out: LBSOutput) -> MeshPart:
+    """Forward-skin a NeRF-space surface onto a posed (or canonical-pose) body."""
+    if part.empty:
+        return part
+    frame = forward_frame(model, out)
+    rs = model.spec.render
+    x = torch.from_numpy(part.vertices).to(model.canonical_vertices)
+    posed = forward_skin(frame, x, rs.k, rs.sigma)
+    return MeshPart(_np(posed), part.faces, part.colors)
+
+
+def write_mesh(path: str | os.PathLike, part: MeshPart) -> None:
+    """PLY (binary, vertex colours) or OBJ, by the suffix, atomically."""
+    with atomic_path(path) as tmp:
+        part.to_trimesh().export(tmp)
+
+
+def write_glb(path: str | os.PathLike, parts: dict[str, MeshPart]) -> None:
+    """One GLB scene with a node per non-empty part."""
+    scene = trimesh.Scene()
+    for name, part in parts.items():
+        if not part.empty:
+            scene.add_geometry(part.to_trimesh(), node_name=name, geom_name=name)
+    with atomic_path(path) as tmp:
+        scene.export(tmp, file_type="glb")

@@ -1,0 +1,169 @@
+"""Entry point of ``delta export``: meshes, GLB, videos, side-by-side images and ``export.json`` of a trained avatar."""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from delta import DeltaError
+from delta.export import lineup
+from delta.export.meshes import MeshPart, body_mesh, clothing_nerf_space, pose_clothing, write_glb, write_mesh
+from delta.export.settings import ExportSettings
+from delta.export.video import psnr, render_frames, side_by_side, turntable, write_video
+from delta.geometry.raymesh import ray_mesh_hits
+from delta.io import atomic_path, save_json
+from delta.models.avatar import HybridAvatar
+from delta.training.run import Trained, load_trained
+from delta.training.trainer import render_image
+
+log = logging.getLogger(__name__)
+#: Rendered masks are thresholded here (soft silhouette, NeRF opacity).
+MASK_LEVEL = 0.5
+
+
+def report_frames(split: np.ndarray, count: int) -> list[int]:
+    """Up to ``count`` evenly spaced test frames (split 1 or 2), or training frames when there are none."""
+    pool = np.flatnonzero(split != 0)
+    pool = pool if len(pool) else np.arange(len(split))
+    if count <= 0:
+        return []
+    return sorted({int(pool[i]) for i in np.linspace(0, len(pool) - 1, min(count, len(pool))).round().astype(int)})
+
+
+def novel_pose_frames(split: np.ndarray) -> list[int]:
+    """The test-pose frames (split 2), or every frame when the capture has none."""
+    pose = np.flatnonzero(split == 2)
+    return [int(i) for i in (pose if len(pose) else np.arange(len(split)))]
+
+
+def silhouette(model: HybridAvatar, frame: int, parts: list[MeshPart]) -> np.ndarray:
+    """Coverage (n, n) of meshes posed as ``frame`` through its camera."""
+    n = model.resolution
+    cam = model.camera(frame)
+    mask = np.zeros((n, n), dtype=bool)
+    for part in parts:
+        if part.empty:
+            continue
+        with torch.no_grad():
+            uv, depth = cam.project(torch.from_numpy(part.vertices).to(model.canonical_vertices))
+        depth = depth if model.pinhole else torch.ones_like(depth)  # orthographic: nothing is behind the camera
+        mask |= lineup.rasterize(uv.cpu().double().numpy(), depth.cpu().double().numpy(), part.faces, n, n)
+    return mask
+
+
+@torch.no_grad()
+def rendered_hits(model: HybridAvatar, frame: int) -> np.ndarray:
+    """(n, n) bool: the pixels whose rays hit the posed body mesh (the renderer's own ray casting)."""
+    n = model.resolution
+    jj, ii = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="xy")
+    pixels = torch.stack([jj.reshape(-1) + 0.5, ii.reshape(-1) + 0.5], -1).to(model.canonical_vertices)
+    mesh = model.posed_mesh(frame)[0]
+    origins, dirs = model.camera(frame).rays(pixels)
+    return ray_mesh_hits(mesh.vertices, mesh.faces, origins, dirs).hit.reshape(n, n).cpu().numpy()
+
+
+def check_frame(model: HybridAvatar, frame: int, clothing: MeshPart | None, img: dict) -> dict:
+    """IoU of the projected exported posed meshes with the rendered masks of one frame.
+
+    ``iou_body``: body mesh vs the rendered body (ray hits); ``iou_body_soft``: vs the soft training
+    silhouette at 0.5; ``iou_avatar``: body + clothing meshes vs rendered body ∪ NeRF opacity > 0.5.
+    """
+    body, out = body_mesh(model, frame)
+    body_sil = silhouette(model, frame, [body])
+    hits = rendered_hits(model, frame)
+    row = {"frame": frame, "iou_body": round(lineup.iou(body_sil, hits), 4),
+           "iou_body_soft": round(lineup.iou(body_sil, img["silhouette"].numpy() > MASK_LEVEL), 4)}  # fmt: skip
+    if clothing is not None:
+        posed = pose_clothing(model, clothing, out)
+        avatar_sil = body_sil | silhouette(model, frame, [posed])
+        row["iou_avatar"] = round(lineup.iou(avatar_sil, hits | (img["nerf_mask"].numpy() > MASK_LEVEL)), 4)
+    return row
+
+
+def _load(model_path, record, body_path, device):
+    for what, p in (("model", model_path), ("record", record), ("body model", body_path)):
+        if not Path(p).is_file():
+            raise DeltaError(f"{p}: no such {what} file")
+    return load_trained(model_path, record, body_path, device)
+
+
+def export_avatar(model_path: str | Path, record: str | Path, body_path: str | Path, out_dir: str | Path,
+                  settings: ExportSettings, device: str = "cpu") -> dict:  # fmt: skip
+    """Write every export of a trained avatar into ``out_dir``; returns the summary (also ``export.json``)."""
+    t_start = time.perf_counter()
+    tr = _load(model_path, record, body_path, device)
+    summary = export_trained(tr, out_dir, settings, {"model": str(model_path), "record": str(record)})
+    log.info("export (%.1f s, loading included) written to %s", time.perf_counter() - t_start, out_dir)
+    return summary
+
+
+def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, about: dict | None = None) -> dict:
+    """The exports of a loaded avatar (``about`` is copied into the summary)."""
+    t_start = time.perf_counter()
+    model, data, out = tr.model, tr.data, Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    frames = report_frames(data.split, max(settings.sidebyside, 1))
+    posed_frame = frames[0]
+    times: dict[str, float] = {}
+
+    t = time.perf_counter()
+    body_c, cano_out = body_mesh(model)
+    body_p, posed_out = body_mesh(model, posed_frame)
+    write_mesh(out / "body_canonical.ply", body_c)
+    write_mesh(out / "body_posed.ply", body_p)
+    parts = {"body": body_c}
+    summary: dict = {**(about or {}), "stage": tr.stage, "preset": tr.preset,
+                     "settings": vars(settings).copy(), "posed_frame": posed_frame,
+                     "body": {"vertices": len(body_c.vertices), "faces": len(body_c.faces),
+                              "watertight": bool(body_c.to_trimesh().is_watertight)}}  # fmt: skip
+    times["body"] = time.perf_counter() - t
+
+    clothing = None
+    if model.nerf is not None:
+        t = time.perf_counter()
+        clothing = clothing_nerf_space(model, settings)
+        parts["clothing"] = pose_clothing(model, clothing, cano_out)
+        write_mesh(out / "clothing_canonical.ply", parts["clothing"])
+        write_mesh(out / "clothing_posed.ply", pose_clothing(model, clothing, posed_out))
+        tm = parts["clothing"].to_trimesh()
+        summary["clothing"] = {"vertices": len(clothing.vertices), "faces": len(clothing.faces),
+                               "components": len(tm.split(only_watertight=False)) if len(tm.faces) else 0}  # fmt: skip
+        if clothing.empty:
+            log.warning("the NeRF's density never reaches %.3g: the clothing mesh is empty", settings.threshold)
+        times["clothing"] = time.perf_counter() - t
+    write_glb(out / "avatar.glb", parts)
+
+    t = time.perf_counter()
+    rows = []
+    for f in frames:
+        img = render_image(model, f)
+        with atomic_path(out / "sidebyside" / f"frame_{int(data.frame_ids[f]):05d}.png") as tmp:
+            cv2.imwrite(str(tmp), side_by_side(data.images[f], img["rgb"]))
+        rows.append({**check_frame(model, f, clothing, img), "psnr": round(psnr(data.images[f], img["rgb"]), 2),
+                     "split": int(data.split[f])})  # fmt: skip
+    summary["frames"] = rows
+    summary["lineup"] = {k: round(float(np.mean([r[k] for r in rows])), 4) for k in ("iou_body", "iou_body_soft", "iou_avatar")
+                         if rows and k in rows[0]}  # fmt: skip
+    times["sidebyside_and_lineup"] = time.perf_counter() - t
+
+    t = time.perf_counter()
+    turn_frame = int(data.train[0])
+    summary["turntable"] = {"frame": turn_frame, "frames": write_video(
+        out / "turntable.mp4", turntable(model, turn_frame, settings.turntable_frames), settings.fps)}
+    times["turntable"] = time.perf_counter() - t
+    t = time.perf_counter()
+    novel = novel_pose_frames(data.split)
+    summary["novel_pose"] = {"frames": write_video(out / "novel_pose.mp4", render_frames(model, novel), settings.fps),
+                             "test_pose_frames": bool((data.split == 2).any())}  # fmt: skip
+    times["novel_pose"] = time.perf_counter() - t
+    times["total"] = time.perf_counter() - t_start
+    summary["seconds"] = {k: round(v, 2) for k, v in times.items()}
+    summary["resolution"] = model.resolution
+    save_json(out / "export.json", summary)
+    log.info("line-up IoU %s, times %s", summary["lineup"], summary["seconds"])
+    return summary

@@ -1,0 +1,116 @@
+"""Videos and images of the avatar: a turntable, the novel (test) poses, reference | render | error."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+from typing import Iterable, Iterator
+
+import cv2
+import numpy as np
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
+
+from delta.io import atomic_path
+from delta.models.avatar import HybridAvatar
+from delta.training.trainer import render_image
+
+#: Absolute error (mean over RGB) shown at the top of the heat map's colour scale.
+ERROR_SCALE = 0.25
+
+
+def rotation_y(angle: float, like: torch.Tensor) -> torch.Tensor:
+    """(3, 3) rotation by ``angle`` radians about the world's vertical (y) axis."""
+    c, s = math.cos(angle), math.sin(angle)
+    return torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=like.dtype, device=like.device)
+
+
+def turned_params(root_pose: torch.Tensor, transl: torch.Tensor, root_joint: torch.Tensor, centre: torch.Tensor,
+                  angle: float) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """Root axis-angle (3,) and translation (3,) that turn the posed body by ``angle`` about the vertical axis
+    through ``centre``.
+
+    The root's rest -> posed map is x -> R0 (x - J0) + J0 + t; the turned body is R_y (that - c) + c,
+    so R0' = R_y R0 and t' = R_y (J0 + t - c) + c - J0 (J0: the shaped rest root joint).
+    """
+    Ry = rotation_y(angle, root_pose)
+    R0 = axis_angle_to_rotation_matrix(root_pose[None])[0]
+    new_root = rotation_matrix_to_axis_angle((Ry @ R0)[None])[0]
+    return new_root, Ry @ (root_joint + transl - centre) + centre - root_joint
+
+
+@contextlib.contextmanager
+def frame_params(model: HybridAvatar, frame: int, root_pose: torch.Tensor, transl: torch.Tensor) -> Iterator[None]:
+    """Temporarily give ``frame`` another root rotation and translation (restored on exit)."""
+    old_pose, old_t = model.poses.data[frame, 0].clone(), model.transl.data[frame].clone()
+    try:
+        model.poses.data[frame, 0] = root_pose
+        model.transl.data[frame] = transl
+        yield
+    finally:
+        model.poses.data[frame, 0] = old_pose
+        model.transl.data[frame] = old_t
+
+
+def to_bgr(rgb: torch.Tensor | np.ndarray) -> np.ndarray:
+    """(H, W, 3) float RGB in [0, 1] -> uint8 BGR."""
+    a = rgb.detach().cpu().numpy() if isinstance(rgb, torch.Tensor) else np.asarray(rgb)
+    return cv2.cvtColor((np.clip(a, 0, 1) * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR)
+
+
+def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: int) -> int:
+    """Write uint8 BGR frames (H, W, 3) as an mp4 (MPEG-4 part 2), atomically; returns the frame count."""
+    count, writer = 0, None
+    with atomic_path(path) as tmp:
+        try:
+            for img in frames:
+                if writer is None:
+                    h, w = img.shape[:2]
+                    writer = cv2.VideoWriter(str(tmp), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
+                    if not writer.isOpened():
+                        raise RuntimeError(f"{path}: OpenCV cannot write mp4v video")
+                writer.write(img)
+                count += 1
+        finally:
+            if writer is not None:
+                writer.release()
+        if count == 0:
+            raise ValueError(f"{path}: no frames to write")
+    return count
+
+
+@torch.no_grad()
+def turntable(model: HybridAvatar, frame: int, count: int) -> Iterator[np.ndarray]:
+    """``count`` renders of ``frame`` turned through one full revolution about its vertical axis."""
+    out = model.pose_body(frame)
+    verts = out.vertices[0]
+    centre = 0.5 * (verts.amin(0) + verts.amax(0))
+    root = int((model.body.parents == -1).nonzero()[0])
+    root_joint = out.rest_joints[0, root]
+    pose, transl = model.poses[frame, root], model.transl[frame]
+    for k in range(count):
+        new_pose, new_t = turned_params(pose, transl, root_joint, centre, 2 * math.pi * k / count)
+        with frame_params(model, frame, new_pose, new_t):
+            yield to_bgr(render_image(model, frame)["rgb"])
+
+
+def render_frames(model: HybridAvatar, frames: Iterable[int]) -> Iterator[np.ndarray]:
+    for f in frames:
+        yield to_bgr(render_image(model, int(f))["rgb"])
+
+
+def error_map(reference: torch.Tensor, render: torch.Tensor) -> np.ndarray:
+    """(H, W, 3) uint8 BGR heat map of the mean absolute RGB error, ``ERROR_SCALE`` at the top."""
+    err = (reference - render).abs().mean(-1).cpu().numpy() / ERROR_SCALE
+    return cv2.applyColorMap((np.clip(err, 0, 1) * 255).round().astype(np.uint8), cv2.COLORMAP_INFERNO)
+
+
+def side_by_side(reference: torch.Tensor, render: torch.Tensor) -> np.ndarray:
+    """[reference | render | error] as one uint8 BGR image."""
+    return np.concatenate([to_bgr(reference), to_bgr(render), error_map(reference, render)], axis=1)
+
+
+def psnr(reference: torch.Tensor, render: torch.Tensor) -> float:
+    mse = float(((reference - render) ** 2).mean())
+    return float("inf") if mse == 0 else -10 * math.log10(mse)
