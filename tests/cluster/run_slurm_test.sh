@@ -15,7 +15,8 @@ set -euo pipefail
 REPO=$(cd "$(dirname "$0")/../.." && pwd)
 SCRATCH=${1:-/tmp/delta-slurm-test}
 CLUSTER=$SCRATCH/cluster
-export SLURM_CONF=$CLUSTER/slurm.conf
+# the default path: the jobstep plugin drops SLURM_* variables (SLURM_CONF too) before its srun
+export SLURM_CONF=/etc/slurm/slurm.conf
 SRC=$SCRATCH/src  # a snapshot of the code: the runs must not see edits made while they go
 export PYTHONPATH=$SRC${PYTHONPATH:+:$PYTHONPATH}
 STARTED_MUNGED=0
@@ -35,6 +36,10 @@ write_config() {
   host=$(hostname -s)
   cpus=$(nproc)
   mem=$(($(awk '/MemTotal/ {print $2}' /proc/meminfo) / 1024 - 1024))  # MB, leaving 1 GB to the system
+  if [ -e "$SLURM_CONF" ] && ! grep -q '^ClusterName=delta-test' "$SLURM_CONF"; then
+    mv "$SLURM_CONF" "$CLUSTER/slurm.conf.orig"  # put back on exit
+  fi
+  mkdir -p "$(dirname "$SLURM_CONF")"
   cat >"$SLURM_CONF" <<EOF
 ClusterName=delta-test
 SlurmctldHost=$host(127.0.0.1)
@@ -108,13 +113,16 @@ stop_cluster() {
   stop_pid "$CLUSTER/slurmd.pid"
   stop_pid "$CLUSTER/slurmctld.pid"
   [ "$STARTED_MUNGED" = 1 ] && stop_pid /run/munge/delta-test.pid
+  rm -f "$SLURM_CONF"
+  [ -e "$CLUSTER/slurm.conf.orig" ] && mv "$CLUSTER/slurm.conf.orig" "$SLURM_CONF"
   echo "slurm daemons stopped; logs in $CLUSTER/log"
 }
 
 snapshot() {
   rm -rf "$SRC" && mkdir -p "$SRC"
   if [ -n "${DELTA_TEST_REV:-}" ]; then
-    git -C "$REPO" archive "$DELTA_TEST_REV" Snakefile rules workflow config .test delta tests/cluster | tar -x -C "$SRC"
+    git -C "$REPO" archive "$DELTA_TEST_REV" Snakefile rules workflow config .test delta | tar -x -C "$SRC"
+    (cd "$REPO" && cp -r --parents tests/cluster "$SRC")  # the harness itself from the working tree
   else
     (cd "$REPO" && cp -r Snakefile rules workflow config .test delta --parents tests/cluster "$SRC")
   fi
