@@ -15,31 +15,68 @@ from delta.body.lbs import lbs
 from delta.body.model import load_body_model
 from delta.cameras.models import OrthographicCamera
 from delta.data.record import FrameRecord
-from delta.fitting.fit import FitConfig, fit
+from delta import DeltaError
+from delta.fitting.fit import FitConfig, FitStart, fit
 from delta.io import atomic_path, save_npz
 
 log = logging.getLogger(__name__)
 _KNEES = ("lowerleg01.L", "lowerleg01.R", "left_knee", "right_knee")
+BODY_PARAMS = "body_params"
+"""Optional record group: a dataset's per-frame body parameters (betas (S,), poses (N, J, 3), transl (N, 3))
+with attr ``model``, the body model they belong to ("anny", "smplx", "smpl", ...)."""
 
 
-def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, overlays: int = 4) -> dict:
+def dataset_start(rec: FrameRecord, model) -> FitStart | None:
+    """The record's body parameters when they are for ``model`` (same base name and joint count), else None."""
+    if BODY_PARAMS not in rec.h5:
+        return None
+    group = rec.h5[BODY_PARAMS]
+    owner = str(group.attrs.get("model", ""))
+    if owner != model.name.split("_sub")[0]:
+        log.info("%s: body parameters are for '%s', not '%s': fitting from scratch", rec.path, owner, model.name)
+        return None
+    for key in ("betas", "poses", "transl"):
+        if key not in group:
+            raise DeltaError(f"{rec.path}: '{BODY_PARAMS}/{key}' missing (the group has {sorted(group)})")
+    betas, poses, transl = (torch.from_numpy(group[k][:]).double() for k in ("betas", "poses", "transl"))
+    n = len(rec)
+    if poses.shape != (n, model.num_joints, 3) or transl.shape != (n, 3):
+        raise DeltaError(f"{rec.path}: '{BODY_PARAMS}' poses {tuple(poses.shape)} / transl {tuple(transl.shape)}, "
+                         f"expected ({n}, {model.num_joints}, 3) / ({n}, 3) for '{model.name}'")  # fmt: skip
+    if betas.shape[0] < model.num_shape:  # fewer coefficients than the model: the rest are 0
+        betas = torch.cat([betas, betas.new_zeros(model.num_shape - betas.shape[0])])
+    return FitStart(betas[: model.num_shape], poses, transl)
+
+
+def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, overlays: int = 4,
+        cfg: FitConfig = FitConfig()) -> dict:  # fmt: skip
     """Fit and write ``params.npz``, ``report.csv`` (per-frame residuals and flags) and overlay PNGs."""
     out = Path(out_dir)
     model = load_body_model(body_path, dtype=torch.float64)
     kp_map = openpose18_map(model)
     with FrameRecord(record_path) as rec:
         detected = torch.from_numpy(rec.h5["keypoints"][:])
-        camera = rec.camera(0) if rec.h5.attrs["camera_model"] == "pinhole" else OrthographicCamera(
-            torch.tensor(1.0, dtype=torch.float64), torch.zeros(2, dtype=torch.float64), rec.size, rec.size)
+        start = dataset_start(rec, model)
+        if rec.h5.attrs["camera_model"] == "pinhole":
+            camera = rec.camera(0)
+        elif start is not None:  # the dataset's cameras go with its parameters
+            camera = rec.camera()
+        else:
+            camera = OrthographicCamera(torch.tensor(1.0, dtype=torch.float64), torch.zeros(2, dtype=torch.float64),
+                                        rec.size, rec.size)  # fmt: skip
         frame_ids = rec.h5["frame_ids"][:]
         knees = [model.joint_names.index(n) for n in _KNEES if n in model.joint_names]
-        res = fit(model, kp_map, detected, camera, FitConfig(), knees=knees)
+        masks = rec.h5["person"][:]
+        res = fit(model, kp_map, detected, camera, cfg, knees=knees, masks=masks, start=start)
         cam = {"camera_model": np.array(rec.h5.attrs["camera_model"])}
         if isinstance(res.camera, OrthographicCamera):
             cam.update(ortho_scale=res.camera.scale.numpy(), ortho_trans=res.camera.trans.numpy())
         save_npz(out / "params.npz", betas=res.betas.numpy(), poses=res.pose.numpy(), transl=res.transl.numpy(),
-                 flagged=res.flagged.numpy(), frame_ids=frame_ids, joint_names=np.array(model.joint_names), **cam)  # fmt: skip
+                 flagged=res.flagged.numpy(), few_keypoints=res.few_keypoints.numpy(),
+                 empty_mask=res.empty_mask.numpy(), started_from=np.array("dataset" if start else "mean_pose"),
+                 frame_ids=frame_ids, joint_names=np.array(model.joint_names), **cam)  # fmt: skip
         report = pd.DataFrame({"frame": frame_ids, "flagged": res.flagged.numpy(),
+                               "few_keypoints": res.few_keypoints.numpy(), "empty_mask": res.empty_mask.numpy(),
                                "residual_px": res.residual_px.numpy(),
                                "confident_keypoints": (detected[..., 2] >= 0.3).sum(-1).numpy()})  # fmt: skip
         with atomic_path(out / "report.csv") as tmp:
@@ -48,6 +85,7 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
         for k in picks:
             _overlay(rec, k, model, res, out / f"overlay_{int(frame_ids[k]):05d}.png")
     summary = {"frames": int(len(frame_ids)), "flagged": int(res.flagged.sum()),
+               "started_from": "dataset" if start else "mean_pose",
                "residual_px_mean": float(np.nanmean(res.residual_px.numpy()))}  # fmt: skip
     log.info("init fit: %s", summary)
     return summary

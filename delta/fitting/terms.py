@@ -57,3 +57,12 @@ def smoothness(x: torch.Tensor) -> torch.Tensor:
     if x.shape[0] < 2:
         return x.new_zeros(())
     return (x[1:] - x[:-1]).square().flatten(1).sum(-1).sum()
+
+
+def joint_limit_prior(pose: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """Σ over joints and axes of the squared excess beyond [lo, hi]: (F, J, 3), (J, 3), (J, 3) -> (F,).
+
+    Zero inside the range, so limits never pull a plausible pose towards the rest pose.
+    """
+    excess = (lo - pose).clamp_min(0) + (pose - hi).clamp_min(0)
+    return excess.square().flatten(1).sum(-1)

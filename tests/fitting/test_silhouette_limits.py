@@ -1,0 +1,88 @@
+"""The fit's silhouette pieces and joint limits against hand-computed values."""
+
+import numpy as np
+import torch
+
+from delta.body.upsample import upsample_body_model
+from delta.fitting import silhouette as sil
+from delta.fitting import terms
+from delta.fitting.limits import joint_limits
+from tests.conftest import tree_model
+
+
+def test_joint_limit_prior_hand_computed():
+    lo, hi = torch.tensor([[-1.0, 0.0, 0.0]]), torch.tensor([[1.0, 2.0, 0.0]])
+    pose = torch.tensor([[[0.5, 1.0, 0.0]], [[-1.5, 3.0, 0.25]]])
+    # frame 0 inside the box; frame 1: 0.5 below, 1.0 above, 0.25 above
+    torch.testing.assert_close(terms.joint_limit_prior(pose, lo, hi), torch.tensor([0.0, 0.25 + 1.0 + 0.0625]))
+
+
+def test_base_faces_come_back_from_an_upsampled_model():
+    base = tree_model()
+    fine = upsample_body_model(base, 1)
+    vids, faces = sil.base_mesh(fine)
+    assert vids.tolist() == sorted(set(base.faces.flatten().tolist()))
+    assert sorted(map(tuple, np.sort(faces, 1).tolist())) == sorted(map(tuple, np.sort(base.faces.numpy(), 1).tolist()))
+    coarse = sil.coarse_mesh(fine, cell=0.0)  # no clustering: the base mesh, reindexed
+    torch.testing.assert_close(fine.v_template[coarse.vertex_ids][coarse.faces], fine.v_template[torch.from_numpy(faces)])
+
+
+def test_coarse_mesh_clusters_vertices_of_the_model(body):
+    model, _ = body
+    coarse = sil.coarse_mesh(model, cell=0.05)
+    base_ids, base_faces = sil.base_mesh(model)
+    assert 100 < len(coarse.vertex_ids) < len(base_ids) and np.isin(coarse.vertex_ids.numpy(), base_ids).all()
+    assert coarse.faces.min() >= 0 and coarse.faces.max() < len(coarse.vertex_ids)
+    # every base vertex lies within a cell diagonal of a kept vertex
+    kept = model.v_template[coarse.vertex_ids].double()
+    d = torch.cdist(model.v_template[torch.from_numpy(base_ids)].double(), kept).amin(1)
+    assert d.max() < 0.05 * 3**0.5 * 2
+
+
+def test_frames_silhouette_hard_squares_per_frame():
+    # frame 0: a square over the left half of a 40 x 40 image; frame 1: the right half (at 8 x 8)
+    square = lambda u0: torch.tensor([[u0, 0.0], [u0 + 20, 0.0], [u0 + 20, 40.0], [u0, 40.0]], dtype=torch.float64)  # noqa: E731
+    uv = torch.stack([square(0.0), square(20.0)])
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    out = sil.frames_silhouette(uv, faces, 8, (40, 40), sigma=1e-4)
+    expect = torch.zeros(2, 8, 8, dtype=torch.float64)
+    expect[0, :, :4], expect[1, :, 4:] = 1.0, 1.0
+    torch.testing.assert_close(out, expect, atol=1e-6, rtol=0)
+    # term and IoU: frame 0's mask is the full image -> half uncovered; frame 1's mask is exact
+    masks = torch.stack([torch.ones(8, 8), expect[1]]).double()
+    torch.testing.assert_close(sil.silhouette_term(out, masks, fill_weight=0.5), torch.tensor([0.25, 0.0], dtype=torch.float64), atol=1e-6, rtol=0)
+    torch.testing.assert_close(sil.soft_iou(out, masks), torch.tensor([0.5, 1.0], dtype=torch.float64), atol=1e-6, rtol=0)
+
+
+def test_downsample_masks_area_average():
+    m = np.zeros((1, 4, 4), np.uint8)
+    m[0, :2, :2] = 255
+    torch.testing.assert_close(sil.downsample_masks(m, 2), torch.tensor([[[1.0, 0.0], [0.0, 0.0]]], dtype=torch.float64))
+
+
+def test_limits_cover_hinges_spine_and_neck_with_the_right_bend_sign(body):
+    from delta.fitting.fit import KeypointModel
+
+    model, kp_map = body
+    lo, hi = joint_limits(model)
+    names = model.joint_names
+    for name in ("lowerleg01.L", "lowerarm01.L", "lowerarm01.R", "spine03", "neck01"):
+        assert (hi[names.index(name)] - lo[names.index(name)]).max() < 6.0, name
+    # an elbow turned about y: inside its range the wrist stays in front; beyond it (hyperextension) it swings back
+    kpm, betas = KeypointModel(model, kp_map), torch.zeros(model.num_shape, dtype=torch.float64)
+    pose = torch.zeros(3, model.num_joints, 3, dtype=torch.float64)
+    for side, wrist in (("L", 7), ("R", 4)):
+        j = names.index(f"lowerarm01.{side}")
+        inward = -1.0 if side == "L" else 1.0
+        pose[1, j, 1], pose[2, j, 1] = inward, -inward
+        kp = kpm(betas, pose, torch.zeros(3, 3, dtype=torch.float64))
+        assert kp[1, wrist, 2] >= kp[0, wrist, 2] and kp[2, wrist, 2] < kp[0, wrist, 2] - 0.1, side
+        prior = terms.joint_limit_prior(pose, lo, hi)
+        assert prior[1] == 0 and prior[2] > 0.9, side
+        pose.zero_()
+    # a knee bent inside its range brings the ankle backwards (-z)
+    j = names.index("lowerleg01.L")
+    pose[1, j, 0] = 1.0
+    kp = kpm(betas, pose, torch.zeros(3, 3, dtype=torch.float64))
+    assert kp[1, 13, 2] < kp[0, 13, 2] - 0.1
+    assert terms.joint_limit_prior(pose, lo, hi)[1] == 0 and terms.joint_limit_prior(-pose, lo, hi)[1] > 0.9
