@@ -89,7 +89,12 @@ def _load(model_path, record, body_path, device):
     for what, p in (("model", model_path), ("record", record), ("body model", body_path)):
         if not Path(p).is_file():
             raise DeltaError(f"{p}: no such {what} file")
-    return load_trained(model_path, record, body_path, device)
+    tr = load_trained(model_path, record, body_path, device)
+    frames, expected = len(tr.data.frame_ids), int(tr.model.poses.shape[0])
+    if frames != expected:
+        raise DeltaError(f"{model_path}: trained on {expected} frames but {record} has {frames}; "
+                         "not the record this model was trained on")  # fmt: skip
+    return tr
 
 
 def export_avatar(model_path: str | Path, record: str | Path, body_path: str | Path, out_dir: str | Path,
@@ -128,8 +133,10 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
         t = time.perf_counter()
         clothing = clothing_nerf_space(model, settings)
         parts["clothing"] = pose_clothing(model, clothing, cano_out)
-        write_mesh(out / "clothing_canonical.ply", parts["clothing"])
-        write_mesh(out / "clothing_posed.ply", pose_clothing(model, clothing, posed_out))
+        if not clothing.empty:  # (an empty mesh makes no PLY)
+            write_mesh(out / "clothing_nerf_space.ply", clothing)  # the NeRF's own space (evaluation poses it)
+            write_mesh(out / "clothing_canonical.ply", parts["clothing"])
+            write_mesh(out / "clothing_posed.ply", pose_clothing(model, clothing, posed_out))
         tm = parts["clothing"].to_trimesh()
         summary["clothing"] = {"vertices": len(clothing.vertices), "faces": len(clothing.faces),
                                "components": len(tm.split(only_watertight=False)) if len(tm.faces) else 0}  # fmt: skip
@@ -140,10 +147,12 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
 
     t = time.perf_counter()
     rows = []
-    for f in frames:
+    (out / "sidebyside").mkdir(exist_ok=True)
+    for k, f in enumerate(frames):
         img = render_image(model, f)
-        with atomic_path(out / "sidebyside" / f"frame_{int(data.frame_ids[f]):05d}.png") as tmp:
-            cv2.imwrite(str(tmp), side_by_side(data.images[f], img["rgb"]))
+        if k < settings.sidebyside:  # (the line-up check uses at least one frame)
+            with atomic_path(out / "sidebyside" / f"frame_{int(data.frame_ids[f]):05d}.png") as tmp:
+                cv2.imwrite(str(tmp), side_by_side(data.images[f], img["rgb"]))
         rows.append({**check_frame(model, f, clothing, img), "psnr": round(psnr(data.images[f], img["rgb"]), 2),
                      "split": int(data.split[f])})  # fmt: skip
     summary["frames"] = rows

@@ -1,0 +1,198 @@
+"""The export of a tiny trained avatar: files load back, line up with the renders, videos play; bad inputs."""
+
+import json
+
+import cv2
+import numpy as np
+import pymeshlab
+import pytest
+import torch
+import trimesh
+from scipy.spatial import cKDTree
+from torch import nn
+
+from delta import DeltaError
+from delta.cli import main
+from delta.export import lineup
+from delta.export.meshes import MeshPart, body_mesh, pose_clothing
+from delta.export.run import export_trained, novel_pose_frames, rendered_hits, report_frames, silhouette
+from delta.training.run import load_trained
+from delta.training.trainer import render_image
+from tests.export.conftest import SETTINGS
+
+pytestmark = pytest.mark.slow
+SHELL = 0.06
+"""Thickness (m) of the analytic clothing: everything within this distance of the canonical body."""
+RAMP = 0.02
+
+
+class ShellNeRF(nn.Module):
+    """An analytic exterior, red: density 4000/m within ``SHELL`` of the canonical template vertices, falling
+    linearly to 0 over ``RAMP`` around that distance (a step would put the marching-cubes level anywhere in a cell)."""
+
+    def __init__(self, canonical: torch.Tensor):
+        super().__init__()
+        self.tree = cKDTree(canonical.detach().cpu().numpy())
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        d, _ = self.tree.query(x.detach().cpu().numpy(), k=1)
+        sigma = torch.from_numpy(4000.0 * np.clip((SHELL - d) / RAMP + 0.5, 0, 1)).to(x)
+        return x.new_tensor([1.0, 0.0, 0.0]).expand(len(x), 3), sigma
+
+
+@pytest.fixture(scope="module")
+def shell_avatar(tiny_model):
+    """The tiny trained avatar with the analytic shell as its NeRF, 24 samples per ray (a thin shell)."""
+    tr = load_trained(tiny_model["model"], tiny_model["record"], tiny_model["body"])
+    cano_T, template = tr.model.canonical_T, tr.model.body.v_template
+    tr.model.nerf = ShellNeRF((cano_T[..., :3] @ template[..., None]).squeeze(-1) + cano_T[..., 3])
+    tr.model.deformation = None
+    tr.model.spec.render.samples = 24
+    return tr
+
+
+@pytest.fixture(scope="module")
+def shell_export(shell_avatar, tmp_path_factory):
+    out = tmp_path_factory.mktemp("export")
+    return out, export_trained(shell_avatar, out, SETTINGS, {"model": "tiny"})
+
+
+def test_exported_meshes_load_back_and_the_body_is_watertight(shell_export, shell_avatar):
+    out, summary = shell_export
+    model = shell_avatar.model
+    for name in ("body_canonical", "body_posed", "clothing_canonical", "clothing_posed", "clothing_nerf_space"):
+        tm = trimesh.load(out / f"{name}.ply", process=False)
+        ms = pymeshlab.MeshSet()
+        ms.load_new_mesh(str(out / f"{name}.ply"))
+        assert ms.current_mesh().face_number() == len(tm.faces) > 0, name
+        assert ms.current_mesh().has_vertex_color(), name
+    body = trimesh.load(out / "body_posed.ply", process=False)
+    assert body.is_watertight and summary["body"]["watertight"]
+    expected, _ = body_mesh(model, summary["posed_frame"])
+    np.testing.assert_allclose(body.vertices, expected.vertices, atol=1e-5)
+    np.testing.assert_array_equal(body.faces, model.body.faces.numpy())
+    albedo = model.albedo().detach().numpy()
+    np.testing.assert_allclose(body.visual.vertex_colors[:, :3] / 255, albedo, atol=0.5 / 255 + 1e-6)
+    # the analytic shell's colour, its thickness around the canonical body
+    cloth = trimesh.load(out / "clothing_canonical.ply", process=False)
+    assert (cloth.visual.vertex_colors[:, :3] == [255, 0, 0]).all()
+    canonical_body = trimesh.load(out / "body_canonical.ply", process=False)
+    d, _ = cKDTree(canonical_body.vertices).query(cloth.vertices)
+    assert abs(np.median(d) - SHELL) < 0.3 * SHELL, np.median(d)
+    assert len(cloth.faces) <= SETTINGS.decimate
+
+
+def test_glb_holds_body_and_clothing(shell_export):
+    out, summary = shell_export
+    scene = trimesh.load(out / "avatar.glb")
+    assert isinstance(scene, trimesh.Scene)
+    assert set(scene.geometry) == {"body", "clothing"}
+    assert len(scene.geometry["body"].faces) == summary["body"]["faces"]
+    assert len(scene.geometry["clothing"].faces) == summary["clothing"]["faces"]
+
+
+def test_videos_and_images_have_the_right_frames_and_size(shell_export, shell_avatar):
+    out, summary = shell_export
+    n, split = shell_avatar.model.resolution, shell_avatar.data.split
+    for name, count in (("turntable", SETTINGS.turntable_frames), ("novel_pose", len(novel_pose_frames(split)))):
+        cap = cv2.VideoCapture(str(out / f"{name}.mp4"))
+        frames = []
+        ok, img = cap.read()
+        while ok:
+            frames.append(img)
+            ok, img = cap.read()
+        cap.release()
+        assert len(frames) == count == summary[name]["frames"], name
+        assert frames[0].shape == (n, n, 3)
+    # the turntable turns: the first and the middle frames differ, the avatar stays in view (red clothing)
+    pngs = sorted((out / "sidebyside").glob("*.png"))
+    assert len(pngs) == len(report_frames(split, SETTINGS.sidebyside)) == len(summary["frames"])
+    img = cv2.imread(str(pngs[0]))
+    assert img.shape == (n, 3 * n, 3)
+    assert summary["turntable"]["frames"] == SETTINGS.turntable_frames
+    json.loads((out / "export.json").read_text())
+
+
+def test_exported_meshes_line_up_with_the_renders(shell_export, shell_avatar):
+    out, summary = shell_export
+    assert summary["lineup"]["iou_body"] > 0.99  # the same mesh, rasterised vs ray-cast
+    assert summary["lineup"]["iou_avatar"] > 0.9, summary["frames"]
+    # the files themselves, projected, against the rendered masks; and the clothing matters
+    model, frame = shell_avatar.model, summary["posed_frame"]
+    img = render_image(model, frame)
+    rendered = rendered_hits(model, frame) | (img["nerf_mask"].numpy() > 0.5)
+    body, cloth = (_part(out / f"{name}_posed.ply") for name in ("body", "clothing"))
+    both = silhouette(model, frame, [body, cloth])
+    assert lineup.iou(both, rendered) == pytest.approx(summary["frames"][0]["iou_avatar"], abs=2e-4)
+    assert lineup.iou(silhouette(model, frame, [body]), rendered) < lineup.iou(both, rendered) - 0.1
+
+
+def _part(path) -> MeshPart:
+    tm = trimesh.load(path, process=False)
+    return MeshPart(np.asarray(tm.vertices, dtype=np.float64), np.asarray(tm.faces), np.zeros((len(tm.vertices), 3)))
+
+
+def test_turntable_turns_and_leaves_the_model_unchanged(shell_avatar):
+    from delta.export.video import turntable
+
+    model = shell_avatar.model
+    before = (model.poses.detach().clone(), model.transl.detach().clone())
+    frames = list(turntable(model, 0, 2))
+    assert torch.equal(model.poses, before[0]) and torch.equal(model.transl, before[1])
+    still = cv2.cvtColor((render_image(model, 0)["rgb"].numpy() * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR)
+    assert np.abs(frames[0].astype(int) - still.astype(int)).max() <= 1  # angle 0: the frame itself
+    # half a turn seen by the orthographic camera: the silhouette mirrors about the body's centre column
+    assert not model.pinhole
+    verts = model.pose_body(0).vertices[0].detach()
+    u_c = float(model.camera(0).project((0.5 * (verts.amin(0) + verts.amax(0)))[None])[0][0, 0].detach())
+    n = model.resolution
+    front, back = (still < 250).any(-1), (frames[1] < 250).any(-1)
+    src = np.round(2 * u_c - np.arange(n) - 1).astype(int)  # the column j mirrors: u = j + 0.5 -> 2 u_c - u
+    inside = (src >= 0) & (src < n)
+    mirrored = np.zeros_like(front)
+    mirrored[:, inside] = front[:, src[inside]]
+    assert lineup.iou(mirrored, back) > 0.85 and lineup.iou(front, back) < lineup.iou(mirrored, back) - 0.05
+
+
+def test_posed_clothing_follows_the_body(shell_export, shell_avatar):
+    out, _ = shell_export
+    model = shell_avatar.model
+    cloth = _part(out / "clothing_nerf_space.ply")
+    for frame in (0, len(shell_avatar.data.split) - 1):
+        body, lbs_out = body_mesh(model, frame)
+        d, _ = cKDTree(body.vertices).query(pose_clothing(model, cloth, lbs_out).vertices)
+        assert abs(np.median(d) - SHELL) < 0.3 * SHELL
+
+
+def test_frame_choice():
+    split = np.array([0, 0, 1, 0, 2, 2, 1])
+    assert report_frames(split, 2) == [2, 6] and report_frames(split, 10) == [2, 4, 5, 6]
+    assert report_frames(np.zeros(3, int), 2) == [0, 2]
+    assert novel_pose_frames(split) == [4, 5] and novel_pose_frames(np.zeros(3, int)) == [0, 1, 2]
+
+
+# ------------------------------------------------------------------ the CLI
+def test_cli_exports_a_model_file(tiny_model, tmp_path, capsys):
+    out = tmp_path / "x"
+    args = ["export", "--model", tiny_model["model"], "--record", tiny_model["record"], "--body", tiny_model["body"],
+            "--out", str(out), "--grid", "24", "--turntable-frames", "2", "--sidebyside", "0"]  # fmt: skip
+    assert main(args) == 0
+    summary = json.loads((out / "export.json").read_text())
+    assert summary["model"] == tiny_model["model"] and summary["turntable"]["frames"] == 2
+    assert not list((out / "sidebyside").iterdir()) and len(summary["frames"]) == 1  # line-up on one frame
+    for name in ("body_canonical.ply", "body_posed.ply", "avatar.glb", "turntable.mp4", "novel_pose.mp4"):
+        assert (out / name).stat().st_size > 0, name
+    assert summary["lineup"]["iou_body"] > 0.99
+
+
+def test_bad_inputs_give_clear_errors(tiny_model, tmp_path, capsys):
+    base = ["export", "--record", tiny_model["record"], "--body", tiny_model["body"], "--out", str(tmp_path / "y")]
+    assert main(base + ["--model", str(tmp_path / "missing.pt")]) == 2
+    assert "missing.pt: no such model file" in capsys.readouterr().err
+    other = ["export", "--model", tiny_model["model"], "--record", tiny_model["other_record"],
+             "--body", tiny_model["body"], "--out", str(tmp_path / "z")]  # fmt: skip
+    assert main(other) == 2
+    assert "not the record this model was trained on" in capsys.readouterr().err
+    assert main(base + ["--model", tiny_model["model"], "--grid", "2"]) == 2
+    assert "export.grid" in capsys.readouterr().err
+    assert not (tmp_path / "y").exists() and not (tmp_path / "z").exists()
