@@ -20,6 +20,8 @@ from delta.deformers import knn as deformer
 from delta.fields.networks import DeformationField, FieldSpec, NeRFField, VertexField
 from delta.losses import mesh_edges
 from delta.render.hybrid import PosedMesh, RayRender, RenderSettings, render_rays
+from delta.render.occupancy import OccupancyGrid
+from delta.training.scope import lower_body_vertices
 
 
 @dataclasses.dataclass
@@ -38,6 +40,10 @@ class AvatarSpec:
     """The NeRF's box: the canonical template's box plus this margin (m)."""
     deformation_scale: float = 0.05
     render: RenderSettings = dataclasses.field(default_factory=RenderSettings)
+    capture: str = "full"
+    """``full`` or ``upper``: the lower body is left out of backward skinning and the NeRF's box."""
+    frozen_joints: tuple[int, ...] = ()
+    """Joints whose pose is not optimised (their gradient is zeroed)."""
 
 
 @dataclasses.dataclass
@@ -86,18 +92,32 @@ class HybridAvatar(nn.Module):
             self.ortho_trans = nn.Parameter(init.camera.trans.float().clone())
         template = body.v_template.float()
         self.register_buffer("edges", mesh_edges(body.faces))
-        self.register_buffer("knn_ids", knn_vertex_ids(body, spec.render.knn_vertices), persistent=False)
+        if spec.capture not in ("full", "upper"):
+            raise ValueError(f"capture: '{spec.capture}' (expected 'full' or 'upper')")
+        modelled = torch.ones(body.num_vertices, dtype=torch.bool, device=template.device)
+        if spec.capture == "upper":
+            modelled = ~lower_body_vertices(body)
+        ids = knn_vertex_ids(body, spec.render.knn_vertices).to(template.device)
+        self.register_buffer("knn_ids", ids[modelled[ids]], persistent=False)
+        pose_mask = torch.ones(body.num_joints, device=template.device)
+        pose_mask[list(spec.frozen_joints)] = 0.0
+        self.register_buffer("pose_mask", pose_mask, persistent=False)
         cano = lbs(body, torch.zeros(1, 1), body.canonical_pose[None].float())
         self.register_buffer("canonical_T", cano.vertex_transforms_3x4[0].clone())
         self.register_buffer("canonical_vertices", cano.vertices[0].clone())
         tbox = _box(template, 0.05)
         self.offset_field = VertexField(spec.offsets, tbox, "offset", spec.offset_scale)
         self.albedo_field = VertexField(spec.albedo, tbox, "albedo", init=skin_color)
-        nbox = _box(self.canonical_vertices, spec.nerf_margin)
+        nbox = _box(self.canonical_vertices[modelled], spec.nerf_margin)
         self.nerf = NeRFField(spec.nerf, nbox) if spec.nerf is not None else None
         self.deformation = None
         if spec.deformation is not None:
             self.deformation = DeformationField(spec.deformation, nbox, spec.deformation_scale)
+        occ = spec.render.occupancy
+        self.occupancy = None
+        if self.nerf is not None and occ.enabled:
+            dilation = spec.deformation_scale if self.deformation is not None else 0.0
+            self.occupancy = OccupancyGrid(nbox, occ, dilation)
 
     # ------------------------------------------------------------ parts
     def camera(self, frame: int):
@@ -141,8 +161,19 @@ class HybridAvatar(nn.Module):
         if mesh is None:
             mesh = self.posed_mesh(frame)[0]
         origins, dirs = self.camera(frame).rays(pixels)
+        occ = self.occupancy
+        occupied = occ.contains if occ is not None and bool(occ.active) else None
         return render_rays(mesh, origins, dirs, pixels, self.background, self.spec.render, self.nerf,
-                           self.deformation, generator)  # fmt: skip
+                           self.deformation, generator, occupied)  # fmt: skip
+
+    def update_occupancy(self, seed: int) -> None:
+        """Re-evaluate the occupancy grid's densities (a training step calls this every few steps)."""
+        self.occupancy.update(self.nerf.density, seed)
+
+    def mask_frozen_pose_gradient(self) -> None:
+        """Zero the pose gradient of frozen joints: Adam then never moves them (exactly)."""
+        if self.poses.grad is not None and self.spec.frozen_joints:
+            self.poses.grad.mul_(self.pose_mask[None, :, None])
 
     def per_frame_parameters(self) -> list[torch.Tensor]:
         """Parameters with one slice per frame (pose, translation, orthographic camera)."""

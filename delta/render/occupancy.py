@@ -3,14 +3,16 @@
 instant-NGP / nerfacc style. A coarse grid (``resolution`` cells along the box's longest
 side, near-cubic cells) keeps a decaying maximum of the NeRF density at its cells,
 
-    d_c <- max(decay · d_c, σ(centre_c + jitter)),      occupied_c = d_c > threshold,
+    d_c <- max(decay · d_c, σ(centre_c + jitter)),      occupied_c = d_c > min(threshold, mean_c d_c),
 
 re-evaluated every ``update_every`` training steps once ``warmup`` steps have passed. The
 renderer then drops samples whose canonical point (after backward skinning, before F_e and
 the NeRF) lands in an empty cell: they cost neither the NeRF query nor F_e, and contribute
 σ = 0 exactly as if the NeRF had returned ~0 there. Points outside the box are kept (the
 grid says nothing about them). With F_e (stage 2) the occupied set is dilated by F_e's
-largest displacement, since the check happens before F_e moves the point.
+largest displacement, since the check happens before F_e moves the point. The mean in the
+threshold (instant-NGP's) keeps a still nearly uniform field (early training) from being
+emptied all at once: the denser part of the cells stays.
 
 Non-differentiable; its buffers live in the model's state, so checkpoints resume exactly.
 """
@@ -34,7 +36,7 @@ class OccupancySettings:
     update_every: int = 16
     """Training steps between re-evaluations of the density at the cells."""
     threshold: float = 0.5
-    """Density σ (1/m) above which a cell is occupied (σΔ = 0.01 at Δ = 2 cm)."""
+    """Density σ (1/m) above which a cell is occupied (σΔ = 0.01 at Δ = 2 cm), or the mean over cells if lower."""
     decay: float = 0.95
     """Per update, the kept maximum decays by this factor before the new density is folded in."""
     warmup: int = 100
@@ -85,7 +87,7 @@ class OccupancyGrid(nn.Module):
         x = x + ((torch.rand(x.shape, generator=gen) - 0.5).to(x) * self.cell)
         new = torch.cat([density_fn(x[s : s + chunk]).float() for s in range(0, len(x), chunk)])
         self.density.copy_(torch.maximum(self.density * self.decay, new.view(self.shape)))
-        occ = self.density > self.threshold
+        occ = self.density > min(self.threshold, float(self.density.mean()))
         if self.dilation:
             k = 2 * self.dilation + 1
             occ = F.max_pool3d(occ[None, None].float(), k, stride=1, padding=self.dilation)[0, 0] > 0

@@ -15,6 +15,7 @@ from delta.fields.networks import FieldSpec
 from delta.losses import LossWeights
 from delta.models.avatar import AvatarSpec
 from delta.render.hybrid import RenderSettings
+from delta.render.occupancy import OccupancySettings
 
 _GRID_NERF = {"encoding": "grid", "levels": 5, "features": 2, "base_res": 12, "max_res": 96, "depth": 2, "width": 64}
 _GRID_OFFSETS = {"encoding": "grid", "levels": 3, "features": 2, "base_res": 8, "max_res": 32, "depth": 1, "width": 32}
@@ -28,7 +29,8 @@ PRESETS: dict[str, dict] = {
         "offsets": _GRID_OFFSETS,
         "albedo": _GRID_ALBEDO,
         "deformation": _PE_DEFORM,
-        "render": {"samples": 16, "sil_sigma": 0.5, "max_dist": 0.1},
+        "render": {"samples": 16, "sil_sigma": 0.5, "max_dist": 0.1, "occupancy": {"enabled": True}},
+        "freeze_rest": 1e-6,
         "stage1": {"iterations": 800, "rays": 4096},
         "stage2": {"iterations": 300, "rays": 2048, "patch": 32},
     },
@@ -61,6 +63,7 @@ _STAGE_DEFAULTS = {
 _COMMON = {
     "seed": 0, "background": [1.0, 1.0, 1.0], "box_margin": 0.1, "offset_scale": 0.04, "nerf_margin": 0.3,
     "semantic": "idmrf", "exterior": "auto", "weights": {}, "render": {}, "stage1": {}, "stage2": {},
+    "capture": "auto", "freeze": [], "freeze_rest": -1.0,
 }  # fmt: skip
 
 
@@ -89,6 +92,12 @@ class TrainSettings:
     """``auto`` (a NeRF only when the capture shows clothing or hair), ``yes``, ``no``."""
     semantic: str
     """Stage-2 semantic loss: ``idmrf`` (body), ``perceptual`` (head) or ``none``."""
+    capture: str
+    """``auto`` (``upper`` when the lower body is never in view), ``full`` or ``upper`` (no legs modelled)."""
+    freeze: list
+    """Joint groups (``fingers``, ``toes``, ``eyes``, ``jaw``) or joint names whose pose is not optimised."""
+    freeze_rest: float
+    """Also freeze joints the init leaves at rest: |pose| ≤ this (rad) in every training frame (< 0: off)."""
     avatar: AvatarSpec
     """Stage-1 architecture (no F_e)."""
     deformation: FieldSpec
@@ -123,7 +132,9 @@ def resolve(preset: str, *overrides: dict) -> TrainSettings:
         d = deep_merge(d, o or {})
     stages = {s: deep_merge(_STAGE_DEFAULTS, d[s]) for s in ("stage1", "stage2")}
     try:
-        render = RenderSettings(**d["render"])
+        render = dict(d["render"])
+        occupancy = OccupancySettings(**render.pop("occupancy", {}))
+        render = RenderSettings(**render, occupancy=occupancy)
         weights = LossWeights(**d["weights"])
         stage = {s: StageSettings(**v) for s, v in stages.items()}
     except TypeError as err:
@@ -131,5 +142,8 @@ def resolve(preset: str, *overrides: dict) -> TrainSettings:
     avatar = AvatarSpec(nerf=_fields(d, "nerf"), offsets=_fields(d, "offsets"), albedo=_fields(d, "albedo"),
                         deformation=None, offset_scale=d["offset_scale"], nerf_margin=d["nerf_margin"],
                         render=render)  # fmt: skip
+    if d["capture"] not in ("auto", "full", "upper"):
+        raise DeltaError(f"training.capture: '{d['capture']}' (expected auto, full or upper)")
     return TrainSettings(preset, d["resolution"], d["seed"], d["background"], d["box_margin"], d["exterior"],
-                         d["semantic"], avatar, _fields(d, "deformation"), weights, stage["stage1"], stage["stage2"], d)  # fmt: skip
+                         d["semantic"], d["capture"], list(d["freeze"]), float(d["freeze_rest"]), avatar,
+                         _fields(d, "deformation"), weights, stage["stage1"], stage["stage2"], d)  # fmt: skip

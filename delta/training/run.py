@@ -21,8 +21,10 @@ from delta.body.model import load_body_model
 from delta.cameras.models import OrthographicCamera
 from delta.io import atomic_path, save_json
 from delta.models.avatar import HybridAvatar, InitParams
+from delta.render.occupancy import OccupancySettings
 from delta.training.data import FrameData, load_frames
 from delta.training.presets import TrainSettings, resolve
+from delta.training.scope import detect_capture, frozen_joints
 from delta.training.trainer import train_stage
 
 log = logging.getLogger(__name__)
@@ -65,8 +67,25 @@ def wants_exterior(st: TrainSettings, data: FrameData) -> bool:
     return frac >= MIN_EXTERIOR_FRACTION
 
 
-def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, stage: int, device) -> HybridAvatar:
-    spec = st.avatar
+def resolve_scope(body, st: TrainSettings, init: InitParams, data: FrameData) -> dict:
+    """What this capture needs modelled: ``capture`` (full/upper) and ``frozen_joints`` (logged)."""
+    capture = st.capture
+    if capture == "auto":
+        capture = detect_capture(body, init.betas, init.poses, init.transl, init.camera, data.train, data.resolution)
+    frozen = frozen_joints(body, st.freeze, st.freeze_rest, init.poses[data.train])
+    if frozen:
+        names = [body.joint_names[j] for j in frozen]
+        log.info("frozen joints (%d): %s", len(frozen), ", ".join(names[:12]) + (" ..." if len(names) > 12 else ""))
+    if capture == "upper":
+        log.info("capture 'upper': the lower body is not modelled (no skinning samples or NeRF box there)")
+    return {"capture": capture, "frozen_joints": frozen}
+
+
+def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, stage: int, device,
+                 scope: dict | None = None) -> HybridAvatar:  # fmt: skip
+    """The avatar of a stage; ``scope`` (capture, frozen_joints) as resolved earlier, else resolved here."""
+    scope = scope or resolve_scope(body, st, init, data)
+    spec = dataclasses.replace(st.avatar, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]))
     if not wants_exterior(st, data):
         spec = dataclasses.replace(spec, nerf=None)
     if stage == 2 and spec.nerf is not None:
@@ -97,7 +116,7 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
     else:
         prev = torch.load(start, map_location=dev, weights_only=False)
         init = load_init_from_state(prev["model"], data)
-        model = build_avatar(body, st, init, data, 2, dev)
+        model = build_avatar(body, st, init, data, 2, dev, _scope(prev))
         missing, unexpected = model.load_state_dict(prev["model"], strict=False)
         if unexpected or any(not k.startswith("deformation.") for k in missing):
             raise DeltaError(f"{start}: does not match this preset's stage-2 model "
@@ -110,7 +129,8 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
     res = train_stage(stage, model, data, st, out, sem)
     final = {"model": model.state_dict(), "stage": stage, "preset": preset, "settings": st.raw,
              "nerf": model.nerf is not None, "deformation": model.deformation is not None,
-             "pinhole": model.pinhole, "steps": res.steps}  # fmt: skip
+             "pinhole": model.pinhole, "steps": res.steps, "capture": model.spec.capture,
+             "frozen_joints": list(model.spec.frozen_joints)}  # fmt: skip
     with atomic_path(out / "model.pt") as tmp:
         torch.save(final, tmp)
     last = res.losses.tail(max(1, len(res.losses) // 20)).mean(numeric_only=True)
@@ -118,6 +138,13 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
                "train_psnr_last5pct": round(float(last.get("psnr", float("nan"))), 2)}  # fmt: skip
     log.info("stage %d done: %s", stage, json.dumps(summary))
     return summary
+
+
+def _scope(state: dict) -> dict | None:
+    """The capture and frozen joints a model.pt was trained with (None: written before they existed)."""
+    if "capture" not in state:
+        return None
+    return {"capture": state["capture"], "frozen_joints": state.get("frozen_joints", [])}
 
 
 def load_init_from_state(state: dict, data: FrameData) -> InitParams:
@@ -150,6 +177,10 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
     st = resolve(state["preset"], state["settings"])
     data = load_frames(record, st.resolution, st.background, st.box_margin)
     spec = st.avatar if state.get("nerf", True) else dataclasses.replace(st.avatar, nerf=None)
+    scope = _scope(state) or {"capture": "full", "frozen_joints": []}
+    spec = dataclasses.replace(spec, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]))
+    if not any(k.startswith("occupancy.") for k in state["model"]):  # trained before the occupancy grid
+        spec = dataclasses.replace(spec, render=dataclasses.replace(spec.render, occupancy=OccupancySettings()))
     if state.get("deformation"):
         spec = dataclasses.replace(spec, deformation=st.deformation)
     bg = torch.tensor(st.background, dtype=torch.float32)

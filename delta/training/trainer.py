@@ -92,16 +92,20 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
         generator.set_state(state["generator"])
         start, rows = state["step"], state["rows"]
         log.info("stage %d: resuming from %s at step %d", stage, ckpt, start)
+    elif model.occupancy is not None:
+        model.occupancy.reset()  # a stage starts with every cell occupied (stage 2 adds F_e, dilates the grid)
     skin_color = data.skin_color.to(device)
     end = cfg.iterations if max_steps is None else min(cfg.iterations, max_steps)
     t0, seen = time.time(), 0
     for step in range(start, end):
         frame = int(data.train[torch.randint(len(data.train), (1,), generator=generator)])
         batch = _to(sample_rays(data, frame, cfg.rays, generator, cfg.patch if semantic else 0), device)
+        _maybe_update_occupancy(model, st, stage, step)
         terms, r = loss_terms(model, batch, st, skin_color, semantic, generator)
         loss = L.total(terms, st.weights)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        model.mask_frozen_pose_gradient()
         with frame_locked(model.per_frame_parameters(), frame):
             optimizer.step()
         seen += 1
@@ -117,6 +121,17 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
     with atomic_path(out_dir / "losses.csv") as tmp:
         losses.to_csv(tmp, index=False)
     return StageResult(end, time.time() - t0, losses)
+
+
+def _maybe_update_occupancy(model: HybridAvatar, st: TrainSettings, stage: int, step: int) -> None:
+    """From ``warmup`` on, every ``update_every`` steps (a function of the step alone: resumes stay exact)."""
+    occ = st.avatar.render.occupancy
+    if model.occupancy is None or step < occ.warmup or (step - occ.warmup) % occ.update_every:
+        return
+    model.update_occupancy(seed=st.seed * 1_000_003 + stage * 100_003 + step)
+    if step == occ.warmup or (step - occ.warmup) % (occ.update_every * 16) == 0:
+        log.info("stage %d step %d: occupancy grid %s, %.1f%% of cells occupied", stage, step,
+                 "x".join(map(str, model.occupancy.shape)), 100 * model.occupancy.fraction())  # fmt: skip
 
 
 @contextlib.contextmanager

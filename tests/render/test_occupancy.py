@@ -35,11 +35,20 @@ def test_occupancy_decays_before_a_cell_is_freed():
     g = grid(threshold=1.0, decay=0.5)
     g.update(lambda x: torch.full_like(x[:, 0], 10.0), seed=0)
     occupied = []
-    for step in range(1, 5):  # the density has vanished: kept maxima 5, 2.5, 1.25, 0.625
-        g.update(lambda x: torch.zeros_like(x[:, 0]), seed=step)
+    for step in range(1, 5):  # the density at x < SLAB has vanished: kept maxima 5, 2.5, 1.25, 0.625
+        g.update(lambda x: slab_density(x, 10.0), seed=step)
         occupied.append(g.fraction())
-    assert occupied == [1.0, 1.0, 1.0, 0.0]
-    assert torch.allclose(g.density, torch.full((10, 10, 10), 0.625))
+    assert occupied == [1.0, 1.0, 1.0, 0.4]
+    assert torch.allclose(g.density[:6], torch.full((6, 10, 10), 0.625))
+
+
+def test_a_nearly_uniform_field_keeps_its_denser_cells():
+    """Below the threshold everywhere (early training), the cells above the mean stay occupied."""
+    g = grid(threshold=1.0)
+    g.update(lambda x: 0.1 + 0.01 * (x[:, 0] > SLAB).float(), seed=0)
+    assert g.fraction() == 0.4 and g.occupied[6:].all()
+    g.update(lambda x: torch.full_like(x[:, 0], 0.1), seed=1)  # max(0.95 · 0.11, 0.1) = 0.1045 vs 0.1
+    assert g.fraction() == 0.4
 
 
 def test_dilation_grows_the_occupied_set_by_whole_cells():
