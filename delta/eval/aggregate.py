@@ -20,6 +20,10 @@ from delta import DeltaError
 from delta.io import atomic_path
 
 
+#: the parts of export.json that become columns
+EXPORT_KEYS = ("body", "clothing", "lineup")
+
+
 def _read_json(path: str | Path) -> dict:
     try:
         return json.loads(Path(path).read_text())
@@ -65,9 +69,11 @@ def subject_row(dataset: str, subject: str, summary: dict, export: dict | None, 
                 row[f"{split}_{k}{tag}"] = math.nan if v is None else v
     if "train_body_err_mm" in summary:
         row["train_body_err_mm"] = summary["train_body_err_mm"]
+    row |= {k: v for k, v in summary.get("geometry", {}).items() if isinstance(v, (int, float))}
     row["eval_s"] = summary.get("seconds")
-    if export:
-        row |= _flatten(export, "export")
+    if export:  # mesh sizes and line-up IoUs; the export's own settings and per-frame lists stay in its json
+        row |= _flatten({k: export[k] for k in EXPORT_KEYS if k in export}, "export")
+        row["export_s"] = export.get("seconds", {}).get("total")
     return row
 
 

@@ -15,6 +15,7 @@ from delta.eval.plots import plot_losses, smooth
 def write_summary(path, psnr, refined_psnr, body):
     path.write_text(json.dumps({
         "preset": "fast", "stage": 2, "settings": {"refine_steps": 5}, "seconds": 12.0, "train_body_err_mm": body,
+        "geometry": {"clothing_chamfer_mm": body / 10, "clothing_frames": 2},
         "scores": {"test_view": {"unrefined": {"psnr": psnr, "ssim": 0.9, "frames": 2},
                                  "refined": {"psnr": refined_psnr, "ssim": None, "frames": 2}}}}))
 
@@ -26,8 +27,10 @@ def write_bench(path, seconds, rss):
 def test_one_row_per_subject_and_a_mean_row(tmp_path):
     write_summary(tmp_path / "a.json", 20.0, 22.0, 50.0)
     write_summary(tmp_path / "b.json", 24.0, 25.0, 70.0)
-    (tmp_path / "ea.json").write_text(json.dumps({"lineup": {"body_iou": 0.9}, "clothing_faces": 100, "name": "x"}))
-    (tmp_path / "eb.json").write_text(json.dumps({"lineup": {"body_iou": 0.8}, "clothing_faces": 300, "name": "y"}))
+    (tmp_path / "ea.json").write_text(json.dumps({"lineup": {"body_iou": 0.9}, "clothing": {"faces": 100, "name": "x"},
+                                                  "settings": {"grid": 8}, "seconds": {"total": 3.0}}))
+    (tmp_path / "eb.json").write_text(json.dumps({"lineup": {"body_iou": 0.8}, "clothing": {"faces": 300, "name": "y"},
+                                                  "settings": {"grid": 8}, "seconds": {"total": 5.0}}))
     for s, t in (("a", 10), ("b", 30)):
         write_bench(tmp_path / f"{s}1.tsv", t, 1000)
         write_bench(tmp_path / f"{s}2.tsv", t / 2, 2000)
@@ -41,10 +44,12 @@ def test_one_row_per_subject_and_a_mean_row(tmp_path):
     assert mean["test_view_psnr_refined"] == pytest.approx(23.5)
     assert mean["stage1_s"] == pytest.approx(20.0) and mean["stage2_s"] == pytest.approx(10.0)
     assert mean["export_lineup_body_iou"] == pytest.approx(0.85)
-    assert mean["train_body_err_mm"] == pytest.approx(60.0)
+    assert mean["train_body_err_mm"] == pytest.approx(60.0) and mean["clothing_chamfer_mm"] == pytest.approx(6.0)
     assert mean["preset"] == "fast" and int(mean["stage"]) == 2
     assert np.isnan(table["test_view_ssim_refined"]).all()  # None in a summary: no value
-    assert "export_name" not in table.columns  # only numbers travel
+    assert mean["export_clothing_faces"] == pytest.approx(200) and mean["export_s"] == pytest.approx(4.0)
+    assert "export_clothing_name" not in table.columns  # only numbers travel
+    assert "export_settings_grid" not in table.columns  # the export's settings stay in its json
     assert len(df) == 3
 
 
