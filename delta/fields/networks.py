@@ -34,6 +34,11 @@ class FieldSpec:
     width: int = 64
     skip: int = -1
     """Hidden layer after which the encoding is concatenated again (-1: none; the paper: 4)."""
+    color_max_res: int = 0
+    """NeRF ``grid``: finest resolution of the colour grids (0: ``max_res``). Colour carries the
+    texture, density only the shape, so the colour grid can be finer at little cost."""
+    color_levels: int = 0
+    """NeRF ``grid``: levels of the colour grids (0: ``levels``)."""
 
 
 class MLP(nn.Module):
@@ -78,7 +83,9 @@ class NeRFField(nn.Module):
         self.split = spec.encoding == "grid"
         self.encoding, self.head = _encoder_and_head(spec, bounds, 1 if self.split else 4)
         if self.split:
-            self.color_encoding, self.color_head = _encoder_and_head(spec, bounds, 3)
+            color = dataclasses.replace(spec, max_res=spec.color_max_res or spec.max_res,
+                                        levels=spec.color_levels or spec.levels)  # fmt: skip
+            self.color_encoding, self.color_head = _encoder_and_head(color, bounds, 3)
         with torch.no_grad():
             self.head.out.bias[-1] = density_bias  # start nearly empty
 

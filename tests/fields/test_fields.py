@@ -233,3 +233,16 @@ def test_deformation_field_starts_at_zero_and_learns(spec):
     for name, p in field.named_parameters():
         assert p.grad is not None and p.grad.abs().sum() > 0, name
     assert x_c.grad is not None and x_c.grad.abs().sum() > 0
+
+
+def test_nerf_colour_grid_can_be_finer_than_the_density_grid():
+    box = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+    spec = FieldSpec("grid", levels=3, features=2, base_res=4, max_res=16, depth=1, width=16,
+                     color_max_res=64, color_levels=4)  # fmt: skip
+    nerf = NeRFField(spec, box)
+    assert max(max(s) for s in nerf.encoding.shapes) == 16
+    assert max(max(s) for s in nerf.color_encoding.shapes) == 64 and len(nerf.color_encoding.shapes) == 4
+    same = NeRFField(FieldSpec("grid", levels=3, features=2, base_res=4, max_res=16, depth=1, width=16), box)
+    assert same.color_encoding.shapes == same.encoding.shapes
+    rgb, sigma = nerf(torch.rand(5, 3) * 2 - 1)
+    assert rgb.shape == (5, 3) and sigma.shape == (5,)
