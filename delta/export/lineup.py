@@ -18,6 +18,11 @@ def _candidates(tri: np.ndarray, height: int, width: int) -> tuple[np.ndarray, n
     return t, lo[t, 1] + k // nj[t], lo[t, 0] + k % nj[t]
 
 
+def _edge(o: np.ndarray, e: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """(N,) z of (e - o) × (q - o): the side of edge o -> e that q lies on."""
+    return (e[:, 0] - o[:, 0]) * (q[:, 1] - o[:, 1]) - (e[:, 1] - o[:, 1]) * (q[:, 0] - o[:, 0])
+
+
 def rasterize(uv: np.ndarray, depth: np.ndarray, faces: np.ndarray, height: int, width: int,
               batch: int = 200_000) -> np.ndarray:  # fmt: skip
     """(H, W) bool coverage of triangles with projected vertices ``uv`` (V, 2) in pixels.
@@ -35,8 +40,7 @@ def rasterize(uv: np.ndarray, depth: np.ndarray, faces: np.ndarray, height: int,
             continue
         p = np.stack([j + 0.5, i + 0.5], -1)
         a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
-        cross = lambda o, e, q: (e[:, 0] - o[:, 0]) * (q[:, 1] - o[:, 1]) - (e[:, 1] - o[:, 1]) * (q[:, 0] - o[:, 0])  # noqa: E731
-        e0, e1, e2 = cross(a, b, p), cross(b, c, p), cross(c, a, p)
+        e0, e1, e2 = _edge(a, b, p), _edge(b, c, p), _edge(c, a, p)
         inside = ((e0 >= 0) & (e1 >= 0) & (e2 >= 0)) | ((e0 <= 0) & (e1 <= 0) & (e2 <= 0))
         mask[i[inside], j[inside]] = True
     return mask

@@ -156,8 +156,8 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
         rows.append({**check_frame(model, f, clothing, img), "psnr": round(psnr(data.images[f], img["rgb"]), 2),
                      "split": int(data.split[f])})  # fmt: skip
     summary["frames"] = rows
-    summary["lineup"] = {k: round(float(np.mean([r[k] for r in rows])), 4) for k in ("iou_body", "iou_body_soft", "iou_avatar")
-                         if rows and k in rows[0]}  # fmt: skip
+    keys = [k for k in ("iou_body", "iou_body_soft", "iou_avatar") if k in rows[0]]
+    summary["lineup"] = {k: round(float(np.mean([r[k] for r in rows])), 4) for k in keys}
     times["sidebyside_and_lineup"] = time.perf_counter() - t
 
     t = time.perf_counter()

@@ -11,7 +11,6 @@ import trimesh
 from scipy.spatial import cKDTree
 from torch import nn
 
-from delta import DeltaError
 from delta.cli import main
 from delta.export import lineup
 from delta.export.meshes import MeshPart, body_mesh, pose_clothing
