@@ -3,6 +3,7 @@
 #
 #   bash tests/cluster/run_slurm_test.sh [scratch dir, default /tmp/delta-slurm-test]
 #   DELTA_TEST_REV=HEAD bash tests/cluster/run_slurm_test.sh   # a commit's code, not the working tree's
+#   bash tests/cluster/run_slurm_test.sh /tmp/delta-slurm-test --retrain   # reuse both runs there, retrain only
 #
 # Installs Debian's slurmctld, slurmd and munge when missing (root), starts munged, slurmctld and
 # slurmd with a slurm.conf written for this machine (its CPUs and memory, proctrack/pgid, task/none,
@@ -134,4 +135,4 @@ snapshot
 write_config
 trap stop_cluster EXIT
 start_cluster
-python "$SRC/tests/cluster/slurm_e2e.py" --src "$SRC" --repo "$REPO" --scratch "$SCRATCH"
+python "$SRC/tests/cluster/slurm_e2e.py" --src "$SRC" --repo "$REPO" --scratch "$SCRATCH" "${@:2}"  # e.g. --retrain, --skip-e2e

@@ -8,7 +8,9 @@
 from __future__ import annotations
 
 import argparse
+import csv
 import json
+import math
 import re
 import shutil
 import subprocess
@@ -26,6 +28,11 @@ SLURM = [
     # no accounting database on this cluster: squeue answers (slurm.conf's MinJobAge keeps finished jobs listed)
     "--slurm-status-command", "squeue", "--slurm-init-seconds-before-status-checks", "5",
 ]  # fmt: skip
+#: Training on one thread in both runs. With 2 OpenMP threads two runs of the same training job on the same
+#: machine differ in the last bits of a few parameters and Adam moments (run to run, SLURM or not; MKL_CBWR
+#: does not change it: ATen's threaded CPU kernels); on 1 thread they are bitwise equal, so the comparison
+#: can be exact. The other rules' outputs compared bitwise equal on 2 threads.
+THREADS = ["--set-threads", "train_stage1=1", "train_stage2=1"]
 #: Compared file trees, and what they may differ in: wall-clock figures.
 TREES = ("data", "resources/body", "results")
 SKIPPED = ("results/benchmarks/",)
@@ -68,19 +75,42 @@ def snakemake(work: Path, *args: str, log: str) -> float:
 
 
 # ------------------------------------------------------------ comparisons
-def same_value(a, b) -> bool:
-    if isinstance(a, torch.Tensor):
-        return isinstance(b, torch.Tensor) and a.dtype == b.dtype and a.shape == b.shape and torch.equal(a, b)
-    if isinstance(a, np.ndarray):
-        return isinstance(b, np.ndarray) and a.shape == b.shape and np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+def differences(a, b, path: str = "") -> list[str]:
+    """Where ``a`` and ``b`` differ, with by how much; [] when equal.
+
+    Tensors and arrays bitwise (NaN equal to NaN in the same place, dtype and shape included), dict keys
+    naming wall-clock figures (TIMING_KEY) left out, anything else with ``==``.
+    """
+    if isinstance(a, (torch.Tensor, np.ndarray)):
+        kind = torch.Tensor if isinstance(a, torch.Tensor) else np.ndarray
+        if not isinstance(b, kind) or a.dtype != b.dtype or tuple(a.shape) != tuple(b.shape):
+            return [f"{path}: {a.dtype}{tuple(a.shape)} vs {getattr(b, 'dtype', type(b).__name__)}{tuple(getattr(b, 'shape', ()))}"]
+        x, y = (a.detach().cpu().numpy(), b.detach().cpu().numpy()) if kind is torch.Tensor else (a, b)
+        if x.dtype.kind not in "fc":
+            same = x == y
+        else:
+            same = (x == y) | (np.isnan(x) & np.isnan(y))
+        if np.all(same):
+            return []
+        if x.dtype.kind in "fc":
+            d = np.abs(x.astype(np.float64) - y.astype(np.float64))[~same]
+            rel = d / np.maximum(np.abs(x.astype(np.float64))[~same], 1e-300)
+            return [f"{path}: {int((~same).sum())}/{x.size} values differ, max abs {np.nanmax(d):.3g}, max rel {np.nanmax(rel):.3g}"]
+        return [f"{path}: {int((~np.asarray(same)).sum())}/{x.size} values differ"]
     if isinstance(a, dict):
-        keys = {k for k in a if not (isinstance(k, str) and TIMING_KEY.search(k))}
-        return isinstance(b, dict) and keys == {k for k in b if not (isinstance(k, str) and TIMING_KEY.search(k))} and all(
-            same_value(a[k], b[k]) for k in keys
-        )
+        if not isinstance(b, dict):
+            return [f"{path}: dict vs {type(b).__name__}"]
+        keep = lambda d: {k for k in d if not (isinstance(k, str) and TIMING_KEY.search(k))}  # noqa: E731
+        ka, kb = keep(a), keep(b)
+        out = [f"{path}/{k}: only in one" for k in sorted(map(str, ka ^ kb))]
+        return out + [p for k in ka & kb for p in differences(a[k], b[k], f"{path}/{k}")]
     if isinstance(a, (list, tuple)):
-        return type(a) is type(b) and len(a) == len(b) and all(same_value(x, y) for x, y in zip(a, b))
-    return a == b
+        if type(a) is not type(b) or len(a) != len(b):
+            return [f"{path}: {type(a).__name__} of {len(a)} vs {type(b).__name__} of {len(b) if hasattr(b, '__len__') else '?'}"]
+        return [p for i, (x, y) in enumerate(zip(a, b)) for p in differences(x, y, f"{path}[{i}]")]
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return []
+    return [] if a == b else [f"{path}: {a!r:.80} vs {b!r:.80}"]
 
 
 def h5_content(path: Path) -> dict:
@@ -92,19 +122,28 @@ def h5_content(path: Path) -> dict:
     return {k: np.asarray(v) if v is not None else None for k, v in items.items()}
 
 
-def same_file(a: Path, b: Path) -> bool:
-    """Equal content: arrays and tensors bitwise, JSON without its wall-clock keys, anything else byte for byte."""
+def csv_content(path: Path) -> list[dict]:
+    """A CSV's rows without its wall-clock columns (losses.csv's ``seconds``), values as written."""
+    with open(path, newline="") as f:
+        return [{k: v for k, v in row.items() if not TIMING_KEY.search(k or "")} for row in csv.DictReader(f)]
+
+
+def file_differences(a: Path, b: Path) -> list[str]:
+    """Where two files' contents differ: arrays and tensors bitwise, JSON and CSV without wall-clock keys
+    and columns, anything else byte for byte."""
     ext = a.suffix
     if ext in (".h5", ".hdf5"):
-        return same_value(h5_content(a), h5_content(b))
+        return differences(h5_content(a), h5_content(b))
     if ext == ".npz":
         with np.load(a) as x, np.load(b) as y:
-            return same_value(dict(x), dict(y))
+            return differences(dict(x), dict(y))
     if ext == ".pt":
-        return same_value(torch.load(a, weights_only=False), torch.load(b, weights_only=False))
+        return differences(torch.load(a, weights_only=False), torch.load(b, weights_only=False))
     if ext == ".json":
-        return same_value(json.loads(a.read_text()), json.loads(b.read_text()))
-    return a.read_bytes() == b.read_bytes()
+        return differences(json.loads(a.read_text()), json.loads(b.read_text()))
+    if ext == ".csv":
+        return differences(csv_content(a), csv_content(b))
+    return [] if a.read_bytes() == b.read_bytes() else ["bytes differ"]
 
 
 def compare_trees(a: Path, b: Path) -> list[str]:
@@ -115,7 +154,8 @@ def compare_trees(a: Path, b: Path) -> list[str]:
 
     fa, fb = files(a), files(b)
     problems = [f"only in {a.name}: {p}" for p in sorted(fa - fb)] + [f"only in {b.name}: {p}" for p in sorted(fb - fa)]
-    problems += [f"differs: {p}" for p in sorted(fa & fb) if not same_file(a / p, b / p)]
+    for p in sorted(fa & fb):
+        problems += [f"differs: {p}{d}" for d in file_differences(a / p, b / p)[:5]]
     print(f"compared {len(fa & fb)} files of {TREES} (benchmark timings left out)")
     return problems
 
@@ -153,7 +193,7 @@ def kill_when_checkpointed(work: Path, proc: subprocess.Popen) -> int:
 
 def scancel_test(repo: Path, finished: Path, scratch: Path) -> dict:
     target = str(stage1_dir(Path("")) / "model.pt")
-    one_thread = ["--set-threads", "train_stage1=1", "--configfile"]
+    one_thread = [*THREADS, "--configfile"]
     whole = copy_without_training(finished, scratch / "never_killed")
     cfg = tiny_config(repo, whole, KILL_STAGE1)
     t_whole = snakemake(whole, target, "--cores", "2", *one_thread, cfg, log="snakemake.log")
@@ -173,8 +213,8 @@ def scancel_test(repo: Path, finished: Path, scratch: Path) -> dict:
     assert resumed, f"the resubmitted job did not resume:\n{train_log[-2000:]}"
     assert len(re.findall(r"submitted with SLURM jobid", log_text)) == 2, "expected one submission and one retry"
     assert 0 < int(resumed.group(1)) < KILL_STAGE1["iterations"]
-    problems = [f"differs: {n}" for n in ("model.pt", "losses.csv", "checkpoint.pt")
-                if not same_file(stage1_dir(whole) / n, stage1_dir(killed) / n)]  # fmt: skip
+    problems = [f"differs: {n}{d}" for n in ("model.pt", "losses.csv", "checkpoint.pt")
+                for d in file_differences(stage1_dir(whole) / n, stage1_dir(killed) / n)]  # fmt: skip
     assert not problems, problems
     print(f"killed at step {killed_at}, resumed at step {resumed.group(1)}: model.pt, losses.csv equal a run never killed")
     return {"never_killed_s": round(t_whole, 1), "killed_and_resumed_s": round(time.time() - t0, 1),
@@ -198,21 +238,36 @@ def main():
     ap.add_argument("--repo", type=Path, required=True, help="whose Anny build, converted models and weights to reuse")
     ap.add_argument("--scratch", type=Path, required=True)
     ap.add_argument("--skip-e2e", action="store_true", help="reuse the slurm run already in the scratch dir")
+    ap.add_argument("--retrain", action="store_true",
+                    help="reuse both runs of the same code in the scratch dir, rerunning only training (and what "
+                         "follows it) in each: after a change to how training runs")  # fmt: skip
     args = ap.parse_args()
     summary = {}
     local, cluster = args.scratch / "local", args.scratch / "slurm"
+    run_id = {"src": src_id(args.src), "args": THREADS}
     if not args.skip_e2e:
         done = local / "finished.json"  # a local run of the same code is kept: DELTA_TEST_REV pins it
-        if not done.is_file() or json.loads(done.read_text())["src"] != src_id(args.src):
-            workflow_copy(args.src, local)
-            seconds = snakemake(local, "--cores", "2", "--configfile", tiny_config(args.repo, local), log="snakemake.log")
-            done.write_text(json.dumps({"src": src_id(args.src), "seconds": round(seconds, 1)}))
+        previous = json.loads(done.read_text()) if done.is_file() else {}
+        if args.retrain:
+            assert previous.get("src") == run_id["src"] and (cluster / "results").is_dir(), "no runs of this code to reuse"
+            for work in (local, cluster):
+                for stage in work.glob("results/*/*/stage[12]"):
+                    shutil.rmtree(stage)
+            previous = {}
+        if {k: previous.get(k) for k in run_id} != run_id:
+            if not args.retrain:
+                workflow_copy(args.src, local)
+            cfg = tiny_config(args.repo, local)
+            seconds = snakemake(local, "--cores", "2", *THREADS, "--configfile", cfg, log="snakemake.log")
+            done.write_text(json.dumps(run_id | {"seconds": round(seconds, 1), "retrain": args.retrain}))
         summary["local_s"] = json.loads(done.read_text())["seconds"]
-        workflow_copy(args.src, cluster)
-        summary["slurm_s"] = round(snakemake(cluster, *SLURM, "--configfile", tiny_config(args.repo, cluster),
-                                             log="snakemake.log"), 1)  # fmt: skip
+        if not args.retrain:
+            workflow_copy(args.src, cluster)
+        cfg = tiny_config(args.repo, cluster)
+        summary["slurm_s"] = round(snakemake(cluster, *SLURM, *THREADS, "--configfile", cfg, log="snakemake.log"), 1)
+        summary["retrain_only"] = args.retrain
         submitted = len(re.findall(r"submitted with SLURM jobid", (cluster / "snakemake.log").read_text()))
-        assert submitted > 10, f"only {submitted} jobs went through SLURM"
+        assert submitted >= (6 if args.retrain else 10), f"only {submitted} jobs went through SLURM"
         summary["slurm_jobs"] = submitted
         problems = compare_trees(local, cluster)
         assert not problems, "\n".join(problems)
