@@ -15,6 +15,12 @@ threshold (instant-NGP's) keeps a still nearly uniform field (early training) fr
 emptied all at once: the denser part of the cells stays.
 
 Non-differentiable; its buffers live in the model's state, so checkpoints resume exactly.
+
+No per-frame visual hull: with one camera per frame every sample of a ray projects to that
+ray's own pixel, so dropping samples outside the frame's (dilated) person mask means dropping
+whole rays outside the person — exactly the rays whose exterior loss teaches the NeRF to be
+empty there (rays are already drawn only in the person's box plus a margin). A hull over many
+frames needs the canonical mapping, which is what this grid accumulates.
 """
 
 from __future__ import annotations
