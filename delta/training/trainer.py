@@ -97,6 +97,7 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
     skin_color = data.skin_color.to(device)
     end = cfg.iterations if max_steps is None else min(cfg.iterations, max_steps)
     t0, seen = time.time(), 0
+    before = rows[-1].get("seconds", 0.0) if rows else 0.0  # wall time of the runs this one resumes
     for step in range(start, end):
         frame = int(data.train[torch.randint(len(data.train), (1,), generator=generator)])
         batch = _to(sample_rays(data, frame, cfg.rays, generator, cfg.patch if semantic else 0), device)
@@ -110,7 +111,8 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
             optimizer.step()
         seen += 1
         rows.append({"step": step + 1, "loss": float(loss.detach()), "psnr": _psnr(r.rgb.detach(), batch.rgb),
-                     "samples": r.samples_evaluated, **{k: float(v.detach()) for k, v in terms.items()}})  # fmt: skip
+                     "samples": r.samples_evaluated, "seconds": round(before + time.time() - t0, 3),
+                     **{k: float(v.detach()) for k, v in terms.items()}})  # fmt: skip
         if (step + 1) % cfg.log_every == 0 or step + 1 == end:
             _progress(stage, step + 1, cfg.iterations, rows[-1], seen / (time.time() - t0))
         if (step + 1) % cfg.checkpoint_every == 0 or step + 1 == end:
