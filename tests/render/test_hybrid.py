@@ -86,3 +86,26 @@ def test_a_ray_grazing_past_the_body_sees_the_exterior_only_near_it():
     assert 0 < float(out.nerf_mask[0]) < 1
     expected = out.nerf_mask[0] * NERF_RGB + (1 - out.nerf_mask[0]) * BG  # the rest ends on the background
     torch.testing.assert_close(out.rgb[0], expected, atol=1e-5, rtol=0)
+
+
+def test_silhouette_value_is_the_exact_coverage_and_its_gradient_the_soft_one():
+    """Pixel centres 0.3 px inside and outside the sphere's projected edge (radius 30 px in the uv
+    frame): the value is the hit, not the soft union (which is above 0.5 just outside the edge);
+    the gradient still moves the vertices."""
+    mesh = sphere_avatar()
+    v = mesh.vertices.clone().requires_grad_(True)
+    uv = v[:, :2] * 100
+    mesh = PosedMesh(v, mesh.faces, mesh.albedo, uv, mesh.skinning)
+    o, d = rays([0.297, 0.303])
+    soft_st = RenderSettings(samples=8, perturb=False, sil_hard_value=False, sil_sigma=0.5)
+    hard_st = RenderSettings(samples=8, perturb=False, sil_sigma=0.5)
+    soft = render_rays(mesh, o, d, o[:, :2] * 100, BG, soft_st).silhouette
+    out = render_rays(mesh, o, d, o[:, :2] * 100, BG, hard_st)
+    assert out.hit.tolist() == [True, False]
+    assert out.silhouette.tolist() == [1.0, 0.0]
+    assert soft[1] > 0.5  # the soft union reaches past the edge: why its value is not used
+    out.silhouette[1].backward()  # the outside pixel's coverage grows as the rim moves out (+x)
+    grad = v.grad
+    assert grad.abs().sum() > 0 and torch.isfinite(grad).all()
+    rim = (v.detach()[:, 0] > 0.25) & (v.detach()[:, 2].abs() < 0.1)
+    assert (grad[rim, 0] >= 0).all() and (grad[rim, 0] > 0).any()
