@@ -128,6 +128,18 @@ class ShiftTolerantVGG16(_SlicedBackbone):
         super().__init__(layers, slice_ends)
 
 
+def _alex_tail() -> list[tuple[str, nn.Module]]:
+    """conv3 .. relu5, the same in both AlexNet variants."""
+    return [
+        ("conv3", nn.Conv2d(192, 384, kernel_size=3, padding=1)),
+        ("relu3", nn.ReLU()),
+        ("conv4", nn.Conv2d(384, 256, kernel_size=3, padding=1)),
+        ("relu4", nn.ReLU()),
+        ("conv5", nn.Conv2d(256, 256, kernel_size=3, padding=1)),
+        ("relu5", nn.ReLU()),
+    ]
+
+
 class ShiftTolerantAlexNet(_SlicedBackbone):
     """AlexNet trunk with a stride-1 first conv and blur pools; taps relu1..relu5."""
 
@@ -145,13 +157,7 @@ class ShiftTolerantAlexNet(_SlicedBackbone):
             ("relu2", nn.ReLU()),
             ("pool2", nn.MaxPool2d(kernel_size=3, stride=1)),
             ("blur2", BlurPool2d(192)),
-            ("conv3", nn.Conv2d(192, 384, kernel_size=3, padding=1)),
-            ("relu3", nn.ReLU()),
-            ("conv4", nn.Conv2d(384, 256, kernel_size=3, padding=1)),
-            ("relu4", nn.ReLU()),
-            ("conv5", nn.Conv2d(256, 256, kernel_size=3, padding=1)),
-            ("relu5", nn.ReLU()),
-        ]
+        ] + _alex_tail()
         super().__init__(layers, (3, 7, 11, 13, 15))
 
 
@@ -173,13 +179,7 @@ class AlexNet(_SlicedBackbone):
             ("conv2", nn.Conv2d(64, 192, kernel_size=5, padding=2)),
             ("relu2", nn.ReLU()),
             ("pool2", nn.MaxPool2d(kernel_size=3, stride=2)),
-            ("conv3", nn.Conv2d(192, 384, kernel_size=3, padding=1)),
-            ("relu3", nn.ReLU()),
-            ("conv4", nn.Conv2d(384, 256, kernel_size=3, padding=1)),
-            ("relu4", nn.ReLU()),
-            ("conv5", nn.Conv2d(256, 256, kernel_size=3, padding=1)),
-            ("relu5", nn.ReLU()),
-        ]
+        ] + _alex_tail()
         super().__init__(layers, (2, 5, 8, 10, 12))
 
 
