@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import h5py
+import pandas as pd
 import pytest
 import yaml
 
@@ -83,6 +84,33 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
             assert len((out / "losses.csv").read_text().splitlines()) == 1 + (6 if stage == 1 else 4)
             assert (work / "logs" / f"train_stage{stage}" / f"{dataset}_{subject}.log").is_file()
             assert (work / "results/benchmarks" / f"train_stage{stage}" / f"{dataset}_{subject}.tsv").is_file()
+    # evaluation, export and the per-dataset tables
+    for dataset, subjects in (("synthetic", ["tight", "loose"]), ("peoplesnapshot", ["tight"])):
+        table = pd.read_csv(work / "results" / dataset / "metrics.csv")
+        assert sorted(table["subject"][:-1]) == sorted(subjects) and table["subject"].iloc[-1] == "mean"
+        for col in ("psnr", "ssim", "l1", "stlpips_alex"):
+            for tag in ("", "_refined"):
+                values = table[f"test_view_{col}{tag}"]
+                assert values.notna().all() and (values > 0).all(), (dataset, col, tag)
+        assert (table["test_view_psnr"] < 60).all() and (table["test_view_ssim"] <= 1).all()
+        assert (table["stage1_s"] > 0).all() and (table["stage2_s"] > 0).all()
+        assert (table["export_body_faces"] > 0).all() and table["export_body_watertight"].astype(bool).all()
+        for subject in subjects:
+            out = work / "results" / dataset / subject
+            frames = pd.read_csv(out / "eval" / "metrics.csv")
+            assert set(frames["refined"]) == {True, False} and (frames["background"] == "white").all()
+            for name in ("avatar.glb", "turntable.mp4", "novel_pose.mp4", "body_canonical.ply", "export.json"):
+                assert (out / "export" / name).stat().st_size > 0, name
+            assert list((out / "export" / "sidebyside").glob("*.png"))
+            assert (out / "stage1" / "losses.png").is_file() and (out / "stage2" / "losses.png").is_file()
+    synthetic = pd.read_csv(work / "results/synthetic/metrics.csv")
+    assert synthetic["train_body_err_mm"].notna().all()  # ground truth: geometry columns
+    # the report gathers the tables, images, curves and videos under their categories
+    report = snakemake(work, "--configfile", ".test/config/ci.yaml", "--report", "report.html")
+    assert report.returncode == 0, report.stdout[-3000:] + report.stderr[-3000:]
+    html = (work / "report.html").read_text(errors="replace")
+    for category in ("Metrics", "Renders", "Training", "Videos"):
+        assert category in html, category
     # a rerun has nothing to do
     again = snakemake(work, "--configfile", ".test/config/ci.yaml", "--dry-run")
     assert "Nothing to be done" in again.stdout + again.stderr
