@@ -233,3 +233,19 @@ def test_generic_video_runs_the_offline_default_steps(tmp_path, tiny_captures, m
     with h5py.File(work / "results/clips/clip/frames.h5") as rec:
         assert rec["face_landmarks"].shape == (7, 468, 3) and rec["keypoints"].shape == (7, 18, 3)
     assert "convert_mediapipe" not in res.stdout + res.stderr  # the converted model was reused
+
+
+@pytest.mark.parametrize(
+    "target, message",
+    [
+        ("results/nowhere/metrics.csv", "dataset 'nowhere' is not configured; configured datasets: ['peoplesnapshot', 'synthetic']"),
+        ("results/synthetic/bob/eval/metrics.csv", "subject 'bob' is not configured for dataset 'synthetic'; "
+                                                   "configured subjects: ['loose', 'tight']"),
+        ("results/synthetic/tight/tradeoff/turbo/eval/summary.json", "trade-off variant 'turbo' is not configured"),
+    ],
+)
+def test_unconfigured_targets_fail_at_dag_construction(tmp_path, target, message):
+    work = workflow_copy(tmp_path)
+    res = snakemake(work, target, "--configfile", ".test/config/config.yaml", "--dry-run")
+    assert res.returncode != 0
+    assert message in res.stdout + res.stderr
