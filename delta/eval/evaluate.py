@@ -49,7 +49,8 @@ class EvalSettings:
     """Test-time refinement of each test frame's pose and camera, model frozen (0: off)."""
     report_unrefined: bool = True
     """With refinement on, also score each frame before it (both rows are written)."""
-    refine_rays: int = 1024
+    refine_rays: int = 4096
+    refine_lr: float = 5e-4
     perceptual_dir: Optional[str] = None
     """Folder of alex_shift_tolerant.pth (ST-LPIPS); None: no perceptual column."""
     lpips_alex: Optional[tuple[str, str]] = None
@@ -148,7 +149,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
     for k, (f, split) in enumerate(frames):
         for refined in passes:
             if refined:
-                refine_frame(model, data, f, st.refine_steps, rays=st.refine_rays, seed=f)
+                refine_frame(model, data, f, st.refine_steps, rays=st.refine_rays, lr=st.refine_lr, seed=f)
             with torch.no_grad():
                 mesh, offsets, out = model.posed_mesh(f)
             img = render_image(model, f)

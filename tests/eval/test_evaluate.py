@@ -78,7 +78,7 @@ def test_psnr_rises_with_refinement_from_a_perturbed_pose(trained):
     f = int(np.flatnonzero(data.split == 1)[0])
     with torch.no_grad():
         model.transl[f] += torch.tensor([0.03, 0.0, 0.0])  # shift the test frame 3 cm sideways
-    st = EvalSettings(splits=("test_view",), max_frames=1, refine_steps=40, refine_rays=256)
+    st = EvalSettings(splits=("test_view",), max_frames=1, refine_steps=40, refine_rays=256, refine_lr=2e-3)
     df = evaluate(tr, t["record"], st)
     before, after = df["psnr"].tolist()
     assert after > before + 0.5 and not math.isnan(after)
