@@ -28,6 +28,7 @@ wildcard_constraints:
     subject="[A-Za-z0-9_.-]+",
     dataset="[A-Za-z0-9_-]+",
     stage="[12]",
+    variant="[A-Za-z0-9_.-]+",
 
 
 # ------------------------------------------------------------------ paths
@@ -293,3 +294,182 @@ def train_gpu_resources():
         return {}
     model = config["cluster"]["gpu_model"]
     return {"gpu": 1, **({"gpu_model": model} if model else {})}
+
+
+# ------------------------------------------------ evaluation and export
+EVAL = config["evaluation"]
+EXPORT = config["export"]
+
+
+def configured(wildcards):
+    """Fail at DAG construction, naming what is configured, when a target names anything else."""
+    if wildcards.dataset not in DATASETS:
+        raise ValueError(f"dataset '{wildcards.dataset}' is not configured; configured datasets: {sorted(DATASETS)}")
+    subjects = DATASETS[wildcards.dataset]["subjects"]
+    if "subject" in wildcards.keys() and wildcards.subject not in subjects:
+        raise ValueError(f"subject '{wildcards.subject}' is not configured for dataset '{wildcards.dataset}'; "
+                         f"configured subjects: {sorted(subjects)}")  # fmt: skip
+    return []
+
+
+def evaluated_model(wildcards):
+    configured(wildcards)
+    return PATHS["stage_model"].format(stage=EVAL["stage"], **wildcards)
+
+
+def eval_inputs(wildcards):
+    configured(wildcards)
+    files = {
+        "model": evaluated_model(wildcards),
+        "record": PATHS["record"].format(**wildcards),
+        "body": body_model_file(),
+        "alex": PATHS["perceptual_alex"],
+    }
+    if dataset_kind(wildcards.dataset) == "synthetic":  # ground truth for the geometry columns
+        files["gt"] = PATHS["syn_meshes"].format(subject=wildcards.subject)
+        files["export"] = PATHS["export_json"].format(**wildcards)
+    return files
+
+
+def eval_args(wildcards, input):
+    args = f"--max-frames {EVAL['max_frames']} --refine-steps {EVAL['refine_steps']} --splits {' '.join(EVAL['splits'])}"
+    if not EVAL["report_unrefined"]:
+        args += " --refined-only"
+    if EVAL["lpips_alex"]:
+        args += " --lpips-alex " + " ".join(f"'{p}'" for p in EVAL["lpips_alex"])
+    if "gt" in input.keys():
+        args += f" --gt-meshes {input.gt}"
+    if "export" in input.keys():
+        args += f" --export-dir {Path(input.export).parent}"
+    return args
+
+
+def export_args(wildcards):
+    e = EXPORT
+    return (f"--grid {e['grid']} --threshold {e['threshold']} --smooth {e['smooth']} --decimate {e['decimate']}"
+            f" --min-component-faces {e['min_component_faces']} --turntable-frames {e['turntable_frames']}"
+            f" --fps {e['fps']} --sidebyside {e['sidebyside']}")  # fmt: skip
+
+
+def dataset_subjects(wildcards):
+    configured(wildcards)
+    return list(DATASETS[wildcards.dataset]["subjects"])
+
+
+def aggregate_inputs(wildcards):
+    subjects = dataset_subjects(wildcards)
+    fmt = lambda key, **kw: [PATHS[key].format(dataset=wildcards.dataset, subject=s, **kw) for s in subjects]  # noqa: E731
+    return {
+        "summaries": fmt("eval_summary"),
+        "exports": fmt("export_json"),
+        "plots": fmt("loss_plot", stage=1) + fmt("loss_plot", stage=2),
+        "bench1": [benchmark_path("train_stage1", f"{wildcards.dataset}_{s}") for s in subjects],
+        "bench2": [benchmark_path("train_stage2", f"{wildcards.dataset}_{s}") for s in subjects],
+    }
+
+
+def aggregate_benchmarks(wildcards, input):
+    subjects = dataset_subjects(wildcards)
+    pairs = [f"{s}/stage1={b}" for s, b in zip(subjects, input.bench1)]
+    pairs += [f"{s}/stage2={b}" for s, b in zip(subjects, input.bench2)]
+    return " ".join(pairs)
+
+
+def dataset_metrics_targets():
+    return [PATHS["dataset_metrics"].format(dataset=d) for d in DATASETS]
+
+
+# ----------------------------------------------------- trade-off sweep
+TRADE = config["tradeoff"]
+PATHS |= {
+    "variant_stage_dir": "results/{dataset}/{subject}/tradeoff/{variant}/stage{stage}",
+    "variant_model": "results/{dataset}/{subject}/tradeoff/{variant}/stage{stage}/model.pt",
+    "variant_losses": "results/{dataset}/{subject}/tradeoff/{variant}/stage{stage}/losses.csv",
+    "variant_metrics": "results/{dataset}/{subject}/tradeoff/{variant}/eval/metrics.csv",
+    "variant_summary": "results/{dataset}/{subject}/tradeoff/{variant}/eval/summary.json",
+    "variant_profile": "results/{dataset}/{subject}/tradeoff/{variant}/profile.json",
+    "matmul_peak": "results/benchmarks/matmul_peak.json",
+    "tradeoff_csv": "results/{dataset}/tradeoff.csv",
+    "tradeoff_png": "results/{dataset}/tradeoff.png",
+}
+
+
+
+def variant_spec(variant):
+    if variant not in TRADE["variants"]:
+        raise ValueError(f"trade-off variant '{variant}' is not configured; configured: {sorted(TRADE['variants'])}")
+    spec = dict(TRADE["variants"][variant])
+    return spec.pop("preset", None), int(spec.pop("stages", 2)), spec
+
+
+def variant_training(subject, variant):
+    """(preset, overrides): the subject's training settings with the variant's on top."""
+    preset, overrides = subject_training(subject)
+    own_preset, _, over = variant_spec(variant)
+    return own_preset or preset, overrides + [over]
+
+
+def tradeoff_subjects(dataset):
+    return TRADE["subjects"] or list(DATASETS[dataset]["subjects"])
+
+
+# every swept variant's settings are checked now, before any job runs
+for _d in DATASETS:
+    for _s in tradeoff_subjects(_d):
+        for _v in TRADE["variants"]:
+            resolve_training(*[variant_training(_s, _v)[0]] + variant_training(_s, _v)[1])
+
+
+def variant_stages(variant):
+    return variant_spec(variant)[1]
+
+
+def variant_model(wildcards):
+    """The model a variant is scored with: its last stage."""
+    return PATHS["variant_model"].format(stage=variant_stages(wildcards.variant), **wildcards)
+
+
+def variant_stage2_inputs(wildcards):
+    files = {"stage1": PATHS["variant_model"].format(stage=1, **wildcards)}
+    preset, overrides = variant_training(wildcards.subject, wildcards.variant)
+    st = resolve_training(preset, *overrides)
+    if st.semantic != "none" and st.weights.semantic > 0:
+        files["vgg"] = PATHS["perceptual_vgg"]
+    return files
+
+
+def variant_eval_inputs(wildcards):
+    configured(wildcards)
+    files = {
+        "model": variant_model(wildcards),
+        "record": PATHS["record"].format(**wildcards),
+        "body": body_model_file(),
+        "alex": PATHS["perceptual_alex"],
+    }
+    if dataset_kind(wildcards.dataset) == "synthetic":
+        files["gt"] = PATHS["syn_meshes"].format(subject=wildcards.subject)
+    return files
+
+
+def tradeoff_manifest(wildcards):
+    """{subject: {variant: {role: path}}} of every swept (subject, variant)."""
+    configured(wildcards)
+    out = {}
+    for s in tradeoff_subjects(wildcards.dataset):
+        for v in TRADE["variants"]:
+            w = {"dataset": wildcards.dataset, "subject": s, "variant": v}
+            last = variant_stages(v)
+            files = {
+                "summary": PATHS["variant_summary"].format(**w),
+                "profile": PATHS["variant_profile"].format(**w),
+            }
+            for k in range(1, last + 1):
+                files[f"losses{k}"] = PATHS["variant_losses"].format(stage=k, **w)
+                files[f"bench{k}"] = benchmark_path(f"tradeoff_stage{k}", f"{wildcards.dataset}_{s}_{v}")
+            out.setdefault(s, {})[v] = files
+    return out
+
+
+def tradeoff_inputs(wildcards):
+    files = [p for variants in tradeoff_manifest(wildcards).values() for f in variants.values() for p in f.values()]
+    return files + [PATHS["matmul_peak"]]

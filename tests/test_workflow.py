@@ -75,7 +75,7 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
     # the body-model initialisation ran on every subject
     for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", "tight")):
         report = (work / "results" / dataset / subject / "init" / "report.csv").read_text().splitlines()
-        assert report[0] == "frame,flagged,residual_px,confident_keypoints" and len(report) > 5
+        assert report[0] == "frame,flagged,few_keypoints,empty_mask,residual_px,confident_keypoints" and len(report) > 5
     # both training stages ran on every subject, resumable checkpoints beside their outputs
     for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", "tight")):
         for stage in (1, 2):
