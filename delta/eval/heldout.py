@@ -9,19 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 
-import numpy as np
 import torch
 
 from delta import losses as L
+from delta.eval.metrics import iou, psnr
 from delta.models.avatar import HybridAvatar
 from delta.training.data import FrameData, sample_rays
 from delta.training.trainer import render_image
-
-
-def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    """PSNR in dB of images in [0, 1] (data range 1); inf for identical images."""
-    mse = float(((a.double() - b.double()) ** 2).mean())
-    return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
 
 
 @dataclasses.dataclass
@@ -33,11 +27,6 @@ class FrameScore:
     """IoU of the rendered NeRF mask (> 0.5) with the exterior mask (nan when neither exists)."""
     mesh_iou: float
     """IoU of the mesh silhouette (> 0.5) with the person mask."""
-
-
-def _iou(a: torch.Tensor, b: torch.Tensor) -> float:
-    union = (a | b).sum()
-    return float("nan") if union == 0 else float((a & b).sum() / union)
 
 
 def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, rays: int = 4096,
@@ -81,6 +70,6 @@ def score_frames(model: HybridAvatar, data: FrameData, frames, refine_steps: int
         gt = data.images[f]
         ext = data.exterior[f] > 0.5
         out.append(FrameScore(f, psnr(img["rgb"], gt), float((img["rgb"] - gt).abs().mean()),
-                              _iou(img["nerf_mask"] > 0.5, ext) if model.nerf is not None else float("nan"),
-                              _iou(img["silhouette"] > 0.5, data.person[f] > 0.5)))  # fmt: skip
+                              iou(img["nerf_mask"] > 0.5, ext) if model.nerf is not None else float("nan"),
+                              iou(img["silhouette"] > 0.5, data.person[f] > 0.5)))  # fmt: skip
     return out

@@ -14,7 +14,8 @@ from delta import DeltaError
 from delta.export import lineup
 from delta.export.meshes import MeshPart, body_mesh, clothing_nerf_space, pose_clothing, write_glb, write_mesh
 from delta.export.settings import ExportSettings
-from delta.export.video import psnr, render_frames, side_by_side, turntable, write_video
+from delta.eval.metrics import psnr
+from delta.export.video import render_frames, side_by_side, turntable, write_video
 from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import atomic_path, save_json
 from delta.models.avatar import HybridAvatar
@@ -153,7 +154,7 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
         if k < settings.sidebyside:  # (the line-up check uses at least one frame)
             with atomic_path(out / "sidebyside" / f"frame_{int(data.frame_ids[f]):05d}.png") as tmp:
                 cv2.imwrite(str(tmp), side_by_side(data.images[f], img["rgb"]))
-        rows.append({**check_frame(model, f, clothing, img), "psnr": round(psnr(data.images[f], img["rgb"]), 2),
+        rows.append({**check_frame(model, f, clothing, img), "psnr": round(psnr(img["rgb"].clamp(0, 1), data.images[f]), 2),
                      "split": int(data.split[f])})  # fmt: skip
     summary["frames"] = rows
     keys = [k for k in ("iou_body", "iou_body_soft", "iou_avatar") if k in rows[0]]

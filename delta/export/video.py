@@ -109,8 +109,3 @@ def error_map(reference: torch.Tensor, render: torch.Tensor) -> np.ndarray:
 def side_by_side(reference: torch.Tensor, render: torch.Tensor) -> np.ndarray:
     """[reference | render | error] as one uint8 BGR image."""
     return np.concatenate([to_bgr(reference), to_bgr(render), error_map(reference, render)], axis=1)
-
-
-def psnr(reference: torch.Tensor, render: torch.Tensor) -> float:
-    mse = float(((reference - render) ** 2).mean())
-    return float("inf") if mse == 0 else -10 * math.log10(mse)
