@@ -119,6 +119,12 @@ class HybridAvatar(nn.Module):
             dilation = spec.deformation_scale if self.deformation is not None else 0.0
             self.occupancy = OccupancyGrid(nbox, occ, dilation)
 
+    def _apply(self, fn, recurse: bool = True):
+        """``.to(device)`` and friends also move the body model (a dataclass, not a module)."""
+        out = super()._apply(fn, recurse)
+        self.body = self.body.to(device=self.background.device)
+        return out
+
     # ------------------------------------------------------------ parts
     def camera(self, frame: int):
         n = self.resolution

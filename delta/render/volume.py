@@ -96,7 +96,9 @@ def stratified_samples(
     span = (t_far - t_near).clamp_min(0.0)
     u = torch.arange(num - 1, dtype=t_near.dtype, device=t_near.device).expand(*t_near.shape, num - 1)
     if perturb:
-        u = u + torch.rand(u.shape, dtype=u.dtype, device=u.device, generator=generator)
+        # drawn where the generator lives (a CPU generator drives a CUDA run: same numbers on both)
+        where = generator.device if generator is not None else u.device
+        u = u + torch.rand(u.shape, dtype=u.dtype, device=where, generator=generator).to(u.device)
     t = torch.minimum(t_near[..., None] + span[..., None] * u / (num - 1), t_far[..., None])  # rounding past t_far
     return torch.cat([t, t_far[..., None]], dim=-1)
 

@@ -109,7 +109,7 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
     st = resolve(preset, *overrides)
     dev = pick_device(device)
     data = load_frames(record, st.resolution, st.background, st.box_margin)
-    body = load_body_model(body_path).to(device=dev)
+    body = load_body_model(body_path)  # on the CPU: the avatar's .to(dev) moves it
     if stage == 1:
         init = load_init(start, data)
         model = build_avatar(body, st, init, data, 1, dev)
@@ -184,7 +184,7 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
     if state.get("deformation"):
         spec = dataclasses.replace(spec, deformation=st.deformation)
     bg = torch.tensor(st.background, dtype=torch.float32)
-    body = load_body_model(body_path).to(device=dev)
+    body = load_body_model(body_path)  # on the CPU: the avatar's .to(dev) moves it
     init = load_init_from_state(state["model"], data)
     model = HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution).to(dev)
     try:

@@ -1,0 +1,106 @@
+"""The CUDA path against the CPU path on a real subject: same batch, same losses and gradients; step time.
+
+Builds the stage-1 avatar once on the CPU (float32), copies it to CUDA, renders the same rays with
+the same sampling generator on both and compares every loss term and every parameter group's
+gradient; then times training steps of the preset on each device. Writes one CSV row per check:
+
+    python benchmarks/cuda_check.py --record results/synthetic/tight/frames.h5 \
+        --body resources/body/anny_sub1.npz --init results/synthetic/tight/init/params.npz \
+        --out benchmarks/cuda_check.csv --steps 30
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import tempfile
+import time
+from pathlib import Path
+
+import pandas as pd
+import torch
+
+from delta import losses as L
+from delta.body.model import load_body_model
+from delta.training.data import load_frames, sample_rays
+from delta.training.presets import resolve
+from delta.training.run import build_avatar, load_init
+from delta.training.trainer import _to, loss_terms, train_stage
+
+
+def _terms_and_grads(model, batch, st, skin, seed):
+    model.zero_grad(set_to_none=True)
+    terms, _ = loss_terms(model, batch, st, skin, generator=torch.Generator().manual_seed(seed))
+    L.total(terms, st.weights).backward()
+    grads = {n: p.grad.detach().cpu().double() for n, p in model.named_parameters() if p.grad is not None}
+    return {k: float(v.detach()) for k, v in terms.items()}, grads
+
+
+def agreement(model, data, st, rays: int, seed: int = 0) -> list[dict]:
+    """Loss terms and gradients on CPU and CUDA for one batch: relative differences."""
+    batch = sample_rays(data, int(data.train[0]), rays, torch.Generator().manual_seed(seed))
+    t_cpu, g_cpu = _terms_and_grads(model, batch, st, data.skin_color, seed)
+    gpu = copy.deepcopy(model).to("cuda")
+    t_gpu, g_gpu = _terms_and_grads(gpu, _to(batch, torch.device("cuda")), st, data.skin_color.cuda(), seed)
+    rows = []
+    for k in t_cpu:
+        rows.append({"check": f"loss:{k}", "cpu": t_cpu[k], "cuda": t_gpu[k],
+                     "rel_diff": abs(t_cpu[k] - t_gpu[k]) / max(abs(t_cpu[k]), 1e-12)})  # fmt: skip
+    for n in g_cpu:
+        a, b = g_cpu[n], g_gpu[n]
+        rows.append({"check": f"grad:{n}", "cpu": float(a.norm()), "cuda": float(b.norm()),
+                     "rel_diff": float((a - b).norm() / a.norm().clamp_min(1e-30))})  # fmt: skip
+    return rows
+
+
+def step_time(model, data, st, device: str, steps: int) -> dict:
+    m = copy.deepcopy(model).to(device)
+    st = copy.deepcopy(st)
+    st.stage1.iterations, st.stage1.preview_every, st.stage1.checkpoint_every = steps, 0, 10**9
+    with tempfile.TemporaryDirectory() as tmp:
+        train_stage(1, m, data, st, Path(tmp), max_steps=3)  # warm-up (kernels, caches)
+        (Path(tmp) / "checkpoint.pt").unlink(missing_ok=True)
+        if device == "cuda":
+            torch.cuda.synchronize()
+        t = time.perf_counter()
+        res = train_stage(1, m, data, st, Path(tmp))
+        if device == "cuda":
+            torch.cuda.synchronize()
+        sec = time.perf_counter() - t
+    return {"check": f"step_seconds:{device}:{torch.get_num_threads()}threads", "cpu": float("nan"),
+            "cuda": float("nan"), "rel_diff": float("nan"), "seconds_per_step": sec / steps,
+            "train_psnr_last": float(res.losses.psnr.tail(5).mean())}  # fmt: skip
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--record", required=True)
+    p.add_argument("--body", required=True)
+    p.add_argument("--init", required=True)
+    p.add_argument("--preset", default="fast")
+    p.add_argument("--out", default="benchmarks/cuda_check.csv")
+    p.add_argument("--steps", type=int, default=30)
+    p.add_argument("--cpu-threads", type=int, nargs="+", default=[2])
+    a = p.parse_args()
+    if not torch.cuda.is_available():
+        raise SystemExit("cuda_check: torch sees no CUDA device")
+    st = resolve(a.preset)
+    data = load_frames(a.record, st.resolution, st.background, st.box_margin)
+    body = load_body_model(a.body)
+    torch.manual_seed(0)
+    model = build_avatar(body, st, load_init(a.init, data), data, 1, torch.device("cpu"))
+    rows = agreement(model, data, st, st.stage1.rays)
+    rows.append(step_time(model, data, st, "cuda", a.steps))
+    for n in a.cpu_threads:
+        torch.set_num_threads(n)
+        rows.append(step_time(model, data, st, "cpu", a.steps))
+    rows.append({"check": "device", "cpu": float("nan"), "cuda": float("nan"), "rel_diff": float("nan"),
+                 "name": torch.cuda.get_device_name()})  # fmt: skip
+    df = pd.DataFrame(rows)
+    df.to_csv(a.out, index=False)
+    with pd.option_context("display.max_rows", 200, "display.width", 200):
+        print(df.to_string(index=False))
+
+
+if __name__ == "__main__":
+    main()

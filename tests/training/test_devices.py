@@ -1,0 +1,64 @@
+"""Device handling: the avatar moves with its body model; CPU-generated samples drive any device.
+
+The CUDA comparison runs where a GPU is present (benchmarks/cuda_check.py does the same on a real
+subject; its CSV is in benchmarks/cuda_check.csv); the rest uses the ``meta`` device, which
+behaves like an accelerator for placement checks.
+"""
+
+import copy
+
+import pytest
+import torch
+
+from delta import losses as L
+from delta.body.model import load_body_model
+from delta.render.volume import stratified_samples
+from delta.training.data import load_frames, sample_rays
+from delta.training.presets import resolve
+from delta.training.run import build_avatar, load_init
+from delta.training.trainer import _to, loss_terms
+
+TINY = {"resolution": 32, "render": {"samples": 8}}
+
+
+def test_samples_drawn_with_a_cpu_generator_are_the_same_on_another_device():
+    near, far = torch.zeros(5), torch.linspace(1, 2, 5)
+    cpu = stratified_samples(near, far, 6, True, torch.Generator().manual_seed(3))
+    other = stratified_samples(near.to("meta"), far.to("meta"), 6, True, torch.Generator().manual_seed(3))
+    assert other.device.type == "meta" and other.shape == cpu.shape
+    again = stratified_samples(near, far, 6, True, torch.Generator().manual_seed(3))
+    assert torch.equal(cpu, again)
+
+
+@pytest.fixture(scope="module")
+def tiny_avatar(tiny_training):
+    inputs = tiny_training["tight"]
+    st = resolve("fast", TINY)
+    data = load_frames(inputs["record"], st.resolution, st.background, st.box_margin)
+    body = load_body_model(inputs["body"])
+    return build_avatar(body, st, load_init(inputs["init"], data), data, 1, torch.device("cpu")), data, st
+
+
+@pytest.mark.slow
+def test_moving_the_avatar_moves_its_body_model(tiny_avatar):
+    model = copy.deepcopy(tiny_avatar[0]).to("meta")
+    body = model.body
+    assert body.v_template.device.type == "meta" and body.weights.device.type == "meta"
+    assert body.faces.device.type == "meta" and model.poses.device.type == "meta"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_losses_and_gradients_match_the_cpu(tiny_avatar):
+    model, data, st = tiny_avatar
+    batch = sample_rays(data, int(data.train[0]), 256, torch.Generator().manual_seed(0))
+    out = {}
+    for dev in ("cpu", "cuda"):
+        m = copy.deepcopy(model).to(dev)
+        terms, _ = loss_terms(m, _to(batch, torch.device(dev)), st, data.skin_color.to(dev),
+                              generator=torch.Generator().manual_seed(1))  # fmt: skip
+        L.total(terms, st.weights).backward()
+        out[dev] = ({k: float(v) for k, v in terms.items()}, m.poses.grad.cpu())
+    for k, v in out["cpu"][0].items():
+        assert out["cuda"][0][k] == pytest.approx(v, rel=1e-4, abs=1e-7), k
+    torch.testing.assert_close(out["cuda"][1], out["cpu"][1], rtol=1e-3, atol=1e-6)
