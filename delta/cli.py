@@ -212,13 +212,15 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
     if args.lpips_alex and len(args.lpips_alex) != 2:
         raise DeltaError("--lpips-alex takes two files: torchvision's AlexNet weights and lpips' alex.pth")
     st = EvalSettings(splits=tuple(args.splits), max_frames=args.max_frames, refine_steps=args.refine_steps,
-                      report_unrefined=not args.refined_only, perceptual_dir=args.perceptual,
+                      supersample=args.supersample, report_unrefined=not args.refined_only,
+                      perceptual_dir=args.perceptual,
                       lpips_alex=tuple(args.lpips_alex) if args.lpips_alex else None)  # fmt: skip
     t0 = time.perf_counter()
     trained = load_trained(args.model, args.record, args.body, args.device)
     df = evaluate(trained, args.record, st, args.gt_meshes, args.subject)
     summary = {"subject": args.subject, "model": args.model, "stage": trained.stage, "preset": trained.preset,
-               "settings": {"splits": list(st.splits), "max_frames": st.max_frames, "refine_steps": st.refine_steps},
+               "settings": {"splits": list(st.splits), "max_frames": st.max_frames, "refine_steps": st.refine_steps,
+                            "supersample": st.supersample},
                "scores": summarize(df)}  # fmt: skip
     if args.gt_meshes:
         summary["train_body_err_mm"] = round(train_body_error_mm(trained, args.gt_meshes), 2)
@@ -421,6 +423,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-frames", type=int, default=0, help="at most this many frames per split (0: all)")
     p.add_argument("--refine-steps", type=int, default=30, help="test-time refinement steps (0: off)")
     p.add_argument("--refined-only", action="store_true", help="with refinement, skip the unrefined rows")
+    from delta.eval.evaluate import EvalSettings
+
+    p.add_argument("--supersample", type=int, default=EvalSettings.supersample,
+                   help="rays a pixel along each axis, averaged (anti-aliased edges; 1: pixel centres)")
     p.add_argument("--perceptual", help="folder with alex_shift_tolerant.pth (ST-LPIPS column)")
     p.add_argument("--lpips-alex", nargs="+", metavar="FILE", help="torchvision AlexNet .pth and lpips alex.pth")
     p.add_argument("--device", default="cpu")

@@ -111,9 +111,17 @@ class RayBatch:
     """The first patch² rays form a patch (row-major), 0 when none."""
 
 
-def sample_rays(data: FrameData, frame: int, num: int, generator: torch.Generator, patch: int = 0) -> RayBatch:
+def sample_rays(data: FrameData, frame: int, num: int, generator: torch.Generator, patch: int = 0,
+                jitter: bool = True) -> RayBatch:  # fmt: skip
     """``num`` random pixels inside the frame's person box (rays elsewhere see only background),
-    preceded by one ``patch``×``patch`` block of neighbouring pixels when ``patch`` > 0."""
+    preceded by one ``patch``×``patch`` block of neighbouring pixels when ``patch`` > 0.
+
+    With ``jitter`` each random ray passes through a uniform point of its pixel, not its centre:
+    a target pixel is the area average of the scene over the pixel (the frames are downsampled
+    photographs), and a ray at a uniform point has that average as its expectation — at the
+    person's edge too, where centre rays would teach a fuzzy silhouette. Patch rays stay at the
+    centres (a regular image for the semantic loss).
+    """
     i0, i1, j0, j1 = data.boxes[frame].tolist()
     ii = torch.randint(i0, i1, (num,), generator=generator)
     jj = torch.randint(j0, j1, (num,), generator=generator)
@@ -124,6 +132,9 @@ def sample_rays(data: FrameData, frame: int, num: int, generator: torch.Generato
         n = data.resolution
         ii = torch.cat([gi.reshape(-1).clamp(max=n - 1), ii])
         jj = torch.cat([gj.reshape(-1).clamp(max=n - 1), jj])
-    pixels = torch.stack([jj.float() + 0.5, ii.float() + 0.5], dim=-1)
+    offset = torch.full((len(ii), 2), 0.5)
+    if jitter:
+        offset[patch * patch :] = torch.rand((num, 2), generator=generator)
+    pixels = torch.stack([jj.float(), ii.float()], dim=-1) + offset
     return RayBatch(frame, pixels, data.images[frame, ii, jj], data.person[frame, ii, jj],
                     data.exterior[frame, ii, jj], data.interior[frame, ii, jj], patch)  # fmt: skip

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
+import json
 import logging
 import sys
 import time
@@ -67,9 +69,30 @@ def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return 10 * np.log10(1.0 / max(mse, 1e-10))
 
 
-def save_checkpoint(path: Path, model, optimizer, step: int, generator: torch.Generator, rows: list) -> None:
+def fingerprint(stage: int, st: TrainSettings, data: FrameData) -> str:
+    """What a checkpoint must have been trained with to be resumed: the stage, its settings, the frames."""
+    key = json.dumps({"stage": stage, "settings": st.raw, "frames": np.asarray(data.frame_ids).tolist(),
+                      "resolution": data.resolution}, sort_keys=True, default=str)  # fmt: skip
+    return hashlib.sha256(key.encode()).hexdigest()[:16]
+
+
+def resumable(state: dict, stage: int, st: TrainSettings, data: FrameData, end: int) -> Optional[str]:
+    """None when ``state`` continues this run, else why it is set aside.
+
+    A checkpoint of other settings or frames is stale; one at the stage's last step belongs to a
+    finished run whose model.pt was removed — a rerun asked for (e.g. ``--forcerun``), which must train.
+    """
+    if state.get("fingerprint") != fingerprint(stage, st, data):
+        return "it was written with other settings or frames"
+    if state["step"] >= end:
+        return "it is the last step of a finished run (the stage's model.pt was removed: a rerun)"
+    return None
+
+
+def save_checkpoint(path: Path, model, optimizer, step: int, generator: torch.Generator, rows: list,
+                    fingerprint: str = "") -> None:  # fmt: skip
     state = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
-             "generator": generator.get_state(), "rows": rows}  # fmt: skip
+             "generator": generator.get_state(), "rows": rows, "fingerprint": fingerprint}  # fmt: skip
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
 
@@ -85,17 +108,22 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
     optimizer = torch.optim.Adam(model.param_groups(cfg.lr), eps=1e-12, foreach=True)
     start, rows = 0, []
     ckpt = out_dir / CHECKPOINT
-    if ckpt.is_file():
-        state = torch.load(ckpt, map_location=device, weights_only=False)
+    end = cfg.iterations if max_steps is None else min(cfg.iterations, max_steps)
+    key = fingerprint(stage, st, data)
+    state = torch.load(ckpt, map_location=device, weights_only=False) if ckpt.is_file() else None
+    stale = resumable(state, stage, st, data, cfg.iterations) if state is not None else None
+    if state is not None and stale is None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         generator.set_state(state["generator"])
         start, rows = state["step"], state["rows"]
         log.info("stage %d: resuming from %s at step %d", stage, ckpt, start)
-    elif model.occupancy is not None:
-        model.occupancy.reset()  # a stage starts with every cell occupied (stage 2 adds F_e, dilates the grid)
+    else:
+        if stale:
+            log.warning("stage %d: not resuming from %s: %s; training from the start", stage, ckpt, stale)
+        if model.occupancy is not None:
+            model.occupancy.reset()  # a stage starts with every cell occupied (stage 2 adds F_e, dilates the grid)
     skin_color = data.skin_color.to(device)
-    end = cfg.iterations if max_steps is None else min(cfg.iterations, max_steps)
     t0, seen = time.time(), 0
     before = rows[-1].get("seconds", 0.0) if rows else 0.0  # wall time of the runs this one resumes
     for step in range(start, end):
@@ -116,7 +144,7 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
         if (step + 1) % cfg.log_every == 0 or step + 1 == end:
             _progress(stage, step + 1, cfg.iterations, rows[-1], seen / (time.time() - t0))
         if (step + 1) % cfg.checkpoint_every == 0 or step + 1 == end:
-            save_checkpoint(ckpt, model, optimizer, step + 1, generator, rows)
+            save_checkpoint(ckpt, model, optimizer, step + 1, generator, rows, key)
         if cfg.preview_every and ((step + 1) % cfg.preview_every == 0 or step + 1 == cfg.iterations):
             write_preview(model, data, int(data.train[0]), out_dir / "previews" / f"step_{step + 1:06d}.png")
     losses = pd.DataFrame(rows)
@@ -165,12 +193,31 @@ def _progress(stage: int, step: int, total: int, row: dict, rate: float) -> None
           f"{rate:.2f} it/s", file=sys.stderr, flush=True)  # fmt: skip
 
 
+def pixel_grid(n: int, supersample: int = 1, device=None) -> torch.Tensor:
+    """(n·n·s², 2) ray positions (u, v): an s×s grid of sub-pixel centres in each pixel, pixels row-major.
+
+    s = 1 gives the pixel centres. Averaging the s² renders of a pixel is the area average a
+    downsampled photograph holds (its edge pixels mix person and background).
+    """
+    s = int(supersample)
+    if s < 1:
+        raise ValueError(f"supersample must be >= 1, got {s}")
+    sub = (torch.arange(s, dtype=torch.float32) + 0.5) / s
+    jj, ii = torch.meshgrid(torch.arange(n, dtype=torch.float32), torch.arange(n, dtype=torch.float32), indexing="xy")
+    du, dv = torch.meshgrid(sub, sub, indexing="xy")
+    u = jj.reshape(-1, 1) + du.reshape(1, -1)
+    v = ii.reshape(-1, 1) + dv.reshape(1, -1)
+    return torch.stack([u.reshape(-1), v.reshape(-1)], -1).to(device)
+
+
 @torch.no_grad()
-def render_image(model: HybridAvatar, frame: int, chunk: int = 4096) -> dict[str, torch.Tensor]:
-    """Full-frame composite, mesh-only, NeRF-only images and NeRF mask, (n, n, ·) each."""
-    n = model.resolution
-    jj, ii = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="xy")
-    pixels = torch.stack([jj.reshape(-1) + 0.5, ii.reshape(-1) + 0.5], -1).float().to(model.background.device)
+def render_image(model: HybridAvatar, frame: int, chunk: int = 4096, supersample: int = 1) -> dict[str, torch.Tensor]:
+    """Full-frame composite, mesh-only, NeRF-only images and NeRF mask, (n, n, ·) each.
+
+    ``supersample`` s renders s² rays a pixel and averages them (anti-aliased edges).
+    """
+    n, s2 = model.resolution, int(supersample) ** 2
+    pixels = pixel_grid(n, supersample, model.background.device)
     mesh = model.posed_mesh(frame)[0]
     perturb = model.spec.render.perturb
     model.spec.render.perturb = False
@@ -182,7 +229,11 @@ def render_image(model: HybridAvatar, frame: int, chunk: int = 4096) -> dict[str
                 parts[k].append(v)
     finally:
         model.spec.render.perturb = perturb
-    return {k: torch.cat(v).reshape(n, n, -1).squeeze(-1).cpu() for k, v in parts.items()}
+    out = {}
+    for k, v in parts.items():
+        x = torch.cat(v)
+        out[k] = x.reshape(n * n, s2, -1).mean(1).reshape(n, n, -1).squeeze(-1).cpu()
+    return out
 
 
 def write_preview(model: HybridAvatar, data: FrameData, frame: int, path: Path) -> None:

@@ -92,6 +92,30 @@ def _resume_equivalence(tiny_training, tmp_path):
     pd.testing.assert_frame_equal(la.drop(columns="seconds"), lc.drop(columns="seconds"))
 
 
+def test_finished_or_stale_checkpoints_are_not_resumed(tiny_training, tmp_path, caplog):
+    """A rerun (model.pt removed, e.g. --forcerun) trains again; so does one with other settings."""
+    st = resolve("fast", TINY)
+    inputs = tiny_training["tight"]
+    model, data = _model(inputs, st)
+    train_stage(1, model, data, st, tmp_path / "run")
+    done = torch.load(tmp_path / "run" / CHECKPOINT, weights_only=False)
+    assert done["step"] == 6 and done["fingerprint"]
+    model_b, _ = _model(inputs, st)
+    with caplog.at_level("WARNING"):
+        res = train_stage(1, model_b, data, st, tmp_path / "run")
+    assert "last step of a finished run" in caplog.text
+    assert list(res.losses["step"]) == list(range(1, 7))  # every step trained again, none resumed
+    assert not torch.equal(model_b.poses, _model(inputs, st)[0].poses)  # and it did train
+    # an interrupted run of other settings is set aside too
+    other = resolve("fast", TINY, {"stage1": {"lr": {"nerf": 1e-3}}})
+    model_c, _ = _model(inputs, other)
+    train_stage(1, model_c, data, other, tmp_path / "other", max_steps=4)
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        res = train_stage(1, _model(inputs, st)[0], data, st, tmp_path / "other")
+    assert "other settings or frames" in caplog.text and list(res.losses["step"]) == list(range(1, 7))
+
+
 def test_both_stages_end_to_end(tiny_training, tmp_path, perceptual_weights):
     inputs = tiny_training["tight"]
     s1 = run_stage(1, inputs["record"], inputs["body"], inputs["init"], str(tmp_path / "stage1"), "fast", [TINY])

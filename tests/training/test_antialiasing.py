@@ -1,0 +1,69 @@
+"""Anti-aliasing: jittered training rays and supersampled renders match area-averaged frames."""
+
+import numpy as np
+import pytest
+import torch
+
+from delta.training.data import sample_rays
+from delta.training.trainer import pixel_grid, render_image
+
+
+def test_pixel_grid_centres_and_subpixels():
+    c = pixel_grid(3)
+    assert c.shape == (9, 2)
+    torch.testing.assert_close(c[:4], torch.tensor([[0.5, 0.5], [1.5, 0.5], [2.5, 0.5], [0.5, 1.5]]))
+    s = pixel_grid(2, supersample=2)
+    assert s.shape == (16, 2)
+    # pixel (row 0, col 1): its four sub-pixel centres, then pixel (row 0, col 0) averages to its centre
+    torch.testing.assert_close(s[4:8], torch.tensor([[1.25, 0.25], [1.75, 0.25], [1.25, 0.75], [1.75, 0.75]]))
+    torch.testing.assert_close(s.reshape(4, 4, 2).mean(1), pixel_grid(2))
+    # the sub-pixel average of an edge at u = 0.6 is the pixel's covered area to within 1/(2s)
+    for k in (1, 2, 4, 8):
+        cover = (pixel_grid(1, supersample=k)[:, 0] < 0.6).float().mean()
+        assert abs(float(cover) - 0.6) <= 0.5 / k + 1e-6
+    with pytest.raises(ValueError, match="supersample"):
+        pixel_grid(2, supersample=0)
+
+
+class _Frames:
+    """Just what sample_rays reads: images indexed (frame, row, col) with a distinct value per pixel."""
+
+    def __init__(self, n=8):
+        v = torch.arange(n * n, dtype=torch.float32).reshape(1, n, n)
+        self.images = v[..., None].expand(1, n, n, 3).clone()
+        self.person = self.exterior = self.interior = v.clone()
+        self.boxes = torch.tensor([[2, 6, 1, 7]])
+        self.resolution = n
+
+
+def test_jittered_rays_pass_through_the_pixel_whose_target_they_carry():
+    data = _Frames()
+    b = sample_rays(data, 0, 4000, torch.Generator().manual_seed(0), patch=3)
+    u, v = b.pixels[:, 0], b.pixels[:, 1]
+    row, col = v.floor().long(), u.floor().long()
+    assert torch.equal(b.rgb[:, 0], data.images[0, row, col, 0])  # the ray lies inside its target pixel
+    frac = b.pixels[9:] - b.pixels[9:].floor()
+    assert 0.45 < float(frac.mean()) < 0.55 and float(frac.std()) > 0.25  # uniform in the pixel, not centred
+    assert torch.equal(b.pixels[:9] - b.pixels[:9].floor(), torch.full((9, 2), 0.5))  # the patch stays regular
+    assert (row >= 2).all() and (row < 6).all() and (col >= 1).all() and (col < 7).all()
+    centred = sample_rays(data, 0, 50, torch.Generator().manual_seed(0), jitter=False)
+    assert torch.equal(centred.pixels - centred.pixels.floor(), torch.full((50, 2), 0.5))
+
+
+@pytest.mark.slow
+def test_supersampled_silhouette_is_fractional_only_at_the_edge(tiny_trained):
+    from delta.training.run import load_trained
+
+    t = tiny_trained["tight"]
+    model = load_trained(t["model"], t["record"], t["body"]).model
+    one = render_image(model, 0)["silhouette"]
+    four = render_image(model, 0, supersample=2)["silhouette"]
+    assert set(np.unique(one.numpy())) <= {0.0, 1.0}
+    levels = np.unique(four.numpy())
+    assert set(np.round(levels * 4, 5)) <= {0, 1, 2, 3, 4} and len(levels) > 2  # coverage in quarters
+    frac = (four > 0) & (four < 1)
+    inner = (one == 1) & ~frac
+    # fractional pixels border the silhouette: each has an empty and a full pixel within one step
+    pad = torch.nn.functional.pad
+    near = lambda m: pad(m[None, None].float(), (1, 1, 1, 1)).unfold(2, 3, 1).unfold(3, 3, 1).amax((-1, -2))[0, 0] > 0  # noqa: E731
+    assert (near(four == 0) | ~frac).all() and inner.any()
