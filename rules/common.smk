@@ -331,8 +331,10 @@ def eval_inputs(wildcards):
     return files
 
 
-def eval_args(wildcards, input):
-    args = f"--max-frames {EVAL['max_frames']} --refine-steps {EVAL['refine_steps']} --splits {' '.join(EVAL['splits'])}"
+def eval_args(wildcards, input, settings=None):
+    settings = settings or EVAL
+    args = (f"--max-frames {settings['max_frames']} --refine-steps {settings['refine_steps']}"
+            f" --supersample {settings['supersample']} --splits {' '.join(settings['splits'])}")  # fmt: skip
     if not EVAL["report_unrefined"]:
         args += " --refined-only"
     if EVAL["lpips_alex"]:
@@ -399,7 +401,14 @@ def variant_spec(variant):
     if variant not in TRADE["variants"]:
         raise ValueError(f"trade-off variant '{variant}' is not configured; configured: {sorted(TRADE['variants'])}")
     spec = dict(TRADE["variants"][variant])
+    spec.pop("subjects", None)
     return spec.pop("preset", None), int(spec.pop("stages", 2)), spec
+
+
+def variant_subjects(dataset, variant):
+    """The swept subjects a variant runs on (its own 'subjects' list narrows the sweep's)."""
+    own = TRADE["variants"][variant].get("subjects") or []
+    return [s for s in tradeoff_subjects(dataset) if not own or s in own]
 
 
 def variant_training(subject, variant):
@@ -413,10 +422,17 @@ def tradeoff_subjects(dataset):
     return TRADE["subjects"] or list(DATASETS[dataset]["subjects"])
 
 
-# every swept variant's settings are checked now, before any job runs
+# every swept variant's settings and subjects are checked now, before any job runs
+_known = {s for d in DATASETS.values() for s in d["subjects"]}
+for _v, _spec in TRADE["variants"].items():
+    _unknown = sorted(set(_spec.get("subjects") or []) - _known)
+    if _unknown:
+        raise ValueError(f"tradeoff.variants.{_v}.subjects: {_unknown} are not subjects of any dataset ({sorted(_known)})")
 for _d in DATASETS:
     for _s in tradeoff_subjects(_d):
         for _v in TRADE["variants"]:
+            if _s not in variant_subjects(_d, _v):
+                continue
             resolve_training(*[variant_training(_s, _v)[0]] + variant_training(_s, _v)[1])
 
 
@@ -424,9 +440,27 @@ def variant_stages(variant):
     return variant_spec(variant)[1]
 
 
+def variant_is_main(subject, variant):
+    """True when a variant trains exactly what the main run trains: its stages are the main run's."""
+    preset, overrides = variant_training(subject, variant)
+    main = subject_training(subject)[0]
+    return preset == main and resolve_training(preset, *overrides).raw == TRAINING[subject].raw
+
+
+def variant_stage_file(kind, stage, **w):
+    """A variant's stage output (``model``, ``losses`` or ``bench``): the main run's when it is the main run."""
+    if variant_is_main(w["subject"], w["variant"]):
+        if kind == "bench":
+            return benchmark_path(f"train_stage{stage}", f"{w['dataset']}_{w['subject']}")
+        return PATHS[f"stage_{kind}"].format(stage=stage, **w)
+    if kind == "bench":
+        return benchmark_path(f"tradeoff_stage{stage}", f"{w['dataset']}_{w['subject']}_{w['variant']}")
+    return PATHS[f"variant_{kind}"].format(stage=stage, **w)
+
+
 def variant_model(wildcards):
     """The model a variant is scored with: its last stage."""
-    return PATHS["variant_model"].format(stage=variant_stages(wildcards.variant), **wildcards)
+    return variant_stage_file("model", variant_stages(wildcards.variant), **wildcards)
 
 
 def variant_stage2_inputs(wildcards):
@@ -457,6 +491,8 @@ def tradeoff_manifest(wildcards):
     out = {}
     for s in tradeoff_subjects(wildcards.dataset):
         for v in TRADE["variants"]:
+            if s not in variant_subjects(wildcards.dataset, v):
+                continue
             w = {"dataset": wildcards.dataset, "subject": s, "variant": v}
             last = variant_stages(v)
             files = {
@@ -464,10 +500,15 @@ def tradeoff_manifest(wildcards):
                 "profile": PATHS["variant_profile"].format(**w),
             }
             for k in range(1, last + 1):
-                files[f"losses{k}"] = PATHS["variant_losses"].format(stage=k, **w)
-                files[f"bench{k}"] = benchmark_path(f"tradeoff_stage{k}", f"{wildcards.dataset}_{s}_{v}")
+                files[f"losses{k}"] = variant_stage_file("losses", k, **w)
+                files[f"bench{k}"] = variant_stage_file("bench", k, **w)
             out.setdefault(s, {})[v] = files
     return out
+
+
+def variant_eval_args(wildcards, input):
+    """The evaluation's arguments with the sweep's own frames, refinement and splits."""
+    return eval_args(wildcards, input, {**EVAL, **TRADE["evaluation"]})
 
 
 def tradeoff_inputs(wildcards):

@@ -41,6 +41,10 @@ use rule train_stage2 as tradeoff_stage2 with:
 use rule evaluate as tradeoff_evaluate with:
     input:
         unpack(variant_eval_inputs),
+    params:
+        args=variant_eval_args,
+        perceptual=lambda w, input: str(Path(input.alex).parent),
+        device=config["device"],
     output:
         metrics=PATHS["variant_metrics"],
         summary=PATHS["variant_summary"],

@@ -1,6 +1,7 @@
 """The Snakemake workflow end to end on the tiny .test configuration."""
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -249,3 +250,25 @@ def test_unconfigured_targets_fail_at_dag_construction(tmp_path, target, message
     res = snakemake(work, target, "--configfile", ".test/config/config.yaml", "--dry-run")
     assert res.returncode != 0
     assert message in res.stdout + res.stderr
+
+
+def test_tradeoff_variants_reuse_the_main_run_and_name_their_subjects(tmp_path):
+    """A variant equal to the main run trains nothing of its own; 'subjects' narrows a variant."""
+    work = workflow_copy(tmp_path)
+    cfg = yaml.safe_load((work / ".test/config/config.yaml").read_text())
+    subjects = sorted(cfg["datasets"]["synthetic"]["subjects"])
+    cfg["tradeoff"] = {"variants": {"fast": {"stages": 1}, "few_rays": {"stages": 1, "subjects": [subjects[0]],
+                                                                        "stage1": {"rays": 64}}}}  # fmt: skip
+    (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
+    res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run")
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out[-3000:]
+    trained = set(re.findall(r"output: results/synthetic/(\w+)/tradeoff/(\w+)/stage1/model\.pt", out))
+    assert {v for _, v in trained} >= {"few_rays"} and "fast" not in {v for _, v in trained}
+    assert {s for s, v in trained if v == "few_rays"} == {subjects[0]}
+    # fast is scored from the main run's stage 1
+    assert all(f"results/synthetic/{s}/stage1/model.pt" in out for s in subjects)
+    cfg["tradeoff"]["variants"]["few_rays"]["subjects"] = ["nobody"]
+    (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
+    res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run")
+    assert res.returncode != 0 and "tradeoff.variants.few_rays.subjects: ['nobody'] are not subjects" in res.stdout + res.stderr
