@@ -515,3 +515,21 @@ def test_avatar_at_extreme_pinhole_frames():
         _assert_every_gradient_finite(model, frame)
         assert finite(model.transl.grad[frame])
     assert not bool(r.hit.any()) and r.samples_evaluated == 0
+
+
+def test_no_culling_builds_no_distance_grid_and_samples_everything_near():
+    """max_dist 10 m (the paper's "no culling"): no metres-wide voxel grid; culling at 0.1 m keeps fewer samples."""
+    import dataclasses
+
+    from delta.models.avatar import GRID_REACH
+
+    cam = OrthographicCamera(torch.tensor([1.5]), torch.zeros(1, 2), 32, 32)
+    model, st_ = tiny_avatar(cam, torch.zeros(1, 3, 3), torch.zeros(1, 3))
+    counts = {}
+    for reach in (0.1, 10.0):
+        model.spec = dataclasses.replace(model.spec, render=dataclasses.replace(model.spec.render, max_dist=reach))
+        skin = model.posed_mesh(0)[0].skinning
+        assert (skin.near is None) == (reach > GRID_REACH)
+        _, r, _ = _frame_losses(model, st_, 0, single_pixel=False)
+        counts[reach] = r.samples_evaluated
+    assert counts[10.0] > counts[0.1] > 0

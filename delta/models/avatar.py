@@ -60,6 +60,11 @@ class InitParams:
     """PinholeCamera (fixed) or OrthographicCamera with (N,) scale, (N, 2) translation."""
 
 
+#: the largest ``render.max_dist`` (m) for which a per-frame distance grid is built (at 0.02 m cells
+#: a 1 m pad is ~10^7 cells, 40 MB; the paper's "no culling" 10 m would be ~10^9)
+GRID_REACH = 1.0
+
+
 def knn_vertex_ids(body: BodyModel, which: str) -> torch.Tensor:
     """Vertices backward skinning searches: ``all``, or ``base`` (those an upsampled mesh kept from its base)."""
     if which == "all" or body.embed_bary is None:
@@ -156,8 +161,11 @@ class HybridAvatar(nn.Module):
             ids = self.knn_ids
             disp = out.rest_vertices[0, ids] - self.body.v_template[ids]
             rs = self.spec.render
+            # a distance grid pays only for culling near the body; with max_dist beyond GRID_REACH (no
+            # culling, the paper's setting) it would cover metres of empty space: the KD-tree answers
+            cell = rs.probe_cell if rs.max_dist <= GRID_REACH else 0.0
             skinning = deformer.prepare(verts[ids], out.vertex_transforms_3x4[0, ids], disp, self.canonical_T[ids],
-                                        self.body.weights[ids], rs.probe_cell, rs.max_dist + 2 * rs.probe_cell)
+                                        self.body.weights[ids], cell, rs.max_dist + 2 * rs.probe_cell)
         mesh = PosedMesh(verts, self.body.faces, self.albedo(), uv, skinning)
         return mesh, offsets, out
 
