@@ -32,7 +32,7 @@ from delta.eval.heldout import refine_frame
 from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import atomic_path
 from delta.training.run import Trained
-from delta.training.trainer import render_image
+from delta.training.trainer import pixel_grid, render_image
 
 log = logging.getLogger(__name__)
 SPLITS = {"train": 0, "test_view": 1, "test_pose": 2}
@@ -89,8 +89,7 @@ def region_masks(record_path: str | Path, frames: list[int], n: int) -> dict[str
 def face_pixels(model, frame: int, mesh_vertices: torch.Tensor) -> torch.Tensor:
     """(n, n) bool: pixel centres whose ray first hits a face / eyes / mouth triangle of the body."""
     n = model.resolution
-    jj, ii = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="xy")
-    pixels = torch.stack([jj.reshape(-1) + 0.5, ii.reshape(-1) + 0.5], -1).float().to(mesh_vertices.device)
+    pixels = pixel_grid(n, device=mesh_vertices.device)
     origins, dirs = model.camera(frame).rays(pixels)
     hits = ray_mesh_hits(mesh_vertices, model.body.faces, origins, dirs)
     labels = model.body.regions[model.body.faces[hits.face.clamp_min(0), 0]]

@@ -20,7 +20,7 @@ from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import atomic_path, save_json
 from delta.models.avatar import HybridAvatar
 from delta.training.run import Trained, load_trained
-from delta.training.trainer import render_image
+from delta.training.trainer import pixel_grid, render_image
 
 log = logging.getLogger(__name__)
 #: Rendered masks are thresholded here (soft silhouette, NeRF opacity).
@@ -61,8 +61,7 @@ def silhouette(model: HybridAvatar, frame: int, parts: list[MeshPart]) -> np.nda
 def rendered_hits(model: HybridAvatar, frame: int) -> np.ndarray:
     """(n, n) bool: the pixels whose rays hit the posed body mesh (the renderer's own ray casting)."""
     n = model.resolution
-    jj, ii = torch.meshgrid(torch.arange(n), torch.arange(n), indexing="xy")
-    pixels = torch.stack([jj.reshape(-1) + 0.5, ii.reshape(-1) + 0.5], -1).to(model.canonical_vertices)
+    pixels = pixel_grid(n).to(model.canonical_vertices)
     mesh = model.posed_mesh(frame)[0]
     origins, dirs = model.camera(frame).rays(pixels)
     return ray_mesh_hits(mesh.vertices, mesh.faces, origins, dirs).hit.reshape(n, n).cpu().numpy()

@@ -76,13 +76,13 @@ def fingerprint(stage: int, st: TrainSettings, data: FrameData) -> str:
     return hashlib.sha256(key.encode()).hexdigest()[:16]
 
 
-def resumable(state: dict, stage: int, st: TrainSettings, data: FrameData, end: int) -> Optional[str]:
-    """None when ``state`` continues this run, else why it is set aside.
+def resumable(state: dict, key: str, end: int) -> Optional[str]:
+    """None when ``state`` continues the run of fingerprint ``key``, else why it is set aside.
 
     A checkpoint of other settings or frames is stale; one at the stage's last step belongs to a
     finished run whose model.pt was removed — a rerun asked for (e.g. ``--forcerun``), which must train.
     """
-    if state.get("fingerprint") != fingerprint(stage, st, data):
+    if state.get("fingerprint") != key:
         return "it was written with other settings or frames"
     if state["step"] >= end:
         return "it is the last step of a finished run (the stage's model.pt was removed: a rerun)"
@@ -111,7 +111,7 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
     end = cfg.iterations if max_steps is None else min(cfg.iterations, max_steps)
     key = fingerprint(stage, st, data)
     state = torch.load(ckpt, map_location=device, weights_only=False) if ckpt.is_file() else None
-    stale = resumable(state, stage, st, data, cfg.iterations) if state is not None else None
+    stale = resumable(state, key, cfg.iterations) if state is not None else None
     if state is not None and stale is None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
