@@ -171,8 +171,14 @@ def cmd_fit_init(args: argparse.Namespace) -> None:
     from delta.fitting.run import run
     from delta.io import save_json
 
+    import json
+
+    from delta.fitting.fit import fit_config
+
     _threads(args.threads)
-    summary = run(args.record, args.body, args.out)
+    settings = json.loads(args.settings)
+    cfg = fit_config(*(settings if isinstance(settings, list) else [settings]), where="--settings")
+    summary = run(args.record, args.body, args.out, cfg=cfg)
     save_json(Path(args.out) / "summary.json", summary)
 
 
@@ -369,6 +375,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--record", required=True)
     p.add_argument("--body", required=True)
     p.add_argument("--out", required=True)
+    p.add_argument("--settings", default="{}",
+                   help="JSON object (or list of objects) of FitConfig fields (delta/fitting/fit.py), applied in order")
     p.add_argument("--threads", type=int, default=1)
     p.set_defaults(func=cmd_fit_init)
 

@@ -4,6 +4,7 @@ from pathlib import Path
 
 from delta.config import validate_config
 from delta.data.sources import PROVIDES
+from delta.fitting.fit import fit_config
 from delta.synthetic.spec import parse_subject
 from delta.training.presets import resolve as resolve_training
 
@@ -201,6 +202,28 @@ def record_targets():
         for s in spec["subjects"]
         for k in ("record", "init_params", "stage_model")
     ]
+
+
+# ------------------------------------------------------------- init fitting
+FIT = config["fitting"]
+_all_subjects = {s for spec in DATASETS.values() for s in spec["subjects"]}
+if set(FIT["subjects"]) - _all_subjects:
+    raise ValueError(f"fitting.subjects names {sorted(set(FIT['subjects']) - _all_subjects)}, "
+                        f"not configured subjects {sorted(_all_subjects)}")  # fmt: skip
+
+
+def subject_fit_settings(subject):
+    """[settings, subject's own] FitConfig overrides of a subject."""
+    return [FIT["settings"], FIT["subjects"].get(subject, {})]
+
+
+# every subject's fit settings are checked now, before any job runs
+for _s in _all_subjects:
+    fit_config(*subject_fit_settings(_s), where=f"fitting (subject '{_s}')")
+
+
+def fit_settings_json(wildcards):
+    return json.dumps(subject_fit_settings(wildcards.subject), sort_keys=True)
 
 
 # ------------------------------------------------------------- training

@@ -10,6 +10,7 @@ rule fit_init:
         report=PATHS["init_report"],
     params:
         out=lambda w: str(Path(PATHS["init_params"].format(**w)).parent),
+        settings=fit_settings_json,
     conda:
         "../workflow/envs/delta.yaml"
     log:
@@ -22,4 +23,4 @@ rule fit_init:
         runtime=60,
     shell:
         "delta fit-init --record {input.record} --body {input.body} --out {params.out}"
-        " --threads {threads} > {log} 2>&1"
+        " --settings '{params.settings}' --threads {threads} > {log} 2>&1"

@@ -165,6 +165,9 @@ def test_model_steps_run_only_where_the_dataset_ships_nothing(tmp_path):
         ("datasets:\n  clips:\n    root: videos\n    subjects: {a: {}}\n",
          ["'datasets.clips.kind' is required"]),
         ("preprocess:\n  matting: {model: rvm, path: nowhere/rvm.onnx}\n", ["preprocess.matting.path", "nowhere/rvm.onnx"]),
+        ("fitting:\n  subjects: {loose: {exterior_fil: 0.1}}\n", ["fitting (subject 'loose')", "unknown key 'exterior_fil'"]),
+        ("fitting:\n  settings: {iterations: [10, 10]}\n", ["'iterations' must be three step counts"]),
+        ("fitting:\n  subjects: {lose: {}}\n", ["fitting.subjects names ['lose']"]),
     ],
 )  # fmt: skip
 def test_config_problems_are_explained_at_dag_construction(tmp_path, config_text, messages):

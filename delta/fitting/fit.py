@@ -1,7 +1,8 @@
 """Staged, batched fitting of shared shape, per-frame pose and camera to 2D keypoints and person masks.
 
 Stage 1 fits the global orientation and translation (pinhole) or the per-frame
-scaled-orthographic camera to the torso keypoints; stage 2 adds the body pose
+scaled-orthographic camera to the torso keypoints, from several headings a frame
+(the best-fitting one is kept: a subject facing away is not a mirror image); stage 2 adds the body pose
 with its priors (per-joint pose prior, knee bend prior, joint-angle limits);
 stage 3 adds the shared shape, temporal smoothness and, when masks are given,
 the silhouette of a coarse body mesh. Frames with too few confident keypoints
@@ -13,9 +14,12 @@ parameters a dataset provides for the same model) only stage 3 runs, from them.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import torch
+from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 
+from delta import DeltaError
 from delta.body.keypoints import KeypointMap
 from delta.body.lbs import batch_rodrigues, rigid_transforms, skin
 from delta.body.model import BodyModel
@@ -23,7 +27,7 @@ from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.fitting import silhouette as sil
 from delta.fitting import terms
 from delta.fitting.limits import joint_limits
-from delta.fitting.start import TORSO, facing_orientation, init_ortho_scale, init_translation, interpolate
+from delta.fitting.start import FACE, TORSO, facing_orientation, init_ortho_scale, init_translation, interpolate
 
 
 @dataclasses.dataclass
@@ -37,6 +41,9 @@ class FitConfig:
     bend_weight: float = 1.0
     limit_weight: float = 100.0
     """Joint-angle limits (limits.py), per squared radian beyond the range."""
+    unobserved_weight: float = 10.0
+    """Holds at rest, per squared radian, the rotations no keypoint sees (``unobserved_projectors``);
+    left free they follow the silhouette's noise (wrists and feet turned 0.3 rad on the synthetic subjects)."""
     smooth_weight: float = 0.05
     min_keypoints: int = 4
     conf_threshold: float = 0.3
@@ -47,9 +54,44 @@ class FitConfig:
     sil_sigma: float = 0.3
     """Softness of the rasterised silhouette (grid pixels²)."""
     sil_fill: float = 1.0
-    """Weight of mask pixels the body leaves uncovered (below 1: loose clothing and hair)."""
+    """Weight of mask pixels the body leaves uncovered (skin and, without an exterior mask, everything)."""
+    facing_starts: int = 8
+    """Stage 1 starts each frame from this many headings (turns about the body's vertical, evenly spaced)
+    and keeps the one whose keypoints fit best: one start from the camera-facing pose falls into the
+    mirror minimum when the subject faces away. 1: only the camera-facing start."""
+    exterior_fill: float = 1.0
+    """The same weight on exterior pixels (clothing, hair) when the fit is given their mask: 1 treats them
+    as body (tight clothing); near 0 lets the body stay inside them (a dress, long hair)."""
     sil_cell: float = 0.03
     """Vertex-clustering cell (metres) of the coarse silhouette mesh."""
+
+
+def fit_config(*overrides: dict, where: str = "fitting") -> FitConfig:
+    """FitConfig from the defaults with ``overrides`` (dicts of its field names) applied in order.
+
+    Unknown keys and values of the wrong kind raise a DeltaError naming ``where`` and the key.
+    """
+    fields = {f.name: f for f in dataclasses.fields(FitConfig)}
+    values: dict = {}
+    for over in overrides:
+        for key, value in (over or {}).items():
+            if key not in fields:
+                raise DeltaError(f"{where}: unknown key '{key}' (known: {', '.join(sorted(fields))})")
+            default = getattr(FitConfig, key)
+            if key == "iterations":
+                if not (isinstance(value, (list, tuple)) and len(value) == 3
+                        and all(isinstance(v, int) and v >= 0 for v in value)):  # fmt: skip
+                    raise DeltaError(f"{where}: 'iterations' must be three step counts >= 0, got {value!r}")
+                value = tuple(value)
+            elif isinstance(default, int) and not isinstance(default, bool):
+                if not isinstance(value, int) or isinstance(value, bool):
+                    raise DeltaError(f"{where}: '{key}' must be an integer, got {value!r}")
+            elif not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+                raise DeltaError(f"{where}: '{key}' must be a finite number, got {value!r}")
+            if isinstance(value, (int, float)) and value < 0:
+                raise DeltaError(f"{where}: '{key}' must be >= 0, got {value!r}")
+            values[key] = value
+    return FitConfig(**values)
 
 
 @dataclasses.dataclass
@@ -115,6 +157,27 @@ class KeypointModel(PosedPoints):
         return super().__call__(betas, pose, transl)[0]
 
 
+def unobserved_projectors(kp_model: KeypointModel, num_shape: int, num_joints: int, tol: float = 1e-6) -> torch.Tensor:
+    """(J, 3, 3) projectors onto each joint's rotations that move no keypoint, at the rest pose and mean shape.
+
+    Joint j's block of the keypoints' Jacobian with respect to its axis-angle gives a 3 x 3 Gram matrix;
+    its eigenvectors with eigenvalues below ``tol`` times the largest of any joint span what the
+    keypoints cannot see: all three axes of a wrist, a foot or a finger (OpenPose-18 has no point
+    beyond them), the twist of a straight limb about its bone. The root is left out (0).
+    """
+    betas = torch.zeros(num_shape, dtype=torch.float64)
+    transl = torch.zeros(1, 3, dtype=torch.float64)
+    rest = torch.zeros(1, num_joints, 3, dtype=torch.float64)
+    jac = torch.autograd.functional.jacobian(lambda p: kp_model(betas, p, transl), rest)  # (1, K, 3, 1, J, 3)
+    blocks = jac.reshape(-1, num_joints, 3).permute(1, 0, 2)  # (J, 3K, 3)
+    gram = blocks.transpose(1, 2) @ blocks  # (J, 3, 3)
+    vals, vecs = torch.linalg.eigh(gram)
+    blind = (vals < tol * vals.max()).to(torch.float64)  # (J, 3)
+    proj = vecs @ torch.diag_embed(blind) @ vecs.transpose(1, 2)
+    proj[0] = 0.0
+    return proj
+
+
 def _project(camera, pinhole: bool, cam_params: list[torch.Tensor], points: torch.Tensor) -> torch.Tensor:
     if pinhole:
         return camera.project(points)[0]
@@ -123,8 +186,11 @@ def _project(camera, pinhole: bool, cam_params: list[torch.Tensor], points: torc
 
 def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, cfg: FitConfig = FitConfig(),
         pose_weights: torch.Tensor | None = None, knees: list[int] = (), masks: torch.Tensor | None = None,
-        start: FitStart | None = None) -> FitResult:  # fmt: skip
+        start: FitStart | None = None, exterior: torch.Tensor | None = None) -> FitResult:  # fmt: skip
     """Fit β, θ_f and the camera to (F, 18, 3) keypoint detections and optional (F, H, W) person masks.
+
+    ``exterior`` (F, H, W), the part of the person masks that is clothing or hair, gets the
+    ``cfg.exterior_fill`` weight when the body leaves it uncovered.
 
     ``camera`` is a PinholeCamera (static; the body moves) or an OrthographicCamera whose per-frame
     scale and translation are fitted (its own values are the start when ``start`` is given).
@@ -137,12 +203,15 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     use_sil = masks is not None and cfg.sil_weight > 0
     small = sil.downsample_masks(masks, cfg.sil_size) if masks is not None else None
     empty = small.flatten(1).amax(-1) <= 0 if small is not None else torch.zeros(F, dtype=torch.bool)
+    outer = sil.downsample_masks(exterior, cfg.sil_size) if use_sil and exterior is not None else None
+    fill = sil.fill_weights(outer, cfg.sil_fill, cfg.exterior_fill)
     flagged = few | empty
     detected[flagged, :, 2] = 0.0
     coarse = sil.coarse_mesh(model, cfg.sil_cell) if use_sil else None
     points = PosedPoints(model, kp_map, coarse.vertex_ids if use_sil else None)
     pose_weights = torch.ones(J, dtype=torch.float64) if pose_weights is None else pose_weights
     lo, hi = joint_limits(model)
+    blind = unobserved_projectors(KeypointModel(model, kp_map), model.num_shape, J) if cfg.unobserved_weight > 0 else None
     pinhole = isinstance(camera, PinholeCamera)
     if start is not None:
         betas = start.betas.to(torch.float64).clone()
@@ -163,6 +232,8 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
             log_scale = init_ortho_scale(kp0, detected, camera.height).log()
             trans = torch.zeros(F, 2, dtype=torch.float64)
         cam_params = [log_scale.requires_grad_(), trans.requires_grad_()]
+    if start is None and cfg.iterations[0] > 0:
+        _best_heading(KeypointModel(model, kp_map), camera, pinhole, detected, betas, pose, transl, cam_params, cfg)
     for t in (betas, pose, transl):
         t.requires_grad_()
     image_size = (camera.width, camera.height)
@@ -177,17 +248,19 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
             total = total + cfg.pose_weight * terms.pose_prior(pose[:, 1:], pose_weights[1:]).sum() * cfg.sigma_px
             total = total + cfg.bend_weight * terms.bend_prior(pose, list(knees), 0, 1.0).sum()
             total = total + cfg.limit_weight * terms.joint_limit_prior(pose, lo, hi).sum()
+            if blind is not None:
+                total = total + cfg.unobserved_weight * terms.subspace_prior(pose, blind).sum()
         if stage > 1:
             total = total + cfg.shape_weight * terms.shape_prior(betas) * F * cfg.sigma_px
             total = total + cfg.smooth_weight * cfg.sigma_px * (terms.smoothness(pose) + terms.smoothness(transl))
             if use_sil:
                 uv = _project(camera, pinhole, cam_params, verts)
                 rendered = sil.frames_silhouette(uv, coarse.faces, cfg.sil_size, image_size, cfg.sil_sigma, masks=small)
-                total = total + cfg.sil_weight * (sil_w * sil.silhouette_term(rendered, small, cfg.sil_fill)).sum()
+                total = total + cfg.sil_weight * (sil_w * sil.silhouette_term(rendered, small, fill)).sum()
         return total
 
     stages = list(enumerate(cfg.iterations))
-    for stage, steps in stages[2:] if start is not None else stages:
+    for stage, steps in stages[2:] if start is not None else stages[1:]:
         params = [transl] * pinhole + cam_params + [pose] + [betas] * (stage > 1)
         opt = torch.optim.Adam(params, lr=cfg.lr)
         for _ in range(steps):
@@ -196,10 +269,44 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
             value.backward()
             for p in params:  # a non-finite gradient (degenerate geometry) must not poison the parameters
                 torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
-            if stage == 0:  # only the global orientation moves in the first stage
-                pose.grad[:, 1:] = 0
             opt.step()
     return _result(points, betas, pose, transl, camera, cam_params, detected, few, empty)
+
+
+def _best_heading(kp_model: KeypointModel, camera, pinhole: bool, detected: torch.Tensor, betas: torch.Tensor,
+                  pose: torch.Tensor, transl: torch.Tensor, cam_params: list[torch.Tensor], cfg: FitConfig) -> None:
+    """Stage 1, in place: the global orientation and camera (or translation) fitted to the torso keypoints
+    from ``cfg.facing_starts`` headings a frame at once (F x H problems in one batch); each frame keeps
+    the heading whose torso and face keypoints (the face tells front from back and left from right
+    turns) reproject best; the limbs, still at rest here, do not vote."""
+    F, H = pose.shape[0], max(cfg.facing_starts, 1)
+    yaw = torch.arange(H, dtype=torch.float64) * (2 * math.pi / H)
+    turn = batch_rodrigues(torch.stack([torch.zeros_like(yaw), yaw, torch.zeros_like(yaw)], -1))  # (H, 3, 3)
+    rot = batch_rodrigues(pose[:, 0])[:, None] @ turn[None]  # (F, H, 3, 3): turned about the body's own up axis
+    root = rotation_matrix_to_axis_angle(rot.reshape(F * H, 3, 3)).requires_grad_()
+    rest = torch.zeros(F * H, pose.shape[1] - 1, 3, dtype=torch.float64)
+    many = lambda t: t.repeat_interleave(H, 0).detach().clone().requires_grad_()  # noqa: E731
+    tr, cams = many(transl), [many(c) for c in cam_params]
+    det = detected.repeat_interleave(H, 0)
+    torso = det * _torso_mask(det)
+    params = [root] + [tr] * pinhole + cams
+    opt = torch.optim.Adam(params, lr=cfg.lr)
+    for _ in range(cfg.iterations[0]):
+        opt.zero_grad()
+        kp = kp_model(betas, torch.cat([root[:, None], rest], 1), tr)
+        terms.keypoint_term(_project(camera, pinhole, cams, kp), torso, cfg.sigma_px).sum().backward()
+        for p in params:
+            torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+        opt.step()
+    with torch.no_grad():
+        kp = kp_model(betas, torch.cat([root[:, None], rest], 1), tr)
+        rigid = det * _torso_mask(det, with_face=True)
+        score = terms.keypoint_term(_project(camera, pinhole, cams, kp), rigid, cfg.sigma_px).reshape(F, H)
+        best = torch.arange(F) * H + score.nan_to_num(float("inf")).argmin(1)
+        pose[:, 0] = root.detach()[best]
+        transl.copy_(tr.detach()[best])
+        for c, many_c in zip(cam_params, cams):
+            c.data.copy_(many_c.detach()[best])
 
 
 def _result(points, betas, pose, transl, camera, cam_params, detected, few, empty) -> FitResult:
@@ -220,7 +327,7 @@ def _result(points, betas, pose, transl, camera, cam_params, detected, few, empt
     return FitResult(betas.detach(), pose_f, transl_f, cam_f, flagged, few, empty, residual)
 
 
-def _torso_mask(detected: torch.Tensor) -> torch.Tensor:
+def _torso_mask(detected: torch.Tensor, with_face: bool = False) -> torch.Tensor:
     mask = torch.zeros_like(detected)
-    mask[:, list(TORSO)] = 1.0
+    mask[:, list(TORSO) + list(FACE) * with_face] = 1.0
     return mask

@@ -48,6 +48,18 @@ def dataset_start(rec: FrameRecord, model) -> FitStart | None:
     return FitStart(betas[: model.num_shape], poses, transl)
 
 
+EXTERIOR = ("clothing", "hair")
+"""Record masks whose pixels the fit's silhouette term weighs with ``exterior_fill``."""
+
+
+def exterior_masks(rec: FrameRecord) -> np.ndarray | None:
+    """(N, H, W) uint8 union of the record's clothing and hair masks, or None when it has neither."""
+    present = [rec.h5[k][:] for k in EXTERIOR if k in rec.h5]
+    if not present:
+        return None
+    return np.maximum.reduce(present) if len(present) > 1 else present[0]
+
+
 def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, overlays: int = 4,
         cfg: FitConfig = FitConfig()) -> dict:  # fmt: skip
     """Fit and write ``params.npz``, ``report.csv`` (per-frame residuals and flags) and overlay PNGs."""
@@ -67,7 +79,8 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
         frame_ids = rec.h5["frame_ids"][:]
         knees = [model.joint_names.index(n) for n in _KNEES if n in model.joint_names]
         masks = rec.h5["person"][:]
-        res = fit(model, kp_map, detected, camera, cfg, knees=knees, masks=masks, start=start)
+        exterior = exterior_masks(rec)
+        res = fit(model, kp_map, detected, camera, cfg, knees=knees, masks=masks, start=start, exterior=exterior)
         cam = {"camera_model": np.array(rec.h5.attrs["camera_model"])}
         if isinstance(res.camera, OrthographicCamera):
             cam.update(ortho_scale=res.camera.scale.numpy(), ortho_trans=res.camera.trans.numpy())

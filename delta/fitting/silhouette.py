@@ -136,15 +136,24 @@ def frames_silhouette(uv: torch.Tensor, faces: torch.Tensor, size: int, image_si
     return out.reshape(F, size, size)
 
 
-def silhouette_term(rendered: torch.Tensor, masks: torch.Tensor, fill_weight: float = 1.0) -> torch.Tensor:
-    """(F,) mean squared coverage error per frame: model outside the mask costs 1, mask left uncovered ``fill_weight``.
+def silhouette_term(rendered: torch.Tensor, masks: torch.Tensor, fill: float | torch.Tensor = 1.0) -> torch.Tensor:
+    """(F,) mean squared coverage error per frame: model outside the mask costs 1, mask left uncovered ``fill``.
 
-    A weight below 1 on the uncovered part tolerates loose clothing and hair, which the mask
-    includes and the body mesh does not.
+    ``fill`` is a number or a per-pixel (F, r, r) weight (``fill_weights``): below 1 it tolerates
+    loose clothing and hair, which the person mask includes and the body mesh does not.
     """
     diff = rendered - masks
-    w = torch.where(diff > 0, torch.ones_like(diff), torch.full_like(diff, fill_weight))
+    fill = torch.as_tensor(fill, dtype=diff.dtype).expand_as(diff)
+    w = torch.where(diff > 0, torch.ones_like(diff), fill)
     return (w * diff.square()).flatten(1).mean(-1)
+
+
+def fill_weights(exterior: torch.Tensor | None, fill: float, exterior_fill: float) -> torch.Tensor | float:
+    """Per-pixel weight of mask pixels the body leaves uncovered: ``exterior_fill`` on exterior (clothing, hair)
+    coverage (F, r, r) in [0, 1], ``fill`` elsewhere; just ``fill`` without an exterior mask."""
+    if exterior is None:
+        return fill
+    return fill + (exterior_fill - fill) * exterior
 
 
 def soft_iou(rendered: torch.Tensor, masks: torch.Tensor) -> torch.Tensor:

@@ -13,6 +13,7 @@ from delta.body.keypoints import OPENPOSE18
 from delta.cameras.models import PinholeCamera
 
 TORSO = tuple(OPENPOSE18.index(n) for n in ("neck", "right_shoulder", "left_shoulder", "right_hip", "left_hip"))
+FACE = tuple(OPENPOSE18.index(n) for n in ("nose", "right_eye", "left_eye", "right_ear", "left_ear"))
 
 
 def facing_orientation(camera) -> torch.Tensor:

@@ -41,6 +41,15 @@ def pose_prior(pose: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
     return (pose.square().sum(-1) * weights).sum(-1)
 
 
+def subspace_prior(pose: torch.Tensor, projectors: torch.Tensor) -> torch.Tensor:
+    """Σ_j |P_j θ_j|²: the part of each joint's rotation in the subspace its (J, 3, 3) projector keeps.
+
+    With the projectors onto the rotations that move no keypoint (``unobserved_projectors``) it holds
+    what the keypoints cannot see (a wrist's or foot's turn, a straight limb's twist) at rest; (F, J, 3) -> (F,).
+    """
+    return torch.einsum("jab,fjb->fja", projectors, pose).square().flatten(1).sum(-1)
+
+
 def bend_prior(pose: torch.Tensor, joints: list[int], axis: int, sign: float) -> torch.Tensor:
     """Hinge joints bend one way only: penalise exp of the wrong-way angle (SMPLify's angle prior).
 

@@ -50,7 +50,7 @@ def test_frames_silhouette_hard_squares_per_frame():
     torch.testing.assert_close(out, expect, atol=1e-6, rtol=0)
     # term and IoU: frame 0's mask is the full image -> half uncovered; frame 1's mask is exact
     masks = torch.stack([torch.ones(8, 8), expect[1]]).double()
-    torch.testing.assert_close(sil.silhouette_term(out, masks, fill_weight=0.5), torch.tensor([0.25, 0.0], dtype=torch.float64), atol=1e-6, rtol=0)
+    torch.testing.assert_close(sil.silhouette_term(out, masks, fill=0.5), torch.tensor([0.25, 0.0], dtype=torch.float64), atol=1e-6, rtol=0)
     torch.testing.assert_close(sil.soft_iou(out, masks), torch.tensor([0.5, 1.0], dtype=torch.float64), atol=1e-6, rtol=0)
 
 

@@ -1,0 +1,59 @@
+"""The fit's start from several headings (a subject facing away) and its prior on rotations no keypoint sees."""
+
+import math
+
+import torch
+
+from delta.body.lbs import batch_rodrigues
+from delta.cameras.models import OrthographicCamera
+from delta.fitting import terms
+from delta.fitting.fit import FitConfig, KeypointModel, fit, unobserved_projectors
+from tests.fitting.test_robust import keypoints
+
+D = torch.float64
+
+
+def heading_error_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    rel = batch_rodrigues(a).transpose(-1, -2) @ batch_rodrigues(b)
+    return torch.rad2deg(torch.arccos(((rel.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)))
+
+
+def test_subjects_facing_away_or_turned_are_found_from_several_headings(body):
+    model, kp_map = body
+    yaws = torch.tensor([math.pi, 0.75 * math.pi, -0.6 * math.pi, 0.3], dtype=D)
+    pose = torch.zeros(4, model.num_joints, 3, dtype=D)
+    pose[:, 0, 1] = yaws
+    cam = OrthographicCamera(torch.full((4,), 0.9, dtype=D), torch.zeros(4, 2, dtype=D), 256, 256)
+    detected = keypoints(model, kp_map, cam, pose)
+    template = OrthographicCamera(torch.tensor(1.0, dtype=D), torch.zeros(2, dtype=D), 256, 256)
+    cfg = FitConfig(iterations=(80, 0, 0), sil_weight=0.0)
+    res = fit(model, kp_map, detected, template, cfg)
+    assert heading_error_deg(res.pose[:, 0], pose[:, 0]).max() < 10.0
+    assert res.residual_px.max() < 1.0
+    # the single camera-facing start stays in wrong minima (here 28, 86, 140 and 34 degrees off)
+    one = fit(model, kp_map, detected, template, FitConfig(iterations=(80, 0, 0), sil_weight=0.0, facing_starts=1))
+    assert heading_error_deg(one.pose[:, 0], pose[:, 0]).max() > 90.0
+
+
+def test_unobserved_projectors_find_what_openpose_cannot_see(body):
+    model, kp_map = body
+    proj = unobserved_projectors(KeypointModel(model, kp_map), model.num_shape, model.num_joints)
+    rank = proj.diagonal(dim1=1, dim2=2).sum(-1).round()
+    names = model.joint_names
+    for name in ("wrist.L", "foot.R", "wrist.R"):  # nothing beyond them: blind in all three axes
+        assert rank[names.index(name)] == 3, name
+    for name in ("root", "upperleg01.L", "spine03", "upperarm01.R", "head"):  # they move keypoints
+        assert rank[names.index(name)] == 0, name
+    assert rank[names.index("lowerleg01.L")] == 1  # a straight shin's twist about itself
+    torch.testing.assert_close(proj @ proj, proj)  # projectors
+    # a blind rotation moves no keypoint; the prior charges exactly its size
+    kp = KeypointModel(model, kp_map)
+    zero = torch.zeros(1, model.num_joints, 3, dtype=D)
+    turned = zero.clone()
+    turned[0, names.index("lowerleg01.L")] = 0.3 * proj[names.index("lowerleg01.L")] @ torch.tensor([0.6, 0.8, 0.0], dtype=D)
+    turned[0, names.index("wrist.R")] = torch.tensor([0.2, -0.1, 0.3], dtype=D)
+    betas, transl = torch.zeros(model.num_shape, dtype=D), torch.zeros(1, 3, dtype=D)
+    moved = (kp(betas, turned, transl) - kp(betas, zero, transl)).norm(dim=-1).max()
+    assert moved < 2e-3  # metres: second order in the angle for the shin, none at all for the wrist
+    expect = turned[0, names.index("lowerleg01.L")].square().sum() + 0.14
+    torch.testing.assert_close(terms.subspace_prior(turned, proj), expect[None])
