@@ -52,7 +52,9 @@ class FitConfig:
     sil_size: int = 64
     """Resolution (pixels a side) the masks and the mesh are compared at."""
     sil_sigma: float = 0.3
-    """Softness of the rasterised silhouette (grid pixels²)."""
+    """Softness of the rasterised silhouette (grid pixels², of the supersampled grid)."""
+    sil_supersample: int = 1
+    """Points a pixel side the silhouette is rendered at, then area-averaged like the masks."""
     sil_fill: float = 1.0
     """Weight of mask pixels the body leaves uncovered (skin and, without an exterior mask, everything)."""
     facing_starts: int = 8
@@ -252,10 +254,12 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
                 total = total + cfg.unobserved_weight * terms.subspace_prior(pose, blind).sum()
         if stage > 1:
             total = total + cfg.shape_weight * terms.shape_prior(betas) * F * cfg.sigma_px
-            total = total + cfg.smooth_weight * cfg.sigma_px * (terms.smoothness(pose) + terms.smoothness(transl))
+            total = total + cfg.smooth_weight * cfg.sigma_px * (terms.rotation_smoothness(pose[:, 0]) + terms.smoothness(pose[:, 1:])
+                                                         + terms.smoothness(transl))  # fmt: skip
             if use_sil:
                 uv = _project(camera, pinhole, cam_params, verts)
-                rendered = sil.frames_silhouette(uv, coarse.faces, cfg.sil_size, image_size, cfg.sil_sigma, masks=small)
+                rendered = sil.frames_silhouette(uv, coarse.faces, cfg.sil_size, image_size, cfg.sil_sigma,
+                                                 masks=small, supersample=cfg.sil_supersample)  # fmt: skip
                 total = total + cfg.sil_weight * (sil_w * sil.silhouette_term(rendered, small, fill)).sum()
         return total
 

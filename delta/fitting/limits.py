@@ -4,7 +4,9 @@ Poses are axis-angle in world-aligned joint axes (y up, the body faces +z at zer
 rotation, left = +x). Near the rest pose each component is close to a rotation about
 that world axis, so a box [lo, hi] per component is a serviceable limit: knees bend
 about +x only, elbows about ∓y (left/right) only, the spine and neck move a little,
-twist and helper bones hardly at all. Joints without a rule are unlimited (±π).
+twist and helper bones hardly at all. Joints without a rule are unlimited (±π); the root
+(the global orientation) is not limited at all: a subject turning round has headings
+beyond π, and an axis-angle written past π is the same rotation.
 Ranges are in radians; the penalty is quadratic beyond them (terms.joint_limit_prior).
 """
 
@@ -50,6 +52,7 @@ def joint_limits(model: BodyModel) -> tuple[torch.Tensor, torch.Tensor]:
     rules = _RULES.get(model.name.split("_sub")[0], [])
     lo = torch.full((model.num_joints, 3), _FREE[0], dtype=torch.float64)
     hi = torch.full((model.num_joints, 3), _FREE[1], dtype=torch.float64)
+    lo[0], hi[0] = -math.inf, math.inf
     for j, name in enumerate(model.joint_names):
         if j == 0:
             continue

@@ -111,8 +111,13 @@ def _active_pixels(g: torch.Tensor, grid: torch.Tensor, masks: torch.Tensor | No
 
 
 def frames_silhouette(uv: torch.Tensor, faces: torch.Tensor, size: int, image_size: tuple[int, int],
-                      sigma: float = 0.05, k: int = 8, masks: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
+                      sigma: float = 0.05, k: int = 8, masks: torch.Tensor | None = None,
+                      supersample: int = 1) -> torch.Tensor:  # fmt: skip
     """Soft silhouettes (F, size, size) of F projected meshes uv (F, V, 2) in one batched call.
+
+    ``supersample`` s > 1 renders s x s points a pixel (``sigma`` then in those finer pixels) and
+    averages them: the pixel's covered area, as ``downsample_masks`` gives the masks' (one point a
+    pixel is all or nothing across a limb thinner than a pixel and biases the fitted size).
 
     uv is rescaled to the grid (one unit a grid pixel); ``sigma`` is in grid pixels².
     Frames sit side by side on a canvas, 4 ``size`` apart, so no frame's triangles are
@@ -121,6 +126,10 @@ def frames_silhouette(uv: torch.Tensor, faces: torch.Tensor, size: int, image_si
     the box around a frame's vertices (and its ``masks`` (F, size, size), when given) are
     evaluated; the rest are 0 (they lie farther than a pixel from every triangle).
     """
+    if supersample > 1:
+        fine = None if masks is None else masks.repeat_interleave(supersample, -1).repeat_interleave(supersample, -2)
+        out = frames_silhouette(uv, faces, size * supersample, image_size, sigma, k, fine)
+        return torch.nn.functional.avg_pool2d(out[:, None], supersample)[:, 0]
     F, V = uv.shape[:2]
     W, H = image_size
     g = (uv * torch.tensor([size / W, size / H], dtype=uv.dtype)).clamp(-size, 2 * size)

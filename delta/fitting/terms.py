@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import torch
 
+from delta.body.lbs import batch_rodrigues
+
 
 def gmof(residual: torch.Tensor, sigma: float) -> torch.Tensor:
     """Geman-McClure robust penalty of (..., D) residuals: ρ(r) = σ² |r|² / (σ² + |r|²), per point.
@@ -66,6 +68,19 @@ def smoothness(x: torch.Tensor) -> torch.Tensor:
     if x.shape[0] < 2:
         return x.new_zeros(())
     return (x[1:] - x[:-1]).square().flatten(1).sum(-1).sum()
+
+
+def rotation_smoothness(axis_angle: torch.Tensor) -> torch.Tensor:
+    """Σ ½ |R_{f+1} - R_f|²_F over consecutive frames of (F, 3) rotations (≈ Σ Δθ² for small steps).
+
+    On rotation matrices, not axis-angle vectors: a subject turning through 180 degrees has
+    neighbouring headings written (0, 3.1, 0) and (0, -3.1, 0), close as rotations and 6.2 apart
+    as vectors, which the vector difference would tear apart.
+    """
+    if axis_angle.shape[0] < 2:
+        return axis_angle.new_zeros(())
+    R = batch_rodrigues(axis_angle)
+    return 0.5 * (R[1:] - R[:-1]).square().sum((-1, -2)).sum()
 
 
 def joint_limit_prior(pose: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:

@@ -60,6 +60,15 @@ def test_downsample_masks_area_average():
     torch.testing.assert_close(sil.downsample_masks(m, 2), torch.tensor([[[1.0, 0.0], [0.0, 0.0]]], dtype=torch.float64))
 
 
+def test_the_root_is_not_limited(body):
+    model, _ = body
+    lo, hi = joint_limits(model)
+    assert torch.isinf(lo[0]).all() and torch.isinf(hi[0]).all()
+    pose = torch.zeros(1, model.num_joints, 3, dtype=torch.float64)
+    pose[0, 0, 1] = 4.65  # a subject turned 266 degrees, written past pi
+    assert terms.joint_limit_prior(pose, lo, hi).item() == 0.0
+
+
 def test_limits_cover_hinges_spine_and_neck_with_the_right_bend_sign(body):
     from delta.fitting.fit import KeypointModel
 
