@@ -54,6 +54,22 @@ def test_frames_silhouette_hard_squares_per_frame():
     torch.testing.assert_close(sil.soft_iou(out, masks), torch.tensor([0.5, 1.0], dtype=torch.float64), atol=1e-6, rtol=0)
 
 
+def test_supersampled_silhouette_is_the_covered_area():
+    # a bar 3 px wide (u in [16, 19]) inside pixel column 3 (u in [15, 20]) of an 8 x 8 grid over 40 x 40:
+    # it covers 0.6 of those pixels; one point a pixel (the centre, 17.5) says 1, 4 x 4 points say 0.5
+    uv = torch.tensor([[[16.0, 0.0], [19.0, 0.0], [19.0, 40.0], [16.0, 40.0]]], dtype=torch.float64)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    one = sil.frames_silhouette(uv, faces, 8, (40, 40), sigma=1e-4)
+    four = sil.frames_silhouette(uv, faces, 8, (40, 40), sigma=1e-4, supersample=4)
+    expect = torch.zeros(1, 8, 8, dtype=torch.float64)
+    expect[..., 3] = 1.0
+    torch.testing.assert_close(one, expect, atol=1e-4, rtol=0)
+    torch.testing.assert_close(four, 0.5 * expect, atol=0.02, rtol=0)  # a point near the shared diagonal: 0.49
+    masks = expect.clone()  # the masks narrow the evaluated box; the values stay
+    torch.testing.assert_close(sil.frames_silhouette(uv, faces, 8, (40, 40), sigma=1e-4, masks=masks, supersample=4),
+                               0.5 * expect, atol=0.02, rtol=0)  # fmt: skip
+
+
 def test_downsample_masks_area_average():
     m = np.zeros((1, 4, 4), np.uint8)
     m[0, :2, :2] = 255
