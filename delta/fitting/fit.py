@@ -213,7 +213,9 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     points = PosedPoints(model, kp_map, coarse.vertex_ids if use_sil else None)
     pose_weights = torch.ones(J, dtype=torch.float64) if pose_weights is None else pose_weights
     lo, hi = joint_limits(model)
-    blind = unobserved_projectors(KeypointModel(model, kp_map), model.num_shape, J) if cfg.unobserved_weight > 0 else None
+    blind = None
+    if cfg.unobserved_weight > 0:
+        blind = unobserved_projectors(KeypointModel(model, kp_map), model.num_shape, J)
     pinhole = isinstance(camera, PinholeCamera)
     if start is not None:
         betas = start.betas.to(torch.float64).clone()
@@ -254,8 +256,8 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
                 total = total + cfg.unobserved_weight * terms.subspace_prior(pose, blind).sum()
         if stage > 1:
             total = total + cfg.shape_weight * terms.shape_prior(betas) * F * cfg.sigma_px
-            total = total + cfg.smooth_weight * cfg.sigma_px * (terms.rotation_smoothness(pose[:, 0]) + terms.smoothness(pose[:, 1:])
-                                                         + terms.smoothness(transl))  # fmt: skip
+            smooth = terms.rotation_smoothness(pose[:, 0]) + terms.smoothness(pose[:, 1:]) + terms.smoothness(transl)
+            total = total + cfg.smooth_weight * cfg.sigma_px * smooth
             if use_sil:
                 uv = _project(camera, pinhole, cam_params, verts)
                 rendered = sil.frames_silhouette(uv, coarse.faces, cfg.sil_size, image_size, cfg.sil_sigma,

@@ -55,12 +55,13 @@ def test_unobserved_projectors_find_what_openpose_cannot_see(body):
     kp = KeypointModel(model, kp_map)
     zero = torch.zeros(1, model.num_joints, 3, dtype=D)
     turned = zero.clone()
-    turned[0, names.index("lowerleg01.L")] = 0.3 * proj[names.index("lowerleg01.L")] @ torch.tensor([0.6, 0.8, 0.0], dtype=D)
+    shin = names.index("lowerleg01.L")
+    turned[0, shin] = 0.3 * proj[shin] @ torch.tensor([0.6, 0.8, 0.0], dtype=D)
     turned[0, names.index("wrist.R")] = torch.tensor([0.2, -0.1, 0.3], dtype=D)
     betas, transl = torch.zeros(model.num_shape, dtype=D), torch.zeros(1, 3, dtype=D)
     moved = (kp(betas, turned, transl) - kp(betas, zero, transl)).norm(dim=-1).max()
     assert moved < 2e-3  # metres: second order in the angle for the shin, none at all for the wrist
-    expect = turned[0, names.index("lowerleg01.L")].square().sum() + 0.14
+    expect = turned[0, shin].square().sum() + 0.14
     torch.testing.assert_close(terms.subspace_prior(turned, proj), expect[None])
 
 
