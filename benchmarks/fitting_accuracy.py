@@ -36,6 +36,7 @@ from delta.body.model import load_body_model
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.fitting import silhouette as sil
 from delta.fitting.fit import FitConfig, FitResult, fit
+from delta.fitting.run import EXTERIOR
 
 HIPS = [8, 11]
 
@@ -112,7 +113,7 @@ def main() -> None:
             sel = np.arange(0, f["keypoints"].shape[0], args.every)
             detected = torch.from_numpy(f["keypoints"][:][sel]).double()
             masks = f["alpha"][:][sel]
-            layers = [f[k][:][sel] for k in ("clothing", "hair") if k in f]
+            layers = [f[k][:][sel] for k in EXTERIOR if k in f]
             exterior = np.maximum.reduce(layers) if layers else None
         if str(gt["camera_model"]) == "pinhole":
             camera = PinholeCamera(*(torch.from_numpy(gt[k]) for k in ("K", "R", "t", "dist")), int(gt["width"]),

@@ -206,10 +206,10 @@ def record_targets():
 
 # ------------------------------------------------------------- init fitting
 FIT = config["fitting"]
-_all_subjects = {s for spec in DATASETS.values() for s in spec["subjects"]}
-if set(FIT["subjects"]) - _all_subjects:
-    raise ValueError(f"fitting.subjects names {sorted(set(FIT['subjects']) - _all_subjects)}, "
-                        f"not configured subjects {sorted(_all_subjects)}")  # fmt: skip
+ALL_SUBJECTS = {s for spec in DATASETS.values() for s in spec["subjects"]}
+if set(FIT["subjects"]) - ALL_SUBJECTS:
+    raise ValueError(f"fitting.subjects names {sorted(set(FIT['subjects']) - ALL_SUBJECTS)}, "
+                     f"not configured subjects {sorted(ALL_SUBJECTS)}")  # fmt: skip
 
 
 def subject_fit_settings(subject):
@@ -218,7 +218,7 @@ def subject_fit_settings(subject):
 
 
 # every subject's fit settings are checked now, before any job runs
-for _s in _all_subjects:
+for _s in ALL_SUBJECTS:
     fit_config(*subject_fit_settings(_s), where=f"fitting (subject '{_s}')")
 
 
@@ -446,11 +446,10 @@ def tradeoff_subjects(dataset):
 
 
 # every swept variant's settings and subjects are checked now, before any job runs
-_known = {s for d in DATASETS.values() for s in d["subjects"]}
 for _v, _spec in TRADE["variants"].items():
-    _unknown = sorted(set(_spec.get("subjects") or []) - _known)
+    _unknown = sorted(set(_spec.get("subjects") or []) - ALL_SUBJECTS)
     if _unknown:
-        raise ValueError(f"tradeoff.variants.{_v}.subjects: {_unknown} are not subjects of any dataset ({sorted(_known)})")
+        raise ValueError(f"tradeoff.variants.{_v}.subjects: {_unknown} are not subjects of any dataset ({sorted(ALL_SUBJECTS)})")
 for _d in DATASETS:
     for _s in tradeoff_subjects(_d):
         for _v in TRADE["variants"]:

@@ -73,7 +73,7 @@ def fit_config(*overrides: dict, where: str = "fitting") -> FitConfig:
 
     Unknown keys and values of the wrong kind raise a DeltaError naming ``where`` and the key.
     """
-    fields = {f.name: f for f in dataclasses.fields(FitConfig)}
+    fields = {f.name for f in dataclasses.fields(FitConfig)}
     values: dict = {}
     for over in overrides:
         for key, value in (over or {}).items():
@@ -213,9 +213,8 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     points = PosedPoints(model, kp_map, coarse.vertex_ids if use_sil else None)
     pose_weights = torch.ones(J, dtype=torch.float64) if pose_weights is None else pose_weights
     lo, hi = joint_limits(model)
-    blind = None
-    if cfg.unobserved_weight > 0:
-        blind = unobserved_projectors(KeypointModel(model, kp_map), model.num_shape, J)
+    kp_model = KeypointModel(model, kp_map)
+    blind = unobserved_projectors(kp_model, model.num_shape, J) if cfg.unobserved_weight > 0 else None
     pinhole = isinstance(camera, PinholeCamera)
     if start is not None:
         betas = start.betas.to(torch.float64).clone()
@@ -237,7 +236,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
             trans = torch.zeros(F, 2, dtype=torch.float64)
         cam_params = [log_scale.requires_grad_(), trans.requires_grad_()]
     if start is None and cfg.iterations[0] > 0:
-        _best_heading(KeypointModel(model, kp_map), camera, pinhole, detected, betas, pose, transl, cam_params, cfg)
+        _best_heading(kp_model, camera, pinhole, detected, betas, pose, transl, cam_params, cfg)
     for t in (betas, pose, transl):
         t.requires_grad_()
     image_size = (camera.width, camera.height)
@@ -246,14 +245,13 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     def loss(stage: int) -> torch.Tensor:
         kp3d, verts = points(betas, pose, transl)
         kp2d = _project(camera, pinhole, cam_params, kp3d)
-        det = detected if stage > 0 else detected * _torso_mask(detected)
-        total = terms.keypoint_term(kp2d, det, cfg.sigma_px).sum()
-        if stage > 0:
-            total = total + cfg.pose_weight * terms.pose_prior(pose[:, 1:], pose_weights[1:]).sum() * cfg.sigma_px
-            total = total + cfg.bend_weight * terms.bend_prior(pose, list(knees), 0, 1.0).sum()
-            total = total + cfg.limit_weight * terms.joint_limit_prior(pose, lo, hi).sum()
-            if blind is not None:
-                total = total + cfg.unobserved_weight * terms.subspace_prior(pose, blind).sum()
+        # stages 2 and 3 (stage 1 is _best_heading)
+        total = terms.keypoint_term(kp2d, detected, cfg.sigma_px).sum()
+        total = total + cfg.pose_weight * terms.pose_prior(pose[:, 1:], pose_weights[1:]).sum() * cfg.sigma_px
+        total = total + cfg.bend_weight * terms.bend_prior(pose, list(knees), 0, 1.0).sum()
+        total = total + cfg.limit_weight * terms.joint_limit_prior(pose, lo, hi).sum()
+        if blind is not None:
+            total = total + cfg.unobserved_weight * terms.subspace_prior(pose, blind).sum()
         if stage > 1:
             total = total + cfg.shape_weight * terms.shape_prior(betas) * F * cfg.sigma_px
             smooth = terms.rotation_smoothness(pose[:, 0]) + terms.smoothness(pose[:, 1:]) + terms.smoothness(transl)

@@ -57,7 +57,7 @@ def exterior_masks(rec: FrameRecord) -> np.ndarray | None:
     present = [rec.h5[k][:] for k in EXTERIOR if k in rec.h5]
     if not present:
         return None
-    return np.maximum.reduce(present) if len(present) > 1 else present[0]
+    return np.maximum.reduce(present)
 
 
 def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, overlays: int = 4,
