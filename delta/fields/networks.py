@@ -7,6 +7,7 @@ multi-resolution dense grids with a small MLP, fast on a CPU) followed by an MLP
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import torch
 from torch import nn
@@ -128,20 +129,40 @@ class VertexField(nn.Module):
 
 
 class DeformationField(nn.Module):
-    """F_e: (canonical point, kNN-weighted posed body point) -> Δx_c, starting at exactly 0.
+    """F_e: (canonical point, kNN-weighted posed body point[, time]) -> Δx_c, starting at exactly 0.
 
     The posed body point (detached) tells the network the pose; its output is scaled
-    by ``scale`` so that early training barely moves the canonical point.
+    by ``scale`` so that early training barely moves the canonical point. With
+    ``time_freqs`` > 0 it also reads :func:`time_features` of the frame's time: clothing
+    that sways is not a function of the pose alone (the paper's F_e sees only the pose).
     """
 
-    def __init__(self, spec: FieldSpec, bounds: torch.Tensor, scale: float = 0.05, pose_freqs: int = 4):
+    def __init__(self, spec: FieldSpec, bounds: torch.Tensor, scale: float = 0.05, pose_freqs: int = 4,
+                 time_freqs: int = 0):  # fmt: skip
         super().__init__()
-        self.scale, self.pose_freqs = scale, pose_freqs
-        self.encoding, self.head = _encoder_and_head(spec, bounds, 3, extra_in=3 * (1 + 2 * pose_freqs))
+        self.scale, self.pose_freqs, self.time_freqs = scale, pose_freqs, time_freqs
+        extra = 3 * (1 + 2 * pose_freqs) + 2 * time_freqs
+        self.encoding, self.head = _encoder_and_head(spec, bounds, 3, extra_in=extra)
         with torch.no_grad():
             self.head.out.weight.zero_()
             self.head.out.bias.zero_()
 
-    def forward(self, x_c: torch.Tensor, posed_ref: torch.Tensor) -> torch.Tensor:
-        cond = positional_encoding(posed_ref.detach(), self.pose_freqs)
-        return torch.tanh(self.head(torch.cat([self.encoding(x_c), cond], dim=-1))) * self.scale
+    def forward(self, x_c: torch.Tensor, posed_ref: torch.Tensor, time: torch.Tensor | None = None) -> torch.Tensor:
+        """``time``: (2 time_freqs,) features of the frame (None: zeros, the time-free deformation)."""
+        cond = [positional_encoding(posed_ref.detach(), self.pose_freqs)]
+        if self.time_freqs:
+            t = time if time is not None else x_c.new_zeros(2 * self.time_freqs)
+            cond.append(t.to(x_c).expand(len(x_c), -1))
+        return torch.tanh(self.head(torch.cat([self.encoding(x_c)] + cond, dim=-1))) * self.scale
+
+
+def time_features(tau: torch.Tensor, freqs: int) -> torch.Tensor:
+    """(..., 2 freqs) cosine-basis features of normalised times τ ∈ [0, 1]: sin(kπτ), cos(kπτ), k = 1..freqs.
+
+    A NaN time (a frame outside the training sequence: a novel pose) gets zeros: the input on
+    which training (``dynamics.dropout`` of its steps) teaches F_e the time-free deformation.
+    """
+    k = torch.arange(1, freqs + 1, dtype=tau.dtype, device=tau.device) * math.pi
+    a = tau[..., None] * k
+    f = torch.cat([torch.sin(a), torch.cos(a)], dim=-1)
+    return torch.where(torch.isnan(tau)[..., None], torch.zeros_like(f), f)

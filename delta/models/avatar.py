@@ -8,6 +8,7 @@ capture has an exterior) and F_e (non-rigid deformation, stage 2).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Optional
 
 import torch
@@ -17,7 +18,7 @@ from delta.body.lbs import lbs
 from delta.body.model import BodyModel
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.deformers import knn as deformer
-from delta.fields.networks import DeformationField, FieldSpec, NeRFField, VertexField
+from delta.fields.networks import DeformationField, FieldSpec, NeRFField, VertexField, time_features
 from delta.losses import mesh_edges
 from delta.render.hybrid import PosedMesh, RayRender, RenderSettings, render_rays
 from delta.render.occupancy import OccupancyGrid
@@ -39,6 +40,8 @@ class AvatarSpec:
     nerf_margin: float = 0.3
     """The NeRF's box: the canonical template's box plus this margin (m)."""
     deformation_scale: float = 0.05
+    time_freqs: int = 0
+    """F_e also reads the frame's time (``time_features`` with this many frequencies; 0: pose only)."""
     render: RenderSettings = dataclasses.field(default_factory=RenderSettings)
     capture: str = "full"
     """``full`` or ``upper``: the lower body is left out of backward skinning and the NeRF's box."""
@@ -80,7 +83,7 @@ def _box(points: torch.Tensor, margin: float) -> torch.Tensor:
 
 class HybridAvatar(nn.Module):
     def __init__(self, body: BodyModel, spec: AvatarSpec, init: InitParams, skin_color: torch.Tensor,
-                 background: torch.Tensor, resolution: int):  # fmt: skip
+                 background: torch.Tensor, resolution: int, frame_time: Optional[torch.Tensor] = None):  # fmt: skip
         super().__init__()
         self.body, self.spec, self.resolution = body, spec, resolution
         self.register_buffer("background", background.float().clone())
@@ -117,7 +120,15 @@ class HybridAvatar(nn.Module):
         self.nerf = NeRFField(spec.nerf, nbox) if spec.nerf is not None else None
         self.deformation = None
         if spec.deformation is not None:
-            self.deformation = DeformationField(spec.deformation, nbox, spec.deformation_scale)
+            self.deformation = DeformationField(spec.deformation, nbox, spec.deformation_scale,
+                                                time_freqs=spec.time_freqs)  # fmt: skip
+        n = len(init.poses)
+        tau = frame_time.float() if frame_time is not None else torch.full((n,), float("nan"))
+        if tau.shape != (n,):
+            raise ValueError(f"frame_time: shape {tuple(tau.shape)}, expected ({n},)")
+        # normalised time of each frame (NaN: outside the training sequence); derived from the
+        # record, not saved, so stage-1 checkpoints load into stage 2 unchanged
+        self.register_buffer("frame_time", tau.to(template.device), persistent=False)
         occ = spec.render.occupancy
         self.occupancy = None
         if self.nerf is not None and occ.enabled:
@@ -169,16 +180,26 @@ class HybridAvatar(nn.Module):
         mesh = PosedMesh(verts, self.body.faces, self.albedo(), uv, skinning)
         return mesh, offsets, out
 
+    def time_code(self, frame: int) -> Optional[torch.Tensor]:
+        """F_e's time input for a frame (zeros outside the training sequence); None without one."""
+        if self.deformation is None or not self.spec.time_freqs:
+            return None
+        return time_features(self.frame_time[frame], self.spec.time_freqs)
+
     def render(self, frame: int, pixels: torch.Tensor, generator: torch.Generator | None = None,
-               mesh: Optional[PosedMesh] = None) -> RayRender:  # fmt: skip
-        """Render pixel centres (R, 2) of a frame."""
+               mesh: Optional[PosedMesh] = None, timeless: bool = False) -> RayRender:  # fmt: skip
+        """Render pixel centres (R, 2) of a frame (``timeless``: F_e without the frame's time)."""
         if mesh is None:
             mesh = self.posed_mesh(frame)[0]
         origins, dirs = self.camera(frame).rays(pixels)
         occ = self.occupancy
         occupied = occ.contains if occ is not None and bool(occ.active) else None
+        nonrigid = self.deformation
+        code = None if timeless else self.time_code(frame)
+        if code is not None:
+            nonrigid = functools.partial(self.deformation, time=code)
         return render_rays(mesh, origins, dirs, pixels, self.background, self.spec.render, self.nerf,
-                           self.deformation, generator, occupied)  # fmt: skip
+                           nonrigid, generator, occupied)  # fmt: skip
 
     def update_occupancy(self, seed: int) -> None:
         """Re-evaluate the occupancy grid's densities (a training step calls this every few steps)."""

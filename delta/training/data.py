@@ -97,6 +97,18 @@ def load_frames(record_path, resolution: int, background=(1.0, 1.0, 1.0), box_ma
     return FrameData(images, person_t, ext_t, interior, boxes, train, split, frame_ids, camera, skin)
 
 
+def frame_times(frame_ids: np.ndarray, train: np.ndarray) -> torch.Tensor:
+    """(N,) each frame's time in the training sequence, 0 at its first frame and 1 at its last.
+
+    NaN for frames outside it (a novel-pose sequence): their dynamics are unknown. Held-out
+    frames between training frames (a held-out view) get their place in the sequence.
+    """
+    ids = np.asarray(frame_ids, dtype=np.float64)
+    lo, hi = ids[train].min(), ids[train].max()
+    tau = (ids - lo) / max(hi - lo, 1.0)
+    return torch.from_numpy(np.where((ids >= lo) & (ids <= hi), tau, np.nan)).float()
+
+
 @dataclasses.dataclass
 class RayBatch:
     frame: int

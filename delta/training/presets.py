@@ -63,7 +63,7 @@ _STAGE_DEFAULTS = {
 _COMMON = {
     "seed": 0, "background": [1.0, 1.0, 1.0], "box_margin": 0.1, "offset_scale": 0.04, "nerf_margin": 0.3,
     "semantic": "idmrf", "exterior": "auto", "weights": {}, "render": {}, "stage1": {}, "stage2": {},
-    "capture": "auto", "freeze": [], "freeze_rest": -1.0,
+    "capture": "auto", "freeze": [], "freeze_rest": -1.0, "dynamics": {"time_freqs": 0, "dropout": 0.2},
 }  # fmt: skip
 
 
@@ -107,6 +107,9 @@ class TrainSettings:
     stage2: StageSettings
     raw: dict
     """The merged dict these settings came from (written beside checkpoints)."""
+    time_dropout: float = 0.0
+    """Stage 2 with a time-reading F_e: the share of steps rendered without the frame's time
+    (teaches the time-free deformation novel poses get)."""
 
 
 def deep_merge(base: dict, over: dict) -> dict:
@@ -137,13 +140,17 @@ def resolve(preset: str, *overrides: dict) -> TrainSettings:
         render = RenderSettings(**render, occupancy=occupancy)
         weights = LossWeights(**d["weights"])
         stage = {s: StageSettings(**v) for s, v in stages.items()}
+        dyn = dict(d["dynamics"])
+        if set(dyn) - {"time_freqs", "dropout"} or not 0 <= float(dyn["dropout"]) < 1 or int(dyn["time_freqs"]) < 0:
+            raise DeltaError(f"training.dynamics: {dyn} (keys time_freqs >= 0 and dropout in [0, 1))")
     except TypeError as err:
         raise DeltaError(f"training settings: {err}") from None
     avatar = AvatarSpec(nerf=_fields(d, "nerf"), offsets=_fields(d, "offsets"), albedo=_fields(d, "albedo"),
                         deformation=None, offset_scale=d["offset_scale"], nerf_margin=d["nerf_margin"],
-                        render=render)  # fmt: skip
+                        render=render, time_freqs=int(dyn["time_freqs"]))  # fmt: skip
     if d["capture"] not in ("auto", "full", "upper"):
         raise DeltaError(f"training.capture: '{d['capture']}' (expected auto, full or upper)")
     return TrainSettings(preset, d["resolution"], d["seed"], d["background"], d["box_margin"], d["exterior"],
                          d["semantic"], d["capture"], list(d["freeze"]), float(d["freeze_rest"]), avatar,
-                         _fields(d, "deformation"), weights, stage["stage1"], stage["stage2"], d)  # fmt: skip
+                         _fields(d, "deformation"), weights, stage["stage1"], stage["stage2"], d,
+                         float(dyn["dropout"]))  # fmt: skip

@@ -22,7 +22,7 @@ from delta.cameras.models import OrthographicCamera
 from delta.io import atomic_path, save_json
 from delta.models.avatar import HybridAvatar, InitParams
 from delta.render.occupancy import OccupancySettings
-from delta.training.data import FrameData, load_frames
+from delta.training.data import FrameData, frame_times, load_frames
 from delta.training.presets import TrainSettings, resolve
 from delta.training.scope import detect_capture, frozen_joints
 from delta.training.trainer import train_stage
@@ -92,7 +92,8 @@ def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, sta
         spec = dataclasses.replace(spec, deformation=st.deformation)
     bg = torch.tensor(st.background, dtype=torch.float32)
     torch.manual_seed(st.seed)  # network initialisation
-    return HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution).to(device)
+    return HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution,
+                        frame_times(data.frame_ids, data.train)).to(device)  # fmt: skip
 
 
 def semantic_loss(st: TrainSettings, weights_dir: str | None, device):
@@ -186,7 +187,8 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
     bg = torch.tensor(st.background, dtype=torch.float32)
     body = load_body_model(body_path)  # on the CPU: the avatar's .to(dev) moves it
     init = load_init_from_state(state["model"], data)
-    model = HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution).to(dev)
+    model = HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution,
+                         frame_times(data.frame_ids, data.train)).to(dev)  # fmt: skip
     try:
         model.load_state_dict(state["model"])
     except RuntimeError as e:

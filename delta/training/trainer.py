@@ -40,10 +40,10 @@ class StageResult:
 
 
 def loss_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, skin_color: torch.Tensor,
-               semantic: Optional[Callable] = None, generator=None) -> tuple[dict, object]:  # fmt: skip
+               semantic: Optional[Callable] = None, generator=None, timeless: bool = False) -> tuple[dict, object]:  # fmt: skip
     """Render a ray batch and evaluate every term of the objective (unweighted)."""
     mesh, offsets, out = model.posed_mesh(batch.frame)
-    r = model.render(batch.frame, batch.pixels, generator, mesh)
+    r = model.render(batch.frame, batch.pixels, generator, mesh, timeless)
     d = st.weights.huber_delta
     terms = {
         "pixel": L.pixel(r.rgb, batch.rgb, d),
@@ -130,7 +130,10 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
         frame = int(data.train[torch.randint(len(data.train), (1,), generator=generator)])
         batch = _to(sample_rays(data, frame, cfg.rays, generator, cfg.patch if semantic else 0), device)
         _maybe_update_occupancy(model, st, stage, step)
-        terms, r = loss_terms(model, batch, st, skin_color, semantic, generator)
+        timeless = False
+        if model.time_code(frame) is not None and st.time_dropout > 0:
+            timeless = bool(torch.rand((), generator=generator) < st.time_dropout)
+        terms, r = loss_terms(model, batch, st, skin_color, semantic, generator, timeless)
         loss = L.total(terms, st.weights)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()

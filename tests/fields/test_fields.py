@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from delta.fields.encodings import GridEncoding, PositionalEncoding, make_encoding, positional_encoding
-from delta.fields.networks import MAX_LOG_DENSITY, MLP, DeformationField, FieldSpec, NeRFField, VertexField
+from delta.fields.networks import (MAX_LOG_DENSITY, MLP, DeformationField, FieldSpec, NeRFField, VertexField,
+                                  time_features)
 
 D = torch.float64
 BOUNDS = torch.tensor([[-1.0, 0.0, 2.0], [1.0, 3.0, 4.0]])
@@ -233,6 +234,36 @@ def test_deformation_field_starts_at_zero_and_learns(spec):
     for name, p in field.named_parameters():
         assert p.grad is not None and p.grad.abs().sum() > 0, name
     assert x_c.grad is not None and x_c.grad.abs().sum() > 0
+
+
+
+def test_time_features_by_hand():
+    tau = torch.tensor([0.5, 0.0, float("nan")], dtype=D)
+    f = time_features(tau, 2)
+    # [sin(πτ), sin(2πτ) | cos(πτ), cos(2πτ)]
+    torch.testing.assert_close(f[0], torch.tensor([1.0, 0.0, 0.0, -1.0], dtype=D), atol=1e-12, rtol=0)
+    torch.testing.assert_close(f[1], torch.tensor([0.0, 0.0, 1.0, 1.0], dtype=D))
+    assert torch.equal(f[2], torch.zeros(4, dtype=D))  # outside the sequence: the time-free input
+
+
+def test_deformation_field_reads_the_time():
+    torch.manual_seed(3)
+    field = DeformationField(SMALL_PE, BOUNDS, scale=0.05, time_freqs=3)
+    x_c, ref = inside_points(30, 1), torch.randn(30, 3)
+    t1, t2 = time_features(torch.tensor(0.2), 3), time_features(torch.tensor(0.7), 3)
+    assert torch.equal(field(x_c, ref, t1), torch.zeros(30, 3))  # still starts at exactly 0
+    with torch.no_grad():
+        for p in field.head.parameters():
+            p.normal_(0, 0.3)
+    a, b = field(x_c, ref, t1), field(x_c, ref, t2)
+    assert (a - b).abs().max() > 1e-3  # the same point and pose at two times moves differently
+    # no time = zero features; a field without time ignores it
+    assert torch.equal(field(x_c, ref), field(x_c, ref, torch.zeros(6)))
+    plain = DeformationField(SMALL_PE, BOUNDS, scale=0.05)
+    assert plain.head.hidden[0].in_features == field.head.hidden[0].in_features - 6
+    # gradients reach the time path's weights
+    field(x_c, ref, t1).sum().backward()
+    assert field.head.hidden[0].weight.grad[:, -6:].abs().sum() > 0
 
 
 def test_nerf_colour_grid_can_be_finer_than_the_density_grid():

@@ -1,0 +1,58 @@
+"""F_e's time input: each frame's place in the training sequence, the time-free fallback, its settings."""
+
+import numpy as np
+import pytest
+import torch
+
+from delta import DeltaError
+from delta.body.model import load_body_model
+from delta.training.data import frame_times, load_frames, sample_rays
+from delta.training.presets import resolve
+from delta.training.run import build_avatar, load_init
+from delta.training.trainer import loss_terms
+
+
+def test_frame_times_by_hand():
+    ids = np.array([10, 11, 12, 13, 14, 15, 40, 41])
+    train = np.array([0, 1, 3, 5])  # ids 10, 11, 13, 15; 12 and 14 are held-out views between them
+    tau = frame_times(ids, train).numpy()
+    np.testing.assert_allclose(tau[:6], [0.0, 0.2, 0.4, 0.6, 0.8, 1.0], atol=1e-7)
+    assert np.isnan(tau[6:]).all()  # a novel-pose sequence after the training one: no time
+
+
+def test_one_training_frame_has_time_zero():
+    tau = frame_times(np.array([5, 6]), np.array([0])).numpy()
+    assert tau[0] == 0.0 and np.isnan(tau[1])
+
+
+@pytest.mark.parametrize("bad", [{"time_freqs": -1}, {"dropout": 1.0}, {"phase": 2}])
+def test_bad_dynamics_settings_name_the_key(bad):
+    with pytest.raises(DeltaError, match="training.dynamics"):
+        resolve("fast", {"dynamics": bad})
+
+
+def test_defaults_keep_the_papers_pose_only_deformation():
+    st = resolve("fast")
+    assert st.avatar.time_freqs == 0 and st.time_dropout == pytest.approx(0.2)
+    assert resolve("fast", {"dynamics": {"time_freqs": 6}}).avatar.time_freqs == 6
+
+
+@pytest.mark.slow
+def test_stage2_time_input_reaches_the_render(tiny_training):
+    st = resolve("fast", {"resolution": 32, "render": {"samples": 8}, "dynamics": {"time_freqs": 4}})
+    inputs = tiny_training["loose"]
+    data = load_frames(inputs["record"], st.resolution, st.background, st.box_margin)
+    model = build_avatar(load_body_model(inputs["body"]), st, load_init(inputs["init"], data), data, 2,
+                         torch.device("cpu"))  # fmt: skip
+    expected = frame_times(data.frame_ids, data.train)
+    torch.testing.assert_close(model.frame_time, expected, equal_nan=True)
+    with torch.no_grad():  # a trained F_e (its output layer starts at zero)
+        for p in model.deformation.head.parameters():
+            p.normal_(0, 0.5)
+    frame = int(data.train[len(data.train) // 2])
+    batch = sample_rays(data, frame, 256, torch.Generator().manual_seed(0))
+    timed, r = loss_terms(model, batch, st, data.skin_color, generator=torch.Generator().manual_seed(1))
+    free, q = loss_terms(model, batch, st, data.skin_color, generator=torch.Generator().manual_seed(1), timeless=True)
+    assert r.samples_evaluated > 0 and not torch.equal(r.rgb, q.rgb)
+    timed["pixel"].backward()
+    assert model.deformation.head.hidden[0].weight.grad[:, -8:].abs().sum() > 0
