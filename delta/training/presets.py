@@ -31,8 +31,9 @@ PRESETS: dict[str, dict] = {
         "deformation": _PE_DEFORM,
         "render": {"samples": 16, "sil_sigma": 0.5, "max_dist": 0.1, "occupancy": {"enabled": True}},
         "freeze_rest": 1e-6,
-        "stage1": {"iterations": 800, "rays": 4096},
-        "stage2": {"iterations": 300, "rays": 2048, "patch": 32},
+        "stage1": {"iterations": 800, "rays": 4096, "lr_final": 0.1},
+        "stage2": {"iterations": 300, "rays": 2048, "patch": 32, "lr_final": 0.1},
+        "dynamics": {"time_freqs": 6},
     },
     "balanced": {
         "resolution": 256,
@@ -41,8 +42,9 @@ PRESETS: dict[str, dict] = {
         "albedo": {**_GRID_ALBEDO, "levels": 6, "max_res": 192},
         "deformation": _PE_DEFORM,
         "render": {"samples": 32, "sil_sigma": 1.0, "max_dist": 0.1},
-        "stage1": {"iterations": 2500, "rays": 4096},
-        "stage2": {"iterations": 800, "rays": 2048, "patch": 48},
+        "stage1": {"iterations": 2500, "rays": 4096, "lr_final": 0.1},
+        "stage2": {"iterations": 800, "rays": 2048, "patch": 48, "lr_final": 0.1},
+        "dynamics": {"time_freqs": 6},
     },
     "paper": {
         "resolution": 512,
@@ -58,7 +60,7 @@ PRESETS: dict[str, dict] = {
 
 _STAGE_DEFAULTS = {
     "iterations": 1000, "rays": 1024, "patch": 0, "checkpoint_every": 100, "preview_every": 400, "log_every": 10,
-    "lr": {"fields": 5e-3, "nerf": 1e-2, "pose": 5e-4, "camera": 5e-4, "shape": 2e-3},
+    "lr": {"fields": 5e-3, "nerf": 1e-2, "pose": 5e-4, "camera": 5e-4, "shape": 2e-3}, "lr_final": 1.0,
 }  # fmt: skip
 _COMMON = {
     "seed": 0, "background": [1.0, 1.0, 1.0], "box_margin": 0.1, "offset_scale": 0.04, "nerf_margin": 0.3,
@@ -78,6 +80,12 @@ class StageSettings:
     preview_every: int
     log_every: int
     lr: dict
+    lr_final: float = 1.0
+    """Every learning rate decays exponentially to this fraction of itself at the last step (1: constant)."""
+
+    def lr_factor(self, step: int) -> float:
+        """The learning rates' multiplier at a step (a function of the step alone: resumes stay exact)."""
+        return self.lr_final ** (step / max(self.iterations - 1, 1))
 
 
 @dataclasses.dataclass
@@ -140,6 +148,9 @@ def resolve(preset: str, *overrides: dict) -> TrainSettings:
         render = RenderSettings(**render, occupancy=occupancy)
         weights = LossWeights(**d["weights"])
         stage = {s: StageSettings(**v) for s, v in stages.items()}
+        for name, cfg in stage.items():
+            if not 0 < cfg.lr_final <= 1:
+                raise DeltaError(f"training.{name}.lr_final: {cfg.lr_final} (expected a fraction in (0, 1])")
         dyn = dict(d["dynamics"])
         if set(dyn) - {"time_freqs", "dropout"} or not 0 <= float(dyn["dropout"]) < 1 or int(dyn["time_freqs"]) < 0:
             raise DeltaError(f"training.dynamics: {dyn} (keys time_freqs >= 0 and dropout in [0, 1))")

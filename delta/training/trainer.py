@@ -106,6 +106,7 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
     device = model.background.device
     generator = torch.Generator().manual_seed(st.seed * 1000 + stage)
     optimizer = torch.optim.Adam(model.param_groups(cfg.lr), eps=1e-12, foreach=True)
+    base_lr = [g["lr"] for g in optimizer.param_groups]  # before a resume loads the decayed ones
     start, rows = 0, []
     ckpt = out_dir / CHECKPOINT
     end = cfg.iterations if max_steps is None else min(cfg.iterations, max_steps)
@@ -127,6 +128,8 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
     t0, seen = time.time(), 0
     before = rows[-1].get("seconds", 0.0) if rows else 0.0  # wall time of the runs this one resumes
     for step in range(start, end):
+        for g, lr in zip(optimizer.param_groups, base_lr):
+            g["lr"] = lr * cfg.lr_factor(step)
         frame = int(data.train[torch.randint(len(data.train), (1,), generator=generator)])
         batch = _to(sample_rays(data, frame, cfg.rays, generator, cfg.patch if semantic else 0), device)
         _maybe_update_occupancy(model, st, stage, step)

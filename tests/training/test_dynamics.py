@@ -31,10 +31,11 @@ def test_bad_dynamics_settings_name_the_key(bad):
         resolve("fast", {"dynamics": bad})
 
 
-def test_defaults_keep_the_papers_pose_only_deformation():
+def test_the_paper_preset_keeps_the_pose_only_deformation():
+    assert resolve("paper").avatar.time_freqs == 0
     st = resolve("fast")
-    assert st.avatar.time_freqs == 0 and st.time_dropout == pytest.approx(0.2)
-    assert resolve("fast", {"dynamics": {"time_freqs": 6}}).avatar.time_freqs == 6
+    assert st.avatar.time_freqs == 6 and st.time_dropout == pytest.approx(0.2)
+    assert resolve("fast", {"dynamics": {"time_freqs": 0}}).avatar.time_freqs == 0
 
 
 @pytest.mark.slow

@@ -20,7 +20,7 @@ pytestmark = pytest.mark.slow
 TINY = {
     "resolution": 32,
     "render": {"samples": 8},
-    "stage1": {"iterations": 6, "rays": 128, "checkpoint_every": 2, "preview_every": 0, "log_every": 1},
+    "stage1": {"iterations": 6, "rays": 128, "checkpoint_every": 2, "preview_every": 0, "log_every": 1, "lr_final": 0.1},
     "stage2": {"iterations": 4, "rays": 128, "patch": 16, "checkpoint_every": 2, "preview_every": 2},
 }
 
@@ -80,6 +80,10 @@ def _resume_equivalence(tiny_training, tmp_path):
     assert torch.load(tmp_path / "b" / CHECKPOINT, weights_only=False)["step"] == 4
     model_c, _ = _model(inputs, st)  # a fresh process: everything comes from the checkpoint
     res = train_stage(1, model_c, data, st, tmp_path / "b")
+    # the learning rates decayed to lr_final at the last step (5 of 0..5), in both runs
+    for run in ("a", "b"):
+        groups = torch.load(tmp_path / run / CHECKPOINT, weights_only=False)["optimizer"]["param_groups"]
+        assert groups[0]["lr"] == pytest.approx(st.stage1.lr["fields"] * 0.1)
     assert res.steps == 6 and list(res.losses["step"]) == list(range(1, 7))
     a, c = model_a.state_dict(), model_c.state_dict()
     assert a.keys() == c.keys()
@@ -90,6 +94,13 @@ def _resume_equivalence(tiny_training, tmp_path):
     # wall time accumulates across the resume; everything else is identical
     assert (lc["seconds"].diff().dropna() >= 0).all() and (la["seconds"] > 0).all()
     pd.testing.assert_frame_equal(la.drop(columns="seconds"), lc.drop(columns="seconds"))
+
+
+def test_learning_rate_decay_by_hand():
+    cfg = resolve("fast", {"stage1": {"iterations": 5, "lr_final": 0.01}}).stage1
+    assert [cfg.lr_factor(s) for s in range(5)] == pytest.approx([1.0, 0.01**0.25, 0.1, 0.01**0.75, 0.01])
+    with pytest.raises(DeltaError, match="stage1.lr_final"):
+        resolve("fast", {"stage1": {"lr_final": 0.0}})
 
 
 def test_finished_or_stale_checkpoints_are_not_resumed(tiny_training, tmp_path, caplog):
