@@ -175,7 +175,9 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
     for key in ("model", "stage", "preset", "settings"):
         if key not in state:
             raise DeltaError(f"{model_path}: missing '{key}'; not a model.pt written by 'delta train'")
-    st = resolve(state["preset"], state["settings"])
+    # a model.pt from before F_e could read the time has no 'dynamics' in its settings: pose only
+    legacy = {} if "dynamics" in state["settings"] else {"dynamics": {"time_freqs": 0}}
+    st = resolve(state["preset"], state["settings"], legacy)
     data = load_frames(record, st.resolution, st.background, st.box_margin)
     spec = st.avatar if state.get("nerf", True) else dataclasses.replace(st.avatar, nerf=None)
     scope = _scope(state) or {"capture": "full", "frozen_joints": []}

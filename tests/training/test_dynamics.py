@@ -57,3 +57,21 @@ def test_stage2_time_input_reaches_the_render(tiny_training):
     assert r.samples_evaluated > 0 and not torch.equal(r.rgb, q.rgb)
     timed["pixel"].backward()
     assert model.deformation.head.hidden[0].weight.grad[:, -8:].abs().sum() > 0
+
+
+@pytest.mark.slow
+def test_a_model_from_before_the_time_input_loads_pose_only(tiny_training, tmp_path, perceptual_weights):
+    from delta.training.run import load_trained, run_stage
+
+    inputs = tiny_training["loose"]
+    tiny = {"resolution": 32, "render": {"samples": 8}, "dynamics": {"time_freqs": 0},
+            "stage1": {"iterations": 2, "rays": 64, "preview_every": 0},
+            "stage2": {"iterations": 2, "rays": 64, "patch": 0, "preview_every": 0}}  # fmt: skip
+    run_stage(1, inputs["record"], inputs["body"], inputs["init"], str(tmp_path / "s1"), "fast", [tiny])
+    run_stage(2, inputs["record"], inputs["body"], str(tmp_path / "s1" / "model.pt"), str(tmp_path / "s2"), "fast",
+              [tiny], perceptual_dir=str(perceptual_weights))  # fmt: skip
+    state = torch.load(tmp_path / "s2" / "model.pt", weights_only=False)
+    del state["settings"]["dynamics"]  # as written before the key existed (the fast preset now reads time)
+    torch.save(state, tmp_path / "old.pt")
+    tr = load_trained(tmp_path / "old.pt", inputs["record"], inputs["body"])
+    assert tr.model.spec.time_freqs == 0 and tr.model.time_code(0) is None
