@@ -41,6 +41,18 @@ def time_to_psnr(losses: pd.DataFrame, target: float, window: int = PSNR_WINDOW)
     return float(losses["seconds"].iloc[idx[0]]) if len(idx) else math.nan
 
 
+#: the reference must have climbed at least this far (dB) above its first ``PSNR_WINDOW`` steps for
+#: a speed-up to mean anything: a flat curve is "reached" at every run's first step
+MIN_GAIN_DB = 0.5
+
+
+def psnr_gain(losses: pd.DataFrame, window: int = PSNR_WINDOW) -> float:
+    """Final smoothed training-ray PSNR minus the mean of the first ``window`` steps."""
+    if losses.empty:
+        return math.nan
+    return final_psnr(losses, window) - float(losses["psnr"].iloc[:window].mean())
+
+
 def final_psnr(losses: pd.DataFrame, window: int = PSNR_WINDOW) -> float:
     return float(smooth(losses["psnr"].to_numpy(), window)[-1]) if not losses.empty else math.nan
 
@@ -120,13 +132,18 @@ def tradeoff(manifest: dict, peak_json: str | Path, reference: str, out_csv: str
     df["reference_psnr"] = math.nan
     df["time_to_reference_psnr_s"] = math.nan
     df["speedup_vs_reference"] = math.nan
+    df["reference_gain_db"] = math.nan
     for subject, g in df.groupby("subject"):
         df.loc[g.index, "pareto"] = pareto_front(g["train_s"].to_numpy(), g["held_out_psnr"].to_numpy())
         ref = g[g["variant"] == reference]
         if ref.empty:
             continue
         target = float(ref["train_psnr_final"].iloc[0])
-        t_ref = time_to_psnr(pd.read_csv(ref["_losses1"].iloc[0]), target)
+        ref_losses = pd.read_csv(ref["_losses1"].iloc[0])
+        df.loc[g.index, "reference_gain_db"] = psnr_gain(ref_losses)
+        if not psnr_gain(ref_losses) >= MIN_GAIN_DB:
+            continue  # the reference did not learn in its steps: no speed-up to measure
+        t_ref = time_to_psnr(ref_losses, target)
         for i in g.index:
             t = time_to_psnr(pd.read_csv(df.at[i, "_losses1"]), target)
             df.loc[i, ["reference_psnr", "time_to_reference_psnr_s"]] = [target, t]

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from delta.eval.tradeoff import pareto_front, time_to_psnr, tradeoff
+from delta.eval.tradeoff import psnr_gain as tradeoff_gain
 from delta.training.profile import matmul_peak, profile_steps
 
 
@@ -62,6 +63,19 @@ def test_speedup_against_the_reference(tmp_path):
     assert df.loc["fast", "samples_per_s"] == pytest.approx(2000.0)
     assert df.loc["fast", "nerf_backend"] == "grid" and df.loc["fast", "held_out_psnr"] == 23.0
     assert (tmp_path / "t.png").stat().st_size > 1000 and (tmp_path / "t.csv").is_file()
+
+
+def test_no_speedup_against_a_reference_that_did_not_learn(tmp_path):
+    """A flat reference curve is 'reached' at every run's first step: the ratio would be the step times'."""
+    manifest = {"s": {"reference": write_variant(tmp_path, "ref", 2.0, 0.0, 14.0, 400.0, 1e9),
+                      "fast": write_variant(tmp_path, "fast", 0.2, 0.1, 23.0, 40.0, 1e8)}}  # fmt: skip
+    (tmp_path / "peak.json").write_text(json.dumps({"flop_per_s": 1e10}))
+    df = tradeoff(manifest, tmp_path / "peak.json", "reference", tmp_path / "t.csv", tmp_path / "t.png").set_index("variant")
+    assert df["speedup_vs_reference"].isna().all() and (df["reference_gain_db"] == 0.0).all()
+    # the climbing reference of the test above gained 0.05 dB a step: final (25-step mean) minus the first 25
+    climbing = losses(2.0, 0.05)
+    gain = climbing["psnr"].iloc[-25:].mean() - climbing["psnr"].iloc[:25].mean()
+    assert tradeoff_gain(climbing) == pytest.approx(gain) and gain > 0.5
 
 
 def test_matmul_peak_is_a_rate():
