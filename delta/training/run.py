@@ -189,6 +189,10 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
     bg = torch.tensor(st.background, dtype=torch.float32)
     body = load_body_model(body_path)  # on the CPU: the avatar's .to(dev) moves it
     init = load_init_from_state(state["model"], data)
+    frames, expected = len(data.frame_ids), int(init.poses.shape[0])
+    if frames != expected:
+        raise DeltaError(f"{model_path}: trained on {expected} frames but {record} has {frames}; "
+                         "not the record this model was trained on")  # fmt: skip
     model = HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution,
                          frame_times(data.frame_ids, data.train)).to(dev)  # fmt: skip
     try:
