@@ -140,8 +140,9 @@ def tradeoff(manifest: dict, peak_json: str | Path, reference: str, out_csv: str
             continue
         target = float(ref["train_psnr_final"].iloc[0])
         ref_losses = pd.read_csv(ref["_losses1"].iloc[0])
-        df.loc[g.index, "reference_gain_db"] = psnr_gain(ref_losses)
-        if not psnr_gain(ref_losses) >= MIN_GAIN_DB:
+        gain = psnr_gain(ref_losses)
+        df.loc[g.index, "reference_gain_db"] = gain
+        if not gain >= MIN_GAIN_DB:
             continue  # the reference did not learn in its steps: no speed-up to measure
         t_ref = time_to_psnr(ref_losses, target)
         for i in g.index:

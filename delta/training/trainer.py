@@ -133,8 +133,8 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
         frame = int(data.train[torch.randint(len(data.train), (1,), generator=generator)])
         batch = _to(sample_rays(data, frame, cfg.rays, generator, cfg.patch if semantic else 0), device)
         _maybe_update_occupancy(model, st, stage, step)
-        timeless = False
-        if model.time_code(frame) is not None and st.time_dropout > 0:
+        timeless = False  # with a time-reading F_e, some steps train its time-free input
+        if model.deformation is not None and model.spec.time_freqs and st.time_dropout > 0:
             timeless = bool(torch.rand((), generator=generator) < st.time_dropout)
         terms, r = loss_terms(model, batch, st, skin_color, semantic, generator, timeless)
         loss = L.total(terms, st.weights)
