@@ -53,6 +53,34 @@ def frame_params(model: HybridAvatar, frame: int, root_pose: torch.Tensor, trans
         model.transl.data[frame] = old_t
 
 
+@contextlib.contextmanager
+def baked_trajectory(model: HybridAvatar, frame: int) -> Iterator[None]:
+    """Fold the trajectory's correction of ``frame`` into its own root pose, translation and camera, and
+    switch the trajectory off (restored on exit): the frame renders the same, and a change of its
+    root pose (a turntable) acts on the corrected body."""
+    traj = model.trajectory
+    if traj is None:
+        yield
+        return
+    per_frame = [p.data[frame].clone() for p in model.per_frame_parameters()]
+    try:
+        with torch.no_grad():
+            turn, shift = traj(frame)
+            R = axis_angle_to_rotation_matrix(turn[None])[0] @ axis_angle_to_rotation_matrix(model.poses[frame, :1])[0]
+            model.poses.data[frame, 0] = rotation_matrix_to_axis_angle(R[None])[0]
+            if model.pinhole:
+                model.transl.data[frame] += shift
+            else:
+                model.ortho_scale.data[frame] *= shift[0].exp()
+                model.ortho_trans.data[frame] += shift[1:]
+        model.trajectory = None
+        yield
+    finally:
+        model.trajectory = traj
+        for p, old in zip(model.per_frame_parameters(), per_frame):
+            p.data[frame] = old
+
+
 def to_bgr(rgb: torch.Tensor | np.ndarray) -> np.ndarray:
     """(H, W, 3) float RGB in [0, 1] -> uint8 BGR."""
     a = rgb.detach().cpu().numpy() if isinstance(rgb, torch.Tensor) else np.asarray(rgb)
@@ -83,6 +111,11 @@ def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: int)
 @torch.no_grad()
 def turntable(model: HybridAvatar, frame: int, count: int) -> Iterator[np.ndarray]:
     """``count`` renders of ``frame`` turned through one full revolution about its vertical axis."""
+    with baked_trajectory(model, frame):
+        yield from _turntable(model, frame, count)
+
+
+def _turntable(model: HybridAvatar, frame: int, count: int) -> Iterator[np.ndarray]:
     out = model.pose_body(frame)
     verts = out.vertices[0]
     centre = 0.5 * (verts.amin(0) + verts.amax(0))

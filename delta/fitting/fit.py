@@ -45,6 +45,11 @@ class FitConfig:
     """Holds at rest, per squared radian, the rotations no keypoint sees (``unobserved_projectors``);
     left free they follow the silhouette's noise (wrists and feet turned 0.3 rad on the synthetic subjects)."""
     smooth_weight: float = 0.05
+    accel_weight: float = 0.0
+    """Second-order temporal smoothness (``terms.acceleration``) of the pose, translation and orthographic
+    camera: a steady turn costs nothing, so frames whose heading the keypoints barely constrain (a
+    subject facing the camera under an orthographic one, where width changes with cos θ) follow
+    their neighbours' rate."""
     min_keypoints: int = 4
     conf_threshold: float = 0.3
     sil_weight: float = 300.0
@@ -256,6 +261,10 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
             total = total + cfg.shape_weight * terms.shape_prior(betas) * F * cfg.sigma_px
             smooth = terms.rotation_smoothness(pose[:, 0]) + terms.smoothness(pose[:, 1:]) + terms.smoothness(transl)
             total = total + cfg.smooth_weight * cfg.sigma_px * smooth
+            if cfg.accel_weight > 0:
+                accel = terms.rotation_acceleration(pose[:, 0]) + terms.acceleration(pose[:, 1:])
+                accel = accel + terms.acceleration(transl) + sum(terms.acceleration(c) for c in cam_params)
+                total = total + cfg.accel_weight * cfg.sigma_px * accel
             if use_sil:
                 uv = _project(camera, pinhole, cam_params, verts)
                 rendered = sil.frames_silhouette(uv, coarse.faces, cfg.sil_size, image_size, cfg.sil_sigma,

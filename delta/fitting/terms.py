@@ -83,6 +83,31 @@ def rotation_smoothness(axis_angle: torch.Tensor) -> torch.Tensor:
     return 0.5 * (R[1:] - R[:-1]).square().sum((-1, -2)).sum()
 
 
+def acceleration(x: torch.Tensor) -> torch.Tensor:
+    """Σ |x_{f+1} - 2 x_f + x_{f-1}|² over frame triples of (F, ...) parameters (0 for fewer than 3).
+
+    Unlike ``smoothness`` it costs nothing for a constant rate: a subject turning at a steady speed is
+    not pulled towards standing still.
+    """
+    if x.shape[0] < 3:
+        return x.new_zeros(())
+    return (x[2:] - 2 * x[1:-1] + x[:-2]).square().sum()
+
+
+def rotation_acceleration(axis_angle: torch.Tensor) -> torch.Tensor:
+    """Σ ½ |R_f⁻¹ R_{f+1} - R_{f-1}⁻¹ R_f|²_F over frame triples of (F, 3) rotations.
+
+    The change of the relative rotation between consecutive steps: zero for a steady turn about any
+    axis, ≈ Σ |Δ²θ|² for small steps, and, like ``rotation_smoothness``, blind to the 2π jumps of
+    axis-angle vectors.
+    """
+    if axis_angle.shape[0] < 3:
+        return axis_angle.new_zeros(())
+    R = batch_rodrigues(axis_angle)
+    step = R[:-1].transpose(1, 2) @ R[1:]  # (F-1, 3, 3) relative rotations
+    return 0.5 * (step[1:] - step[:-1]).square().sum((-1, -2)).sum()
+
+
 def joint_limit_prior(pose: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
     """Σ over joints and axes of the squared excess beyond [lo, hi]: (F, J, 3), (J, 3), (J, 3) -> (F,).
 

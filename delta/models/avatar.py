@@ -14,13 +14,14 @@ from typing import Optional
 import torch
 from torch import nn
 
-from delta.body.lbs import lbs
+from delta.body.lbs import batch_rodrigues, lbs
 from delta.body.model import BodyModel
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.deformers import knn as deformer
 from delta.fields.networks import DeformationField, FieldSpec, NeRFField, VertexField, time_features
 from delta.losses import mesh_edges
 from delta.render.hybrid import PosedMesh, RayRender, RenderSettings, render_rays
+from delta.models.trajectory import Trajectory
 from delta.render.occupancy import OccupancyGrid
 from delta.training.scope import lower_body_vertices
 
@@ -42,6 +43,8 @@ class AvatarSpec:
     deformation_scale: float = 0.05
     time_freqs: int = 0
     """F_e also reads the frame's time (``time_features`` with this many frequencies; 0: pose only)."""
+    pose_knots: int = 0
+    """Knots of the smooth-in-time heading and placement correction (``Trajectory``); 0: none."""
     render: RenderSettings = dataclasses.field(default_factory=RenderSettings)
     capture: str = "full"
     """``full`` or ``upper``: the lower body is left out of backward skinning and the NeRF's box."""
@@ -129,6 +132,7 @@ class HybridAvatar(nn.Module):
         # normalised time of each frame (NaN: outside the training sequence); derived from the
         # record, not saved, so stage-1 checkpoints load into stage 2 unchanged
         self.register_buffer("frame_time", tau.to(template.device), persistent=False)
+        self.trajectory = Trajectory(self.frame_time, spec.pose_knots) if spec.pose_knots else None
         occ = spec.render.occupancy
         self.occupancy = None
         if self.nerf is not None and occ.enabled:
@@ -146,7 +150,11 @@ class HybridAvatar(nn.Module):
         n = self.resolution
         if self.pinhole:
             return PinholeCamera(self.cam_K, self.cam_R, self.cam_t, self.cam_K.new_zeros(5), n, n)
-        return OrthographicCamera(self.ortho_scale[frame], self.ortho_trans[frame], n, n)
+        scale, trans = self.ortho_scale[frame], self.ortho_trans[frame]
+        if self.trajectory is not None:
+            shift = self.trajectory(frame)[1]
+            scale, trans = scale * shift[0].exp(), trans + shift[1:]
+        return OrthographicCamera(scale, trans, n, n)
 
     def offsets(self) -> torch.Tensor:
         """(V, 3) canonical offsets F_d(t)."""
@@ -158,8 +166,14 @@ class HybridAvatar(nn.Module):
 
     def pose_body(self, frame: int, offsets: Optional[torch.Tensor] = None):
         """LBS output of one frame (batch of 1)."""
-        return lbs(self.body, self.betas[None], self.poses[frame : frame + 1], offsets=offsets,
-                   transl=self.transl[frame : frame + 1])  # fmt: skip
+        if self.trajectory is None:
+            return lbs(self.body, self.betas[None], self.poses[frame : frame + 1], offsets=offsets,
+                       transl=self.transl[frame : frame + 1])  # fmt: skip
+        turn, shift = self.trajectory(frame)
+        rot = batch_rodrigues(self.poses[frame])  # (J, 3, 3)
+        rot = torch.cat([(batch_rodrigues(turn[None]) @ rot[:1]), rot[1:]])
+        transl = self.transl[frame] + shift if self.pinhole else self.transl[frame]
+        return lbs(self.body, self.betas[None], rot[None], offsets=offsets, transl=transl[None], pose_is_rotmat=True)
 
     def posed_mesh(self, frame: int) -> tuple[PosedMesh, torch.Tensor, torch.Tensor]:
         """The posed interior of one frame, with the offsets and posed vertices for the regularisers."""
@@ -227,4 +241,6 @@ class HybridAvatar(nn.Module):
             groups.append({"params": list(self.deformation.parameters()), "lr": lr["nerf"]})
         if not self.pinhole:
             groups.append({"params": [self.ortho_scale, self.ortho_trans], "lr": lr["camera"]})
+        if self.trajectory is not None:
+            groups.append({"params": list(self.trajectory.parameters()), "lr": lr["trajectory"]})
         return groups

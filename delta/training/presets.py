@@ -60,12 +60,13 @@ PRESETS: dict[str, dict] = {
 
 _STAGE_DEFAULTS = {
     "iterations": 1000, "rays": 1024, "patch": 0, "checkpoint_every": 100, "preview_every": 400, "log_every": 10,
-    "lr": {"fields": 5e-3, "nerf": 1e-2, "pose": 5e-4, "camera": 5e-4, "shape": 2e-3}, "lr_final": 1.0,
+    "lr": {"fields": 5e-3, "nerf": 1e-2, "pose": 5e-4, "camera": 5e-4, "shape": 2e-3, "trajectory": 2e-3},
+    "lr_final": 1.0,
 }  # fmt: skip
 _COMMON = {
     "seed": 0, "background": [1.0, 1.0, 1.0], "box_margin": 0.1, "offset_scale": 0.04, "nerf_margin": 0.3,
     "semantic": "idmrf", "exterior": "auto", "weights": {}, "render": {}, "stage1": {}, "stage2": {},
-    "capture": "auto", "freeze": [], "freeze_rest": -1.0, "dynamics": {"time_freqs": 0, "dropout": 0.2},
+    "capture": "auto", "freeze": [], "freeze_rest": -1.0, "dynamics": {"time_freqs": 0, "dropout": 0.2, "pose_knots": 0},
 }  # fmt: skip
 
 
@@ -152,13 +153,16 @@ def resolve(preset: str, *overrides: dict) -> TrainSettings:
             if not 0 < cfg.lr_final <= 1:
                 raise DeltaError(f"training.{name}.lr_final: {cfg.lr_final} (expected a fraction in (0, 1])")
         dyn = dict(d["dynamics"])
-        if set(dyn) - {"time_freqs", "dropout"} or not 0 <= float(dyn["dropout"]) < 1 or int(dyn["time_freqs"]) < 0:
-            raise DeltaError(f"training.dynamics: {dyn} (keys time_freqs >= 0 and dropout in [0, 1))")
+        knots = int(dyn["pose_knots"])
+        if (set(dyn) - {"time_freqs", "dropout", "pose_knots"} or not 0 <= float(dyn["dropout"]) < 1
+                or int(dyn["time_freqs"]) < 0 or knots < 0 or knots == 1):  # fmt: skip
+            raise DeltaError(f"training.dynamics: {dyn} (keys time_freqs >= 0, dropout in [0, 1), "
+                             "pose_knots 0 (off) or >= 2)")  # fmt: skip
     except TypeError as err:
         raise DeltaError(f"training settings: {err}") from None
     avatar = AvatarSpec(nerf=_fields(d, "nerf"), offsets=_fields(d, "offsets"), albedo=_fields(d, "albedo"),
                         deformation=None, offset_scale=d["offset_scale"], nerf_margin=d["nerf_margin"],
-                        render=render, time_freqs=int(dyn["time_freqs"]))  # fmt: skip
+                        render=render, time_freqs=int(dyn["time_freqs"]), pose_knots=knots)  # fmt: skip
     if d["capture"] not in ("auto", "full", "upper"):
         raise DeltaError(f"training.capture: '{d['capture']}' (expected auto, full or upper)")
     return TrainSettings(preset, d["resolution"], d["seed"], d["background"], d["box_margin"], d["exterior"],

@@ -175,8 +175,12 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
     for key in ("model", "stage", "preset", "settings"):
         if key not in state:
             raise DeltaError(f"{model_path}: missing '{key}'; not a model.pt written by 'delta train'")
-    # a model.pt from before F_e could read the time has no 'dynamics' in its settings: pose only
-    legacy = {} if "dynamics" in state["settings"] else {"dynamics": {"time_freqs": 0}}
+    # a model.pt from before F_e could read the time has no 'dynamics' in its settings: pose only; one
+    # from before the pose trajectory has no 'pose_knots': none
+    dynamics = state["settings"].get("dynamics", {"time_freqs": 0})
+    legacy = {"dynamics": {"pose_knots": 0}} if "pose_knots" not in dynamics else {}
+    if "dynamics" not in state["settings"]:
+        legacy["dynamics"]["time_freqs"] = 0
     st = resolve(state["preset"], state["settings"], legacy)
     data = load_frames(record, st.resolution, st.background, st.box_margin)
     spec = st.avatar if state.get("nerf", True) else dataclasses.replace(st.avatar, nerf=None)

@@ -74,3 +74,27 @@ def test_root_smoothness_is_measured_on_rotations_not_vectors():
     small = torch.tensor([[0.1, 0.0, 0.0], [0.13, 0.0, 0.0]], dtype=D)  # ≈ Δθ² for small steps
     torch.testing.assert_close(terms.rotation_smoothness(small), terms.smoothness(small), rtol=1e-3, atol=0)
     assert terms.rotation_smoothness(a[:1]) == 0
+
+
+def test_acceleration_is_free_for_a_steady_turn_and_prices_a_wobble():
+    # a steady turn about the vertical: both the rotation and the vector versions are exactly 0
+    yaw = torch.arange(8, dtype=D) * 0.3
+    steady = torch.stack([torch.zeros_like(yaw), yaw, torch.zeros_like(yaw)], -1)
+    assert terms.rotation_acceleration(steady).item() < 1e-24
+    assert terms.acceleration(steady).item() < 1e-24
+    assert terms.smoothness(steady) > 0  # what the first-order term charges for it
+    # one frame off by e: Δ² is (e, -2e, e) around it, so Σ|Δ²|² = 6 e²
+    e = 0.01
+    wobble = steady.clone()
+    wobble[4, 1] += e
+    torch.testing.assert_close(terms.acceleration(wobble), torch.tensor(6 * e * e, dtype=D))
+    # on rotations the same to first order: ½|R_a - R_b|² = 2(1 - cos Δ) ≈ Δ²
+    torch.testing.assert_close(terms.rotation_acceleration(wobble), torch.tensor(6 * e * e, dtype=D), rtol=1e-3, atol=0)
+    # a steady turn across the ±π seam of axis-angle vectors stays free on rotations
+    seam = torch.stack([torch.zeros(5, dtype=D), torch.tensor([2.9, 3.1, -3.0, -2.8, -2.6], dtype=D),
+                        torch.zeros(5, dtype=D)], -1)  # fmt: skip
+    seam[:, 1] = torch.remainder(torch.tensor([2.9, 3.1, 3.3, 3.5, 3.7], dtype=D) + math.pi, 2 * math.pi) - math.pi
+    assert terms.rotation_acceleration(seam).item() < 1e-20
+    assert terms.acceleration(seam) > 10
+    assert terms.acceleration(torch.tensor([1.0, 2.0, 4.0])) == 1.0  # (F,) parameters too (a camera scale)
+    assert terms.acceleration(steady[:2]) == 0 and terms.rotation_acceleration(steady[:2]) == 0
