@@ -97,16 +97,21 @@ def load_frames(record_path, resolution: int, background=(1.0, 1.0, 1.0), box_ma
     return FrameData(images, person_t, ext_t, interior, boxes, train, split, frame_ids, camera, skin)
 
 
-def frame_times(frame_ids: np.ndarray, train: np.ndarray) -> torch.Tensor:
+def frame_times(frame_ids: np.ndarray, train: np.ndarray, split: np.ndarray | None = None) -> torch.Tensor:
     """(N,) each frame's time in the training sequence, 0 at its first frame and 1 at its last.
 
     NaN for frames outside it (a novel-pose sequence): their dynamics are unknown. Held-out
-    frames between training frames (a held-out view) get their place in the sequence.
+    frames between training frames (a held-out view) get their place in the sequence; with
+    ``split`` (0 train, 1 held-out view, 2 novel pose), a held-out view before the first or after
+    the last training frame is still of that sequence and gets the time of its nearer end.
     """
     ids = np.asarray(frame_ids, dtype=np.float64)
     lo, hi = ids[train].min(), ids[train].max()
     tau = (ids - lo) / max(hi - lo, 1.0)
-    return torch.from_numpy(np.where((ids >= lo) & (ids <= hi), tau, np.nan)).float()
+    inside = (ids >= lo) & (ids <= hi)
+    if split is not None:
+        inside |= np.asarray(split) == 1
+    return torch.from_numpy(np.where(inside, np.clip(tau, 0.0, 1.0), np.nan)).float()
 
 
 @dataclasses.dataclass

@@ -93,7 +93,7 @@ def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, sta
     bg = torch.tensor(st.background, dtype=torch.float32)
     torch.manual_seed(st.seed)  # network initialisation
     return HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution,
-                        frame_times(data.frame_ids, data.train)).to(device)  # fmt: skip
+                        frame_times(data.frame_ids, data.train, data.split)).to(device)  # fmt: skip
 
 
 def semantic_loss(st: TrainSettings, weights_dir: str | None, device):
@@ -198,7 +198,7 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
         raise DeltaError(f"{model_path}: trained on {expected} frames but {record} has {frames}; "
                          "not the record this model was trained on")  # fmt: skip
     model = HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution,
-                         frame_times(data.frame_ids, data.train)).to(dev)  # fmt: skip
+                         frame_times(data.frame_ids, data.train, data.split)).to(dev)  # fmt: skip
     try:
         model.load_state_dict(state["model"])
     except RuntimeError as e:

@@ -18,6 +18,12 @@ def test_frame_times_by_hand():
     tau = frame_times(ids, train).numpy()
     np.testing.assert_allclose(tau[:6], [0.0, 0.2, 0.4, 0.6, 0.8, 1.0], atol=1e-7)
     assert np.isnan(tau[6:]).all()  # a novel-pose sequence after the training one: no time
+    # with the splits: a held-out view just past either end is of the training sequence, a novel pose is not
+    ids = np.array([9, 10, 11, 12, 13, 40])
+    split = np.array([1, 0, 1, 0, 1, 2])
+    tau = frame_times(ids, np.array([1, 3]), split).numpy()
+    np.testing.assert_allclose(tau[:5], [0.0, 0.0, 0.5, 1.0, 1.0], atol=1e-7)
+    assert np.isnan(tau[5]) and np.isnan(frame_times(ids, np.array([1, 3])).numpy()[[0, 4]]).all()
 
 
 def test_one_training_frame_has_time_zero():
@@ -45,7 +51,7 @@ def test_stage2_time_input_reaches_the_render(tiny_training):
     data = load_frames(inputs["record"], st.resolution, st.background, st.box_margin)
     model = build_avatar(load_body_model(inputs["body"]), st, load_init(inputs["init"], data), data, 2,
                          torch.device("cpu"))  # fmt: skip
-    expected = frame_times(data.frame_ids, data.train)
+    expected = frame_times(data.frame_ids, data.train, data.split)
     torch.testing.assert_close(model.frame_time, expected, equal_nan=True)
     with torch.no_grad():  # a trained F_e (its output layer starts at zero)
         for p in model.deformation.head.parameters():
