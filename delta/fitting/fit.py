@@ -193,11 +193,15 @@ def _project(camera, pinhole: bool, cam_params: list[torch.Tensor], points: torc
 
 def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, cfg: FitConfig = FitConfig(),
         pose_weights: torch.Tensor | None = None, knees: list[int] = (), masks: torch.Tensor | None = None,
-        start: FitStart | None = None, exterior: torch.Tensor | None = None) -> FitResult:  # fmt: skip
+        start: FitStart | None = None, exterior: torch.Tensor | None = None,
+        sequence: torch.Tensor | None = None) -> FitResult:  # fmt: skip
     """Fit β, θ_f and the camera to (F, 18, 3) keypoint detections and optional (F, H, W) person masks.
 
     ``exterior`` (F, H, W), the part of the person masks that is clothing or hair, gets the
     ``cfg.exterior_fill`` weight when the body leaves it uncovered.
+
+    ``sequence`` (F,) labels the sequence each frame belongs to (consecutive frames of different
+    labels are not tied by the temporal terms); None: one sequence.
 
     ``camera`` is a PinholeCamera (static; the body moves) or an OrthographicCamera whose per-frame
     scale and translation are fitted (its own values are the start when ``start`` is given).
@@ -246,6 +250,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
         t.requires_grad_()
     image_size = (camera.width, camera.height)
     sil_w = (~empty).to(torch.float64)
+    links = None if sequence is None else torch.as_tensor(sequence)[1:] == torch.as_tensor(sequence)[:-1]
 
     def loss(stage: int) -> torch.Tensor:
         kp3d, verts = points(betas, pose, transl)
@@ -259,11 +264,13 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
             total = total + cfg.unobserved_weight * terms.subspace_prior(pose, blind).sum()
         if stage > 1:
             total = total + cfg.shape_weight * terms.shape_prior(betas) * F * cfg.sigma_px
-            smooth = terms.rotation_smoothness(pose[:, 0]) + terms.smoothness(pose[:, 1:]) + terms.smoothness(transl)
+            smooth = terms.rotation_smoothness(pose[:, 0], links) + terms.smoothness(pose[:, 1:], links)
+            smooth = smooth + terms.smoothness(transl, links)
             total = total + cfg.smooth_weight * cfg.sigma_px * smooth
             if cfg.accel_weight > 0:
-                accel = terms.rotation_acceleration(pose[:, 0]) + terms.acceleration(pose[:, 1:])
-                accel = accel + terms.acceleration(transl) + sum(terms.acceleration(c) for c in cam_params)
+                accel = terms.rotation_acceleration(pose[:, 0], links) + terms.acceleration(pose[:, 1:], links)
+                accel = accel + terms.acceleration(transl, links)
+                accel = accel + sum(terms.acceleration(c, links) for c in cam_params)
                 total = total + cfg.accel_weight * cfg.sigma_px * accel
             if use_sil:
                 uv = _project(camera, pinhole, cam_params, verts)

@@ -80,7 +80,10 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
         knees = [model.joint_names.index(n) for n in _KNEES if n in model.joint_names]
         masks = rec.h5["person"][:]
         exterior = exterior_masks(rec)
-        res = fit(model, kp_map, detected, camera, cfg, knees=knees, masks=masks, start=start, exterior=exterior)
+        # a novel-pose sequence (split 2) is not the training sequence's continuation
+        sequence = torch.from_numpy((rec.h5["split"][:] == 2).astype(np.int64))
+        res = fit(model, kp_map, detected, camera, cfg, knees=knees, masks=masks, start=start, exterior=exterior,
+                  sequence=sequence)  # fmt: skip
         cam = {"camera_model": np.array(rec.h5.attrs["camera_model"])}
         if isinstance(res.camera, OrthographicCamera):
             cam.update(ortho_scale=res.camera.scale.numpy(), ortho_trans=res.camera.trans.numpy())

@@ -63,49 +63,65 @@ def bend_prior(pose: torch.Tensor, joints: list[int], axis: int, sign: float) ->
     return torch.exp(wrong).sub(1).clamp_min(0).square().sum(-1)
 
 
-def smoothness(x: torch.Tensor) -> torch.Tensor:
-    """Σ |x_{f+1} - x_f|² over consecutive frames of (F, ...) parameters (0 for one frame)."""
+def _linked(links: torch.Tensor | None, n: int, like: torch.Tensor) -> torch.Tensor:
+    """(n,) 1 where consecutive frames belong to one sequence (``links`` None: all do)."""
+    return like.new_ones(n) if links is None else links.to(like.dtype)
+
+
+def smoothness(x: torch.Tensor, links: torch.Tensor | None = None) -> torch.Tensor:
+    """Σ |x_{f+1} - x_f|² over consecutive frames of (F, ...) parameters (0 for one frame).
+
+    ``links`` (F-1,) bool: whether frames f and f+1 are of one sequence (a novel-pose sequence
+    after the training one is not tied to it); None: all are.
+    """
     if x.shape[0] < 2:
         return x.new_zeros(())
-    return (x[1:] - x[:-1]).square().flatten(1).sum(-1).sum()
+    d = (x[1:] - x[:-1]).square().reshape(x.shape[0] - 1, -1).sum(-1)
+    return (d * _linked(links, len(d), d)).sum()
 
 
-def rotation_smoothness(axis_angle: torch.Tensor) -> torch.Tensor:
+def rotation_smoothness(axis_angle: torch.Tensor, links: torch.Tensor | None = None) -> torch.Tensor:
     """Σ ½ |R_{f+1} - R_f|²_F over consecutive frames of (F, 3) rotations (≈ Σ Δθ² for small steps).
 
     On rotation matrices, not axis-angle vectors: a subject turning through 180 degrees has
     neighbouring headings written (0, 3.1, 0) and (0, -3.1, 0), close as rotations and 6.2 apart
-    as vectors, which the vector difference would tear apart.
+    as vectors, which the vector difference would tear apart. ``links`` as in ``smoothness``.
     """
     if axis_angle.shape[0] < 2:
         return axis_angle.new_zeros(())
     R = batch_rodrigues(axis_angle)
-    return 0.5 * (R[1:] - R[:-1]).square().sum((-1, -2)).sum()
+    d = 0.5 * (R[1:] - R[:-1]).square().sum((-1, -2))
+    return (d * _linked(links, len(d), d)).sum()
 
 
-def acceleration(x: torch.Tensor) -> torch.Tensor:
+def acceleration(x: torch.Tensor, links: torch.Tensor | None = None) -> torch.Tensor:
     """Σ |x_{f+1} - 2 x_f + x_{f-1}|² over frame triples of (F, ...) parameters (0 for fewer than 3).
 
     Unlike ``smoothness`` it costs nothing for a constant rate: a subject turning at a steady speed is
-    not pulled towards standing still.
+    not pulled towards standing still. ``links`` as in ``smoothness`` (a triple counts when both its
+    links do).
     """
     if x.shape[0] < 3:
         return x.new_zeros(())
-    return (x[2:] - 2 * x[1:-1] + x[:-2]).square().sum()
+    d = (x[2:] - 2 * x[1:-1] + x[:-2]).square().reshape(x.shape[0] - 2, -1).sum(-1)
+    link = _linked(links, x.shape[0] - 1, d)
+    return (d * link[1:] * link[:-1]).sum()
 
 
-def rotation_acceleration(axis_angle: torch.Tensor) -> torch.Tensor:
+def rotation_acceleration(axis_angle: torch.Tensor, links: torch.Tensor | None = None) -> torch.Tensor:
     """Σ ½ |R_f⁻¹ R_{f+1} - R_{f-1}⁻¹ R_f|²_F over frame triples of (F, 3) rotations.
 
     The change of the relative rotation between consecutive steps: zero for a steady turn about any
     axis, ≈ Σ |Δ²θ|² for small steps, and, like ``rotation_smoothness``, blind to the 2π jumps of
-    axis-angle vectors.
+    axis-angle vectors. ``links`` as in ``acceleration``.
     """
     if axis_angle.shape[0] < 3:
         return axis_angle.new_zeros(())
     R = batch_rodrigues(axis_angle)
     step = R[:-1].transpose(1, 2) @ R[1:]  # (F-1, 3, 3) relative rotations
-    return 0.5 * (step[1:] - step[:-1]).square().sum((-1, -2)).sum()
+    d = 0.5 * (step[1:] - step[:-1]).square().sum((-1, -2))
+    link = _linked(links, axis_angle.shape[0] - 1, d)
+    return (d * link[1:] * link[:-1]).sum()
 
 
 def joint_limit_prior(pose: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:

@@ -98,3 +98,17 @@ def test_acceleration_is_free_for_a_steady_turn_and_prices_a_wobble():
     assert terms.acceleration(seam) > 10
     assert terms.acceleration(torch.tensor([1.0, 2.0, 4.0])) == 1.0  # (F,) parameters too (a camera scale)
     assert terms.acceleration(steady[:2]) == 0 and terms.rotation_acceleration(steady[:2]) == 0
+
+
+def test_temporal_terms_do_not_tie_two_sequences():
+    # frames 0-2 one sequence, 3-4 another (a novel-pose sequence after the training one)
+    x = torch.tensor([[0.0], [1.0], [2.0], [10.0], [13.0]], dtype=D)
+    links = torch.tensor([True, True, False, True])
+    assert terms.smoothness(x, links).item() == 1 + 1 + 9  # the 2 -> 10 jump is not charged
+    assert terms.smoothness(x).item() == 1 + 1 + 64 + 9
+    assert terms.acceleration(x, links).item() == 0  # the only triple inside one sequence is steady
+    assert terms.acceleration(x).item() == 49 + 25
+    rot = torch.zeros(5, 3, dtype=D)
+    rot[:, 1] = x[:, 0] * 0.1
+    assert terms.rotation_acceleration(rot, links).item() < 1e-24 < terms.rotation_acceleration(rot).item()
+    assert terms.rotation_smoothness(rot, links) < terms.rotation_smoothness(rot)
