@@ -12,7 +12,7 @@ the NeRF) lands in an empty cell: they cost neither the NeRF query nor F_e, and 
 grid says nothing about them). With F_e (stage 2) the occupied set is dilated by F_e's
 largest displacement, since the check happens before F_e moves the point. The mean in the
 threshold (instant-NGP's) keeps a still nearly uniform field (early training) from being
-emptied all at once: the denser part of the cells stays.
+emptied all at once: the denser part of the cells stays; a perfectly flat one keeps every cell.
 
 Non-differentiable; its buffers live in the model's state, so checkpoints resume exactly.
 
@@ -94,6 +94,11 @@ class OccupancyGrid(nn.Module):
         new = torch.cat([density_fn(x[s : s + chunk]).float() for s in range(0, len(x), chunk)])
         self.density.copy_(torch.maximum(self.density * self.decay, new.view(self.shape)))
         occ = self.density > min(self.threshold, float(self.density.mean()))
+        if not occ.any():
+            # no cell above the field's own mean: a flat field (σ underflowed to 0 everywhere, as a
+            # PE NeRF at a grid's learning rate does) says nothing about where the exterior is, and an
+            # empty grid would cut the NeRF off from every gradient for good: keep every cell
+            occ = torch.ones_like(occ)
         if self.dilation:
             k = 2 * self.dilation + 1
             occ = F.max_pool3d(occ[None, None].float(), k, stride=1, padding=self.dilation)[0, 0] > 0

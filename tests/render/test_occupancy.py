@@ -51,6 +51,15 @@ def test_a_nearly_uniform_field_keeps_its_denser_cells():
     assert g.fraction() == 0.4
 
 
+def test_a_field_that_collapsed_to_zero_keeps_every_cell():
+    """σ = 0 everywhere (exp underflow) must not empty the grid: no sample would reach the NeRF again."""
+    g = grid(threshold=1.0)
+    g.update(lambda x: torch.zeros_like(x[:, 0]), seed=0)
+    assert bool(g.active) and g.fraction() == 1.0
+    g.update(slab_density, seed=1)  # once the field has structure again, the grid follows it
+    assert g.fraction() == 0.4
+
+
 def test_dilation_grows_the_occupied_set_by_whole_cells():
     g = OccupancyGrid(BOX, OccupancySettings(enabled=True, resolution=10, threshold=1.0), dilation=0.05)
     g.update(slab_density, seed=1)
