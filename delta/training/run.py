@@ -175,12 +175,10 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
     for key in ("model", "stage", "preset", "settings"):
         if key not in state:
             raise DeltaError(f"{model_path}: missing '{key}'; not a model.pt written by 'delta train'")
-    # a model.pt from before F_e could read the time has no 'dynamics' in its settings: pose only; one
-    # from before the pose trajectory has no 'pose_knots': none
-    dynamics = state["settings"].get("dynamics", {"time_freqs": 0})
-    legacy = {"dynamics": {"pose_knots": 0}} if "pose_knots" not in dynamics else {}
-    if "dynamics" not in state["settings"]:
-        legacy["dynamics"]["time_freqs"] = 0
+    # a model.pt from before a 'dynamics' key existed was trained without it: F_e without time
+    # (time_freqs), no pose trajectory (pose_knots)
+    written = state["settings"].get("dynamics", {})
+    legacy = {"dynamics": {k: 0 for k in ("time_freqs", "pose_knots") if k not in written}}
     st = resolve(state["preset"], state["settings"], legacy)
     data = load_frames(record, st.resolution, st.background, st.box_margin)
     spec = st.avatar if state.get("nerf", True) else dataclasses.replace(st.avatar, nerf=None)

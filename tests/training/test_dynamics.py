@@ -80,4 +80,12 @@ def test_a_model_from_before_the_time_input_loads_pose_only(tiny_training, tmp_p
     del state["settings"]["dynamics"]  # as written before the key existed (the fast preset now reads time)
     torch.save(state, tmp_path / "old.pt")
     tr = load_trained(tmp_path / "old.pt", inputs["record"], inputs["body"])
-    assert tr.model.spec.time_freqs == 0 and tr.model.time_code(0) is None
+    assert tr.model.spec.time_freqs == 0 and tr.model.time_code(0) is None and tr.model.trajectory is None
+    state = torch.load(tmp_path / "s2" / "model.pt", weights_only=False)
+    state["settings"]["dynamics"] = {"time_freqs": 3}  # written before the pose trajectory existed
+    torch.save(state, tmp_path / "older.pt")
+    with pytest.raises(DeltaError, match="older.pt"):  # time_freqs 3 is not what F_e was built with
+        load_trained(tmp_path / "older.pt", inputs["record"], inputs["body"])
+    state["settings"]["dynamics"] = {"time_freqs": 0}
+    torch.save(state, tmp_path / "older.pt")
+    assert load_trained(tmp_path / "older.pt", inputs["record"], inputs["body"]).model.trajectory is None
