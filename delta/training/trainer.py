@@ -116,7 +116,7 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
     if state is not None and stale is None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
-        generator.set_state(state["generator"])
+        generator.set_state(state["generator"].cpu())  # map_location moved it
         start, rows = state["step"], state["rows"]
         log.info("stage %d: resuming from %s at step %d", stage, ckpt, start)
     else:

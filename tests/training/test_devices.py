@@ -62,3 +62,18 @@ def test_cuda_losses_and_gradients_match_the_cpu(tiny_avatar):
     for k, v in out["cpu"][0].items():
         assert out["cuda"][0][k] == pytest.approx(v, rel=1e-4, abs=1e-7), k
     torch.testing.assert_close(out["cuda"][1], out["cpu"][1], rtol=1e-3, atol=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_a_stage_interrupted_on_cuda_resumes_there(tiny_avatar, tmp_path):
+    """The checkpoint is loaded with map_location=cuda, which moves the sampling generator's CPU state too."""
+    from delta.training.trainer import CHECKPOINT, train_stage
+
+    model, data, st = tiny_avatar
+    st = copy.deepcopy(st)
+    st.stage1.iterations = 4
+    train_stage(1, copy.deepcopy(model).to("cuda"), data, st, tmp_path, max_steps=2)
+    assert torch.load(tmp_path / CHECKPOINT, weights_only=False)["step"] == 2
+    res = train_stage(1, copy.deepcopy(model).to("cuda"), data, st, tmp_path)
+    assert res.steps == 4 and list(res.losses["step"]) == [1, 2, 3, 4]
