@@ -128,17 +128,22 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
     sem = semantic_loss(st, perceptual_dir, dev) if stage == 2 else None
     t0 = time.time()
     res = train_stage(stage, model, data, st, out, sem)
-    final = {"model": model.state_dict(), "stage": stage, "preset": preset, "settings": st.raw,
-             "nerf": model.nerf is not None, "deformation": model.deformation is not None,
-             "pinhole": model.pinhole, "steps": res.steps, "capture": model.spec.capture,
-             "frozen_joints": list(model.spec.frozen_joints)}  # fmt: skip
-    with atomic_path(out / "model.pt") as tmp:
-        torch.save(final, tmp)
+    save_model(out / "model.pt", model, stage, preset, st, res.steps)
     last = res.losses.tail(max(1, len(res.losses) // 20)).mean(numeric_only=True)
     summary = {"stage": stage, "steps": res.steps, "seconds": round(time.time() - t0, 1),
                "train_psnr_last5pct": round(float(last.get("psnr", float("nan"))), 2)}  # fmt: skip
     log.info("stage %d done: %s", stage, json.dumps(summary))
     return summary
+
+
+def save_model(path: str | Path, model: HybridAvatar, stage: int, preset: str, st: TrainSettings, steps: int) -> None:
+    """A stage's output (``model.pt``): the weights and what :func:`load_trained` rebuilds the avatar from."""
+    final = {"model": model.state_dict(), "stage": stage, "preset": preset, "settings": st.raw,
+             "nerf": model.nerf is not None, "deformation": model.deformation is not None,
+             "pinhole": model.pinhole, "steps": steps, "capture": model.spec.capture,
+             "frozen_joints": list(model.spec.frozen_joints)}  # fmt: skip
+    with atomic_path(path) as tmp:
+        torch.save(final, tmp)
 
 
 def _scope(state: dict) -> dict | None:
