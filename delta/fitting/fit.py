@@ -50,6 +50,10 @@ class FitConfig:
     camera: a steady turn costs nothing, so frames whose heading the keypoints barely constrain (a
     subject facing the camera under an orthographic one, where width changes with cos θ) follow
     their neighbours' rate."""
+    static_weight: float = 0.0
+    """Holds the body pose (every joint but the root) of the capture's own sequence near its mean
+    (``terms.static_pose``): for a subject who keeps one pose while turning. A novel-pose sequence
+    (``sequence`` label other than 0) is never held. 0: off (a capture with motion)."""
     min_keypoints: int = 4
     conf_threshold: float = 0.3
     sil_weight: float = 300.0
@@ -201,7 +205,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     ``cfg.exterior_fill`` weight when the body leaves it uncovered.
 
     ``sequence`` (F,) labels the sequence each frame belongs to (consecutive frames of different
-    labels are not tied by the temporal terms); None: one sequence.
+    labels are not tied by the temporal terms; ``cfg.static_weight`` holds label 0's pose); None: one sequence.
 
     ``camera`` is a PinholeCamera (static; the body moves) or an OrthographicCamera whose per-frame
     scale and translation are fitted (its own values are the start when ``start`` is given).
@@ -251,6 +255,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     image_size = (camera.width, camera.height)
     sil_w = (~empty).to(torch.float64)
     links = None if sequence is None else torch.as_tensor(sequence)[1:] == torch.as_tensor(sequence)[:-1]
+    held = None if sequence is None else torch.as_tensor(sequence) == 0
 
     def loss(stage: int) -> torch.Tensor:
         kp3d, verts = points(betas, pose, transl)
@@ -272,6 +277,8 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
                 accel = accel + terms.acceleration(transl, links)
                 accel = accel + sum(terms.acceleration(c, links) for c in cam_params)
                 total = total + cfg.accel_weight * cfg.sigma_px * accel
+            if cfg.static_weight > 0:
+                total = total + cfg.static_weight * cfg.sigma_px * terms.static_pose(pose[:, 1:], held)
             if use_sil:
                 uv = _project(camera, pinhole, cam_params, verts)
                 rendered = sil.frames_silhouette(uv, coarse.faces, cfg.sil_size, image_size, cfg.sil_sigma,

@@ -124,6 +124,21 @@ def rotation_acceleration(axis_angle: torch.Tensor, links: torch.Tensor | None =
     return (d * link[1:] * link[:-1]).sum()
 
 
+def static_pose(x: torch.Tensor, held: torch.Tensor | None = None) -> torch.Tensor:
+    """Σ over the held frames of |x_f - x̄|², x̄ their mean: (F, ...) parameters, (F,) bool -> ().
+
+    For a capture whose subject holds one pose while turning in place (People Snapshot's protocol,
+    the synthetic turn): per-frame fits of the limbs wander with the heading (at an orthographic
+    camera a frontal elbow's depth is unseen), and the wander is slow, so smoothness cannot remove
+    it. Zero for fewer than two held frames.
+    """
+    held = torch.ones(x.shape[0], dtype=torch.bool, device=x.device) if held is None else held.to(x.device)
+    if int(held.sum()) < 2:
+        return x.new_zeros(())
+    h = x[held]
+    return (h - h.mean(0, keepdim=True)).square().sum()
+
+
 def joint_limit_prior(pose: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
     """Σ over joints and axes of the squared excess beyond [lo, hi]: (F, J, 3), (J, 3), (J, 3) -> (F,).
 

@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 from delta.body.lbs import batch_rodrigues
@@ -112,3 +113,38 @@ def test_temporal_terms_do_not_tie_two_sequences():
     rot[:, 1] = x[:, 0] * 0.1
     assert terms.rotation_acceleration(rot, links).item() < 1e-24 < terms.rotation_acceleration(rot).item()
     assert terms.rotation_smoothness(rot, links) < terms.rotation_smoothness(rot)
+
+
+def test_static_pose_hand_computed():
+    x = torch.tensor([[0.0], [2.0], [4.0]], dtype=D)
+    assert terms.static_pose(x).item() == 8.0  # mean 2: 4 + 0 + 4
+    assert terms.static_pose(x, torch.tensor([True, True, False])).item() == 2.0  # mean 1: 1 + 1
+    assert terms.static_pose(x, torch.tensor([True, False, False])).item() == 0.0
+    x.requires_grad_()
+    terms.static_pose(x).backward()
+    torch.testing.assert_close(x.grad, torch.tensor([[-4.0], [0.0], [4.0]], dtype=D))  # 2 (x_f - mean)
+
+
+@pytest.mark.slow
+def test_static_weight_holds_the_turn_and_frees_the_novel_sequence(body):
+    """Noisy keypoints of a subject turning in one pose, then two frames of another pose (label 1)."""
+    model, kp_map = body
+    F, held = 8, torch.tensor([0] * 6 + [1] * 2)
+    arm = model.joint_names.index("lowerarm01.L")
+    pose = torch.zeros(F, model.num_joints, 3, dtype=D)
+    pose[:, 0, 1] = torch.linspace(-1.2, 1.2, F, dtype=D)  # turning through 140 degrees
+    pose[:, arm, 2] = 0.5
+    pose[6:, arm, 2] = 1.4  # the novel pose bends the elbow further
+    kp3d = KeypointModel(model, kp_map)(torch.zeros(model.num_shape, dtype=D), pose, torch.zeros(F, 3, dtype=D))
+    cam = OrthographicCamera(torch.tensor(1.0, dtype=D), torch.zeros(2, dtype=D), 256, 256)
+    uv, _ = cam.project(kp3d)
+    uv = uv + 2.5 * torch.randn(uv.shape, generator=torch.Generator().manual_seed(0), dtype=D)
+    detected = torch.cat([uv, torch.ones_like(uv[..., :1])], -1)
+    spread, novel = {}, {}
+    for w in (0.0, 30.0):
+        res = fit(model, kp_map, detected, cam, FitConfig(iterations=(60, 150, 100), static_weight=w), sequence=held)
+        body_pose = res.pose[:6, 1:]
+        spread[w] = (body_pose - body_pose.mean(0)).norm(dim=-1).mean().item()
+        novel[w] = (res.pose[6:, arm] - pose[6:, arm]).norm(dim=-1).max().item()
+    assert spread[30.0] < 0.3 * spread[0.0], spread
+    assert novel[30.0] < novel[0.0] + 0.1, novel  # the novel frames are not pulled to the turn's pose
