@@ -254,8 +254,9 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
         t.requires_grad_()
     image_size = (camera.width, camera.height)
     sil_w = (~empty).to(torch.float64)
-    links = None if sequence is None else torch.as_tensor(sequence)[1:] == torch.as_tensor(sequence)[:-1]
-    held = None if sequence is None else torch.as_tensor(sequence) == 0
+    seq = None if sequence is None else torch.as_tensor(sequence)
+    links = None if seq is None else seq[1:] == seq[:-1]
+    held = None if seq is None else seq == 0
 
     def loss(stage: int) -> torch.Tensor:
         kp3d, verts = points(betas, pose, transl)
