@@ -222,11 +222,12 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
                       perceptual_dir=args.perceptual,
                       lpips_alex=tuple(args.lpips_alex) if args.lpips_alex else None)  # fmt: skip
     t0 = time.perf_counter()
-    trained = load_trained(args.model, args.record, args.body, args.device)
+    trained = load_trained(args.model, args.record, args.body, args.device, args.resolution)
     df = evaluate(trained, args.record, st, args.gt_meshes, args.subject)
     summary = {"subject": args.subject, "model": args.model, "stage": trained.stage, "preset": trained.preset,
                "settings": {"splits": list(st.splits), "max_frames": st.max_frames, "refine_steps": st.refine_steps,
-                            "supersample": st.supersample},
+                            "supersample": st.supersample, "resolution": trained.data.resolution,
+                            "train_resolution": trained.settings.resolution},
                "scores": summarize(df)}  # fmt: skip
     if args.gt_meshes:
         summary["train_body_err_mm"] = round(train_body_error_mm(trained, args.gt_meshes), 2)
@@ -433,6 +434,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--refined-only", action="store_true", help="with refinement, skip the unrefined rows")
     from delta.eval.evaluate import EvalSettings
 
+    p.add_argument("--resolution", type=int, default=0,
+                   help="score at this image size (0: the training resolution); a common size makes avatars "
+                        "trained at different resolutions comparable")
     p.add_argument("--supersample", type=int, default=EvalSettings.supersample,
                    help="rays a pixel along each axis, averaged (anti-aliased edges; 1: pixel centres)")
     p.add_argument("--perceptual", help="folder with alex_shift_tolerant.pth (ST-LPIPS column)")

@@ -358,6 +358,8 @@ def eval_args(wildcards, input, settings=None):
     settings = settings or EVAL
     args = (f"--max-frames {settings['max_frames']} --refine-steps {settings['refine_steps']}"
             f" --supersample {settings['supersample']} --splits {' '.join(settings['splits'])}")  # fmt: skip
+    if settings.get("resolution"):
+        args += f" --resolution {settings['resolution']}"
     if not EVAL["report_unrefined"]:
         args += " --refined-only"
     if EVAL["lpips_alex"]:
@@ -529,8 +531,13 @@ def tradeoff_manifest(wildcards):
 
 
 def variant_eval_args(wildcards, input):
-    """The evaluation's arguments with the sweep's own frames, refinement and splits."""
-    return eval_args(wildcards, input, {**EVAL, **TRADE["evaluation"]})
+    """The evaluation's arguments with the sweep's own frames, refinement, splits and resolution
+    (a resolution equal to the variant's training resolution is left out: it is the default)."""
+    settings = {**EVAL, **TRADE["evaluation"]}
+    preset, overrides = variant_training(wildcards.subject, wildcards.variant)
+    if settings.get("resolution") == resolve_training(preset, *overrides).resolution:
+        settings["resolution"] = 0
+    return eval_args(wildcards, input, settings)
 
 
 def tradeoff_inputs(wildcards):

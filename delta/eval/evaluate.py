@@ -135,6 +135,16 @@ def gt_body_vertices(meshes_h5: str | Path, frame_ids) -> dict[int, np.ndarray]:
         return {int(i): f["body_vertices"][int(i)] for i in frame_ids}
 
 
+def modelled_vertices(model) -> np.ndarray:
+    """(V,) bool: the body vertices the avatar models (an ``upper`` capture leaves out hips and legs,
+    which its frames never show; scoring them would score the init fit's guess)."""
+    from delta.training.scope import lower_body_vertices
+
+    if model.spec.capture == "upper":
+        return ~lower_body_vertices(model.body).cpu().numpy()
+    return np.ones(model.body.num_vertices, bool)
+
+
 def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: str | Path | None = None,
              subject: str = "") -> pd.DataFrame:  # fmt: skip
     """One row per scored (frame, refined)."""
@@ -148,6 +158,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
     gt = gt_body_vertices(gt_meshes, data.frame_ids[[f for f, _ in frames]]) if gt_meshes else {}
     passes = [False, True] if st.refine_steps and st.report_unrefined else [bool(st.refine_steps)]
     bg = "white" if tuple(trained.settings.background) == (1.0, 1.0, 1.0) else str(tuple(trained.settings.background))
+    keep = modelled_vertices(model)
     rows = []
     for k, (f, split) in enumerate(frames):
         for refined in passes:
@@ -160,14 +171,15 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
             masks |= {name: m[k] for name, m in regions.items()}
             row = {"subject": subject, "frame": f, "frame_id": int(data.frame_ids[f]), "split": split,
                    "refined": refined, "refine_steps": st.refine_steps if refined else 0, "stage": trained.stage,
-                   "preset": trained.preset, "background": bg, "image": "full", "resolution": data.resolution}  # fmt: skip
+                   "preset": trained.preset, "background": bg, "image": "full", "resolution": data.resolution,
+                   "train_resolution": trained.settings.resolution}  # fmt: skip
             row |= score_image(img, data.images[f], masks, perceptual)
             row["nerf_iou"] = M.iou(img["nerf_mask"] > 0.5, data.exterior[f] > 0.5) if model.nerf is not None else np.nan
             row["mesh_iou"] = M.iou(img["silhouette"] > 0.5, data.person[f] > 0.5)
             if gt:
                 ref = gt[int(data.frame_ids[f])]
-                row["body_err_mm"] = 1000 * vertex_error(mesh.vertices.cpu().numpy(), ref) if ref.shape == tuple(
-                    mesh.vertices.shape) else np.nan  # fmt: skip
+                v = mesh.vertices.cpu().numpy()
+                row["body_err_mm"] = 1000 * vertex_error(v[keep], ref[keep]) if ref.shape == v.shape else np.nan
             rows.append(row)
         log.info("frame %d (%s): %s", f, split, {k: round(v, 3) for k, v in rows[-1].items() if k.startswith(("psnr", "ssim"))
                                                   and isinstance(v, float)})  # fmt: skip
@@ -181,10 +193,11 @@ def write_csv(df: pd.DataFrame, path: str | Path) -> None:
 
 def train_body_error_mm(trained: Trained, gt_meshes: str | Path, every: int = 10) -> float:
     """Body vertex error (mm, centroid-aligned) over every ``every``-th training frame: the body
-    under the clothing as training left it."""
+    under the clothing as training left it (the modelled vertices: an ``upper`` capture has no legs)."""
     model, data = trained.model, trained.data
     frames = data.train[::every]
     gt = gt_body_vertices(gt_meshes, data.frame_ids[frames])
+    keep = modelled_vertices(model)
     errs = []
     with torch.no_grad():
         offsets = model.offsets()
@@ -193,7 +206,7 @@ def train_body_error_mm(trained: Trained, gt_meshes: str | Path, every: int = 10
             ref = gt[int(data.frame_ids[f])]
             if ref.shape != v.shape:
                 return float("nan")
-            errs.append(vertex_error(v, ref))
+            errs.append(vertex_error(v[keep], ref[keep]))
     return 1000 * float(np.mean(errs))
 
 

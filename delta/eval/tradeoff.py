@@ -99,7 +99,9 @@ def variant_row(subject: str, variant: str, files: dict, peak: float) -> dict:
             total += b["s"]
     row["train_s"] = total
     row["stages"] = 2 if "bench2" in files else 1
-    scores = _read_json(files["summary"]).get("scores", {})
+    summary = _read_json(files["summary"])
+    row["eval_resolution"] = summary.get("settings", {}).get("resolution", row["resolution"])
+    scores = summary.get("scores", {})
     for split, passes in scores.items():
         for name, vals in passes.items():
             tag = "_refined" if name == "refined" else ""

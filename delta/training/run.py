@@ -173,8 +173,16 @@ class Trained:
     preset: str
 
 
-def load_trained(model_path: str | Path, record: str | Path, body_path: str | Path, device: str = "cpu") -> Trained:
-    """Rebuild a stage's avatar from its model.pt (the settings it was trained with travel inside)."""
+def load_trained(model_path: str | Path, record: str | Path, body_path: str | Path, device: str = "cpu",
+                 resolution: int = 0) -> Trained:  # fmt: skip
+    """Rebuild a stage's avatar from its model.pt (the settings it was trained with travel inside).
+
+    ``resolution`` > 0 loads the frames at that size instead of the training resolution, and the
+    avatar renders at it (the cameras are rescaled): avatars trained at different resolutions are
+    then scored on the same images.
+    """
+    if resolution < 0:
+        raise DeltaError(f"resolution: {resolution} (expected > 0, or 0 for the training resolution)")
     dev = pick_device(device)
     state = torch.load(model_path, map_location=dev, weights_only=False)
     for key in ("model", "stage", "preset", "settings"):
@@ -185,7 +193,7 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
     written = state["settings"].get("dynamics", {})
     legacy = {"dynamics": {k: 0 for k in ("time_freqs", "pose_knots") if k not in written}}
     st = resolve(state["preset"], state["settings"], legacy)
-    data = load_frames(record, st.resolution, st.background, st.box_margin)
+    data = load_frames(record, resolution or st.resolution, st.background, st.box_margin)
     spec = st.avatar if state.get("nerf", True) else dataclasses.replace(st.avatar, nerf=None)
     scope = _scope(state) or {"capture": "full", "frozen_joints": []}
     spec = dataclasses.replace(spec, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]))
@@ -206,5 +214,8 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
         model.load_state_dict(state["model"])
     except RuntimeError as e:
         raise DeltaError(f"{model_path}: does not match {body_path} or {record}: {str(e)[:300]}") from None
+    if model.pinhole and data.resolution != st.resolution:
+        with torch.no_grad():  # intrinsics in pixels of the training images; an orthographic camera is in NDC
+            model.cam_K[:2] *= data.resolution / st.resolution
     model.eval()
     return Trained(model, data, st, int(state["stage"]), str(state["preset"]))

@@ -82,3 +82,29 @@ def test_psnr_rises_with_refinement_from_a_perturbed_pose(trained):
     df = evaluate(tr, t["record"], st)
     before, after = df["psnr"].tolist()
     assert after > before + 0.5 and not math.isnan(after)
+
+
+@pytest.mark.parametrize("subject", ["tight", "loose"])
+def test_a_common_resolution_renders_the_same_rays(tiny_trained, subject):
+    """Loaded at twice its training resolution, an avatar renders the sub-pixel rays of its own
+    resolution's 2×2 supersampling: the 2× render area-downsampled is that supersampled render
+    (pinhole intrinsics rescaled; an orthographic camera is resolution-free)."""
+    from delta.training.trainer import render_image
+
+    t = tiny_trained[subject]
+    own = load_trained(t["model"], t["record"], t["body"])
+    big = load_trained(t["model"], t["record"], t["body"], resolution=2 * own.data.resolution)
+    n = own.data.resolution
+    assert big.data.resolution == 2 * n and big.data.images.shape[1:3] == (2 * n, 2 * n)
+    assert big.settings.resolution == n and big.model.resolution == 2 * n
+    f = int(np.flatnonzero(own.data.split == 1)[0])
+    a = render_image(own.model, f, supersample=2)
+    b = render_image(big.model, f, supersample=1)
+    for key in ("rgb", "silhouette"):
+        down = b[key].reshape(n, 2, n, 2, -1).mean((1, 3)).reshape(a[key].shape)
+        torch.testing.assert_close(down, a[key], atol=2e-5, rtol=0)
+    assert a["rgb"].std() > 0.05, "a blank render would pass trivially"
+    df = evaluate(big, t["record"], EvalSettings(splits=("test_view",), max_frames=1, refine_steps=0, supersample=1))
+    assert (df["resolution"] == 2 * n).all() and (df["train_resolution"] == n).all()
+    with pytest.raises(DeltaError, match="resolution"):
+        load_trained(t["model"], t["record"], t["body"], resolution=-1)

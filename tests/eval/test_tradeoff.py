@@ -33,12 +33,15 @@ def test_pareto_front():
     assert pareto_front(cost, gain).tolist() == [True, True, False, False, False]
 
 
-def write_variant(root, name, sec_per_step, psnr_per_step, held_out, train_s, flops):
+def write_variant(root, name, sec_per_step, psnr_per_step, held_out, train_s, flops, eval_resolution=None):
     d = root / name
     d.mkdir()
     losses(sec_per_step, psnr_per_step).to_csv(d / "losses.csv", index=False)
     (d / "bench.tsv").write_text(f"s\tmax_rss\n{train_s}\t900\n")
-    (d / "summary.json").write_text(json.dumps({"scores": {"test_view": {"unrefined": {"psnr": held_out, "ssim": 0.9}}}}))
+    summary = {"scores": {"test_view": {"unrefined": {"psnr": held_out, "ssim": 0.9}}}}
+    if eval_resolution:  # summaries written before scoring at a common resolution have no 'resolution'
+        summary["settings"] = {"resolution": eval_resolution}
+    (d / "summary.json").write_text(json.dumps(summary))
     (d / "profile.json").write_text(json.dumps({"flops": flops, "seconds": 0.5, "samples": 1000.0, "rays": 64,
                                                 "preset": "fast", "settings": {"resolution": 64, "render": {"samples": 8},
                                                 "nerf": {"encoding": "grid"}, "stage1": {"rays": 64}}}))  # fmt: skip
@@ -49,9 +52,11 @@ def write_variant(root, name, sec_per_step, psnr_per_step, held_out, train_s, fl
 def test_speedup_against_the_reference(tmp_path):
     # the reference climbs 0.05 dB/step at 2 s/step; "fast" 0.1 dB/step at 0.2 s/step
     manifest = {"s": {"reference": write_variant(tmp_path, "ref", 2.0, 0.05, 21.0, 400.0, 1e9),
-                      "fast": write_variant(tmp_path, "fast", 0.2, 0.1, 23.0, 40.0, 1e8)}}  # fmt: skip
+                      "fast": write_variant(tmp_path, "fast", 0.2, 0.1, 23.0, 40.0, 1e8, eval_resolution=128)}}  # fmt: skip
     (tmp_path / "peak.json").write_text(json.dumps({"flop_per_s": 1e10}))
     df = tradeoff(manifest, tmp_path / "peak.json", "reference", tmp_path / "t.csv", tmp_path / "t.png").set_index("variant")
+    # trained at 64², scored at its own size (no 'resolution' in the summary) or at a common 128²
+    assert df.loc["reference", "eval_resolution"] == 64 and df.loc["fast", "eval_resolution"] == 128
     target = df.loc["reference", "reference_psnr"]
     ref = losses(2.0, 0.05)
     t_ref, t_fast = time_to_psnr(ref, target), time_to_psnr(losses(0.2, 0.1), target)
