@@ -86,7 +86,7 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
             assert (work / "logs" / f"train_stage{stage}" / f"{dataset}_{subject}.log").is_file()
             assert (work / "results/benchmarks" / f"train_stage{stage}" / f"{dataset}_{subject}.tsv").is_file()
     # evaluation, export and the per-dataset tables
-    for dataset, subjects in (("synthetic", ["tight", "loose"]), ("peoplesnapshot", ["tight"])):
+    for dataset, subjects in (("synthetic", ["tight", "loose", "upper"]), ("peoplesnapshot", ["tight"])):
         table = pd.read_csv(work / "results" / dataset / "metrics.csv")
         assert sorted(table["subject"][:-1]) == sorted(subjects) and table["subject"].iloc[-1] == "mean"
         for col in ("psnr", "ssim", "l1", "stlpips_alex"):
@@ -244,7 +244,7 @@ def test_generic_video_runs_the_offline_default_steps(tmp_path, tiny_captures, m
     [
         ("results/nowhere/metrics.csv", "dataset 'nowhere' is not configured; configured datasets: ['peoplesnapshot', 'synthetic']"),
         ("results/synthetic/bob/eval/metrics.csv", "subject 'bob' is not configured for dataset 'synthetic'; "
-                                                   "configured subjects: ['loose', 'tight']"),
+                                                   "configured subjects: ['loose', 'tight', 'upper']"),
         ("results/synthetic/tight/tradeoff/turbo/eval/summary.json", "trade-off variant 'turbo' is not configured"),
     ],
 )
@@ -261,11 +261,16 @@ def test_tradeoff_variants_reuse_the_main_run_and_name_their_subjects(tmp_path):
     cfg = yaml.safe_load((work / ".test/config/config.yaml").read_text())
     subjects = sorted(cfg["datasets"]["synthetic"]["subjects"])
     cfg["tradeoff"] = {"variants": {"fast": {"stages": 1}, "few_rays": {"stages": 1, "subjects": [subjects[0]],
-                                                                        "stage1": {"rays": 64}}}}  # fmt: skip
+                                                                        "stage1": {"rays": 64}},
+                                    "res_16": {"stages": 1, "subjects": [subjects[0]], "resolution": 16}},
+                       "evaluation": {"resolution": 32}}  # fmt: skip
     (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
-    res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run")
+    res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run", "--printshellcmds")
     out = res.stdout + res.stderr
     assert res.returncode == 0, out[-3000:]
+    # every variant is scored at 32²: the one trained at 16² says so, the others are trained at 32²
+    scored = {m.group(1): m.group(0) for m in re.finditer(r"delta evaluate --model results/synthetic/\w+/(?:tradeoff/(\w+)/)?stage1/model\.pt[^\n]*", out)}  # fmt: skip
+    assert "--resolution 32" in scored["res_16"] and "--resolution" not in scored["few_rays"]
     trained = set(re.findall(r"output: results/synthetic/(\w+)/tradeoff/(\w+)/stage1/model\.pt", out))
     assert {v for _, v in trained} >= {"few_rays"} and "fast" not in {v for _, v in trained}
     assert {s for s, v in trained if v == "few_rays"} == {subjects[0]}

@@ -82,9 +82,16 @@ class Undistorter:
 
 
 def square_box(masks: Iterator[np.ndarray], margin: float, out: int) -> CropBox:
-    """The square around the union of the masks' boxes, grown by ``margin`` of its side on each side."""
+    """The square around the union of the masks' boxes, grown by ``margin`` of its side on each side.
+
+    Where the person is cut by an image edge (a head-and-shoulders capture: the chest runs off the
+    bottom), the square ends at that edge: beyond it the body goes on but the image holds no pixel
+    of it, and a padded strip would teach the avatar background where the body is.
+    """
     lo, hi = np.array([np.inf, np.inf]), np.array([-np.inf, -np.inf])
+    size = None
     for m in masks:
+        size = m.shape[1::-1]  # (W, H)
         ys, xs = np.nonzero(m > 127)
         if len(xs):
             lo = np.minimum(lo, [xs.min(), ys.min()])
@@ -93,8 +100,14 @@ def square_box(masks: Iterator[np.ndarray], margin: float, out: int) -> CropBox:
         raise DeltaError("no frame shows a person: every mask is empty")
     centre = (lo + hi) / 2
     side = int(np.ceil((hi - lo).max() * (1 + 2 * margin)))
-    u0, v0 = np.round(centre - side / 2).astype(int)
-    return CropBox(int(u0), int(v0), side, out)
+    corner = np.round(centre - side / 2).astype(int)
+    for axis in (0, 1):
+        cut_low, cut_high = lo[axis] <= 0, hi[axis] >= size[axis]
+        if cut_high and not cut_low:
+            corner[axis] = size[axis] - side
+        elif cut_low and not cut_high:
+            corner[axis] = 0
+    return CropBox(int(corner[0]), int(corner[1]), side, out)
 
 
 def crop(img: np.ndarray, box: CropBox, interp: int, mask: bool = False) -> np.ndarray:

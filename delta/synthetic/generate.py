@@ -42,8 +42,21 @@ def label_names() -> dict[int, str]:
     return names
 
 
+#: share of the standing height an ``upper`` framing shows, from the top of the head down
+UPPER_FRAMING = 0.35
+
+
+def frame_span(spec: SubjectSpec, rest_y: np.ndarray) -> tuple[float, float]:
+    """(height, centre) in metres of what the camera frames: the standing body (``full``) or its
+    top ``UPPER_FRAMING`` (``upper``), with 5 cm of room above and below."""
+    low, top = float(rest_y.min()), float(rest_y.max())
+    if spec.framing == "upper":
+        low = top - UPPER_FRAMING * (top - low)
+    return top - low + 0.1, (low + top) / 2
+
+
 def make_camera(spec: SubjectSpec, height_m: float, centre_y: float):
-    """A static camera framing a standing subject of ``height_m`` metres."""
+    """A static camera framing ``height_m`` metres of a standing subject around height ``centre_y``."""
     H = W = spec.resolution
     fill = 0.86
     if spec.camera == "orthographic":
@@ -126,8 +139,7 @@ def generate(
         rest = lbs(model, betas, zero)
     rest_v, rest_j = rest.vertices[0].numpy(), rest.joints[0].numpy()
     layers = build_layers(model, rest_v, rest_j, spec.garments, spec.hair)
-    height = float(np.ptp(rest_v[:, 1]))
-    camera = make_camera(spec, height + 0.1, float(rest_v[:, 1].min() + rest_v[:, 1].max()) / 2)
+    camera = make_camera(spec, *frame_span(spec, rest_v[:, 1]))
     turn, rate = turn_sequence(model.joint_names, spec.turn_frames, spec.turns, spec.fps, spec.seed)
     poses = np.concatenate([turn, novel_sequence(model.joint_names, spec.novel_frames, spec.seed)])
     rates = np.concatenate([rate, np.zeros(spec.novel_frames)])

@@ -11,6 +11,7 @@ GARMENTS = ("tshirt", "longsleeve", "trousers", "shorts", "skirt", "dress")
 PATTERNS = ("stripes", "checker", "dots", "plaid", "plain")
 HAIR = ("none", "short", "long")
 CAMERAS = ("pinhole", "orthographic")
+FRAMINGS = ("full", "upper")
 CODECS = ("ffv1", "mp4v")
 #: garments that cover the upper / lower body; at most one of each, and a dress covers both
 _UPPER, _LOWER = {"tshirt", "longsleeve", "dress"}, {"trousers", "shorts", "skirt", "dress"}
@@ -37,6 +38,9 @@ class SubjectSpec:
     hair_color: tuple[float, float, float] = (0.18, 0.11, 0.07)
     camera: str = "pinhole"
     distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    framing: str = "full"
+    """``full``: the whole standing body in view; ``upper``: head, shoulders and chest (the top
+    ``UPPER_FRAMING`` of the height), hips and legs out of view: a capture that needs no legs."""
     resolution: int = 512
     turn_frames: int = 100
     novel_frames: int = 30
@@ -113,7 +117,7 @@ def parse_subject(name: str, raw: dict) -> SubjectSpec:
         kinds = [g.kind for g in kw["garments"]]
         if sum(k in _UPPER for k in kinds) > 1 or sum(k in _LOWER for k in kinds) > 1:
             raise DeltaError(f"{key}.garments: {kinds} overlap (one upper and one lower garment, or one dress)")
-    for choice_key, options in (("hair", HAIR), ("camera", CAMERAS), ("codec", CODECS)):
+    for choice_key, options in (("hair", HAIR), ("camera", CAMERAS), ("codec", CODECS), ("framing", FRAMINGS)):
         if choice_key in kw and kw[choice_key] not in options:
             raise DeltaError(f"{key}.{choice_key}: unknown value '{kw[choice_key]}'; known: {list(options)}")
     for color_key in ("skin_color", "hair_color", "background"):

