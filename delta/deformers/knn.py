@@ -27,6 +27,9 @@ from scipy.spatial import cKDTree
 
 from delta.geometry import distance_grid
 
+#: kNN queries of at least this many points use the job's threads (fewer: one thread is faster)
+PARALLEL_QUERY = 20_000
+
 
 @dataclasses.dataclass
 class SkinningFrame:
@@ -88,7 +91,10 @@ def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tens
 
 def knn(frame: SkinningFrame, points: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Indices (N, k) of the k nearest posed vertices, nearest first, and differentiable distances (N, k)."""
-    _, idx = frame.tree.query(points.detach().cpu().numpy().astype(np.float64), k=k, workers=1)
+    pts = points.detach().cpu().numpy().astype(np.float64)
+    # the job's own threads (not every core of the node); small batches are faster on one
+    workers = torch.get_num_threads() if len(pts) >= PARALLEL_QUERY else 1
+    _, idx = frame.tree.query(pts, k=k, workers=workers)
     idx = torch.from_numpy(np.asarray(idx, dtype=np.int64).reshape(len(points), k)).to(points.device)
     diff = points[:, None] - frame.posed[idx]
     # sqrt with a floor: finite gradient for a point exactly on a vertex
@@ -97,9 +103,21 @@ def knn(frame: SkinningFrame, points: torch.Tensor, k: int) -> tuple[torch.Tenso
 
 def blend_weights(frame: SkinningFrame, idx: torch.Tensor, dist: torch.Tensor, sigma: float) -> torch.Tensor:
     """α (N, k): softmax of -‖x - v_i‖ ‖w_nn - w_i‖ / (2σ²) (log-space normalisation never underflows)."""
-    w = frame.weights[idx]  # (N, k, J)
-    wdiff = (w - w[:, :1]).norm(dim=-1)
-    return torch.softmax(-dist * wdiff / (2 * sigma * sigma), dim=-1)
+    return torch.softmax(-dist * weight_distance(frame.weights, idx) / (2 * sigma * sigma), dim=-1)
+
+
+@torch.no_grad()
+def weight_distance(weights: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """‖w_nn - w_i‖ (N, k) for neighbour lists idx (N, k), nearest first (constant: no gradient).
+
+    Computed once per distinct (nearest, neighbour) vertex pair: the N·k pairs of a batch of samples
+    repeat a few thousand vertex pairs, so this gathers far fewer (J,) weight rows than N·k of them.
+    """
+    n, k = idx.shape
+    pairs = idx[:, :1] * weights.shape[0] + idx
+    uniq, inverse = torch.unique(pairs.reshape(-1), return_inverse=True)
+    a, b = uniq // weights.shape[0], uniq % weights.shape[0]
+    return (weights[a] - weights[b]).norm(dim=-1)[inverse].view(n, k)
 
 
 def deform(frame: SkinningFrame, points: torch.Tensor, k: int = 6, sigma: float = 0.1,

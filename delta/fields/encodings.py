@@ -64,7 +64,9 @@ class GridEncoding(nn.Module):
             F.grid_sample(grid, g, mode="bilinear", padding_mode="zeros", align_corners=True).view(grid.shape[1], -1)
             for grid in self.grids
         ]
-        return torch.cat(feats, dim=0).T.to(x.dtype)
+        # (N, C) row-major: the first layer's weight gradient (grad_outᵀ · x) is ~3x slower on a CPU
+        # when x is the transposed view of a (C, N) tensor
+        return torch.cat([f.T for f in feats], dim=1).to(x.dtype)
 
 
 def make_encoding(kind: str, bounds: torch.Tensor, **kw) -> nn.Module:

@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from delta.body.lbs import lbs
-from delta.deformers.knn import affine_inverse, blend_weights, compose, deform, knn, prepare
+from delta.deformers import knn as knn_module
+from delta.deformers.knn import affine_inverse, blend_weights, compose, deform, knn, prepare, weight_distance
 from tests.conftest import soft_tree_model
 
 D = torch.float64
@@ -188,6 +189,34 @@ def test_identical_skinning_weights_give_uniform_blend():
     idx, dist = knn(frame, x, 3)
     alpha = blend_weights(frame, idx, dist, 0.01)
     assert torch.equal(alpha, torch.full((2, 3), 1 / 3, dtype=D))
+
+
+def test_weight_distance_over_distinct_pairs_equals_every_pair():
+    """The per-pair shortcut gives the dense ‖w[idx[:, 0]] - w[idx]‖ exactly, repeated pairs included."""
+    gen = torch.Generator().manual_seed(3)
+    weights = torch.rand(40, 7, generator=gen, dtype=D)
+    weights = weights / weights.sum(1, keepdim=True)
+    idx = torch.randint(0, 40, (500, 6), generator=gen)
+    idx[:250] = idx[250:]  # every neighbour list twice
+    idx[:, 1] = idx[:, 0]  # a vertex paired with itself: 0
+    dense = (weights[idx] - weights[idx[:, :1]]).norm(dim=-1)
+    got = weight_distance(weights, idx)
+    assert torch.equal(got, dense)
+    assert bool((got[:, :2] == 0).all())
+
+
+def test_large_knn_queries_use_the_jobs_threads_and_agree_with_one_thread(monkeypatch):
+    _, _, _, frame = posed_setup(4)
+    x = torch.randn(3000, 3, generator=torch.Generator().manual_seed(4), dtype=D)
+    one = knn(frame, x, 6)
+    monkeypatch.setattr(knn_module, "PARALLEL_QUERY", 100)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        two = knn(frame, x, 6)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])
 
 
 # ----------------------------------------------------------------- affine algebra
