@@ -1,0 +1,125 @@
+"""Where a training step's time goes: wall time per component of a stage-1 step, written as CSV.
+
+Loads a trained stage (its occupancy grid is then active, as in all but a stage's first steps) or,
+with ``--fresh``, the same model with every occupancy cell occupied (a stage's first steps), runs
+``--steps`` timed training steps (forward, losses, backward; the parameters are not changed) and
+times the parts by wrapping them: the kNN query of backward skinning, the skinning-weight distances,
+the rest of backward skinning, the ray–mesh hits, the soft silhouette, the per-frame skinning setup
+(distance grid, KD-tree), the NeRF query and the backward pass. One row per component: seconds a
+step and share of the step. Run it on a quiet machine.
+
+    python benchmarks/step_profile.py --model results/synthetic/loose/stage1/model.pt \
+        --record results/synthetic/loose/frames.h5 --out benchmarks/step_profile_loose.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import pandas as pd
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@contextlib.contextmanager
+def timed(owners: list[tuple[object, str, str]], totals: dict):
+    """Wrap ``owner.name`` for every (owner, name, label): each call adds its wall time to totals[label]."""
+    saved = []
+    for owner, name, label in owners:
+        fn = getattr(owner, name)
+
+        def wrapper(*args, _fn=fn, _label=label, **kw):
+            t = time.perf_counter()
+            try:
+                return _fn(*args, **kw)
+            finally:
+                totals[_label] += time.perf_counter() - t
+
+        saved.append((owner, name, fn))
+        setattr(owner, name, wrapper)
+    try:
+        yield
+    finally:
+        for owner, name, fn in saved:
+            setattr(owner, name, fn)
+
+
+def profile(model, data, st, steps: int, seed: int = 0) -> tuple[pd.DataFrame, float]:
+    from delta import losses as L
+    from delta.deformers import knn as deformer
+    from delta.render import hybrid
+    from delta.training.data import sample_rays
+    from delta.training.trainer import _to, loss_terms
+
+    totals: dict[str, float] = defaultdict(float)
+    g = torch.Generator().manual_seed(seed)
+    dev = model.background.device
+    samples = []
+    owners = [
+        (deformer, "knn", "knn query + distances"),
+        (deformer, "weight_distance", "skinning-weight distances"),
+        (deformer, "deform", "backward skinning (all)"),
+        (deformer, "prepare", "per-frame skinning setup"),
+        (hybrid, "ray_mesh_hits", "ray-mesh hits"),
+        (hybrid, "soft_silhouette", "soft silhouette"),
+        (model.nerf, "forward", "NeRF query"),
+    ]
+
+    def step():
+        frame = int(data.train[torch.randint(len(data.train), (1,), generator=g)])
+        batch = _to(sample_rays(data, frame, st.stage1.rays, g), dev)
+        terms, r = loss_terms(model, batch, st, data.skin_color.to(dev), None, g)
+        loss = L.total(terms, st.weights)
+        model.zero_grad(set_to_none=True)
+        t = time.perf_counter()
+        loss.backward()
+        totals["backward pass"] += time.perf_counter() - t
+        return r.samples_evaluated
+
+    for _ in range(2):  # warm up
+        step()
+    totals.clear()
+    t0 = time.perf_counter()
+    with timed(owners, totals):
+        for _ in range(steps):
+            samples.append(step())
+    total = (time.perf_counter() - t0) / steps
+    rows = [{"component": k, "seconds_per_step": v / steps, "share": v / steps / total} for k, v in totals.items()]
+    rows.append({"component": "step", "seconds_per_step": total, "share": 1.0})
+    return pd.DataFrame(rows), sum(samples) / len(samples)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", required=True, help="a stage's model.pt")
+    ap.add_argument("--record", required=True, help="the subject's frames.h5")
+    ap.add_argument("--body", default=str(ROOT / "resources/body/anny_sub1.npz"))
+    ap.add_argument("--steps", type=int, default=10)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--fresh", action="store_true", help="every occupancy cell occupied (a stage's first steps)")
+    ap.add_argument("--out", required=True, help="CSV to write")
+    a = ap.parse_args()
+    from delta.training.run import load_trained
+
+    torch.set_num_threads(a.threads)
+    tr = load_trained(a.model, a.record, a.body)
+    model = tr.model.train()
+    if a.fresh and model.occupancy is not None:
+        model.occupancy.reset()
+    table, samples = profile(model, tr.data, tr.settings, a.steps)
+    table.insert(0, "model", a.model)
+    table.insert(1, "occupancy", "all cells" if a.fresh else "trained")
+    table["nerf_samples_per_step"] = round(samples)
+    table["threads"] = a.threads
+    table = table.round(4)
+    table.to_csv(a.out, index=False)
+    print(table.to_string(index=False))
+
+
+if __name__ == "__main__":
+    main()
