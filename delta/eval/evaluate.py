@@ -135,16 +135,6 @@ def gt_body_vertices(meshes_h5: str | Path, frame_ids) -> dict[int, np.ndarray]:
         return {int(i): f["body_vertices"][int(i)] for i in frame_ids}
 
 
-def modelled_vertices(model) -> np.ndarray:
-    """(V,) bool: the body vertices the avatar models (an ``upper`` capture leaves out hips and legs,
-    which its frames never show; scoring them would score the init fit's guess)."""
-    from delta.training.scope import lower_body_vertices
-
-    if model.spec.capture == "upper":
-        return ~lower_body_vertices(model.body).cpu().numpy()
-    return np.ones(model.body.num_vertices, bool)
-
-
 def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: str | Path | None = None,
              subject: str = "") -> pd.DataFrame:  # fmt: skip
     """One row per scored (frame, refined)."""
@@ -158,7 +148,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
     gt = gt_body_vertices(gt_meshes, data.frame_ids[[f for f, _ in frames]]) if gt_meshes else {}
     passes = [False, True] if st.refine_steps and st.report_unrefined else [bool(st.refine_steps)]
     bg = "white" if tuple(trained.settings.background) == (1.0, 1.0, 1.0) else str(tuple(trained.settings.background))
-    keep = modelled_vertices(model)
+    keep = model.modelled.cpu().numpy()
     rows = []
     for k, (f, split) in enumerate(frames):
         for refined in passes:
@@ -197,7 +187,7 @@ def train_body_error_mm(trained: Trained, gt_meshes: str | Path, every: int = 10
     model, data = trained.model, trained.data
     frames = data.train[::every]
     gt = gt_body_vertices(gt_meshes, data.frame_ids[frames])
-    keep = modelled_vertices(model)
+    keep = model.modelled.cpu().numpy()
     errs = []
     with torch.no_grad():
         offsets = model.offsets()

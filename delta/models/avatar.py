@@ -108,6 +108,8 @@ class HybridAvatar(nn.Module):
         modelled = torch.ones(body.num_vertices, dtype=torch.bool, device=template.device)
         if spec.capture == "upper":
             modelled = ~lower_body_vertices(body)
+        # (V,) bool: the vertices this capture models (derived from the body, not saved)
+        self.register_buffer("modelled", modelled, persistent=False)
         ids = knn_vertex_ids(body, spec.render.knn_vertices).to(template.device)
         self.register_buffer("knn_ids", ids[modelled[ids]], persistent=False)
         pose_mask = torch.ones(body.num_joints, device=template.device)
