@@ -5,7 +5,7 @@ with ``--fresh``, the same model with every occupancy cell occupied (a stage's f
 ``--steps`` timed training steps (forward, losses, backward; the parameters are not changed) and
 times the parts by wrapping them: the kNN query of backward skinning, the skinning-weight distances,
 the rest of backward skinning, the ray–mesh hits, the soft silhouette, the per-frame skinning setup
-(distance grid, KD-tree), the NeRF query and the backward pass. One row per component: seconds a
+(distance grid, KD-tree), the early cull, the NeRF query and the backward pass. One row per component: seconds a
 step and share of the step. Run it on a quiet machine.
 
     python benchmarks/step_profile.py --model results/synthetic/loose/stage1/model.pt \
@@ -67,6 +67,7 @@ def profile(model, data, st, steps: int, seed: int = 0) -> tuple[pd.DataFrame, f
         (deformer, "prepare", "per-frame skinning setup"),
         (hybrid, "ray_mesh_hits", "ray-mesh hits"),
         (hybrid, "soft_silhouette", "soft silhouette"),
+        (hybrid, "early_cull", "early cull (before the kNN)"),
         (model.nerf, "forward", "NeRF query"),
     ]
 
@@ -102,6 +103,7 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--fresh", action="store_true", help="every occupancy cell occupied (a stage's first steps)")
+    ap.add_argument("--no-early-cull", action="store_true", help="every sample in a ray's span goes to the kNN query")
     ap.add_argument("--out", required=True, help="CSV to write")
     a = ap.parse_args()
     from delta.training.run import load_trained
@@ -111,9 +113,11 @@ def main() -> None:
     model = tr.model.train()
     if a.fresh and model.occupancy is not None:
         model.occupancy.reset()
+    model.spec.render.early_cull = not a.no_early_cull
     table, samples = profile(model, tr.data, tr.settings, a.steps)
     table.insert(0, "model", a.model)
     table.insert(1, "occupancy", "all cells" if a.fresh else "trained")
+    table.insert(2, "early_cull", model.spec.render.early_cull)
     table["nerf_samples_per_step"] = round(samples)
     table["threads"] = a.threads
     table = table.round(4)

@@ -26,6 +26,7 @@ import pandas as pd
 from delta import DeltaError
 from delta.eval.aggregate import benchmark_row
 from delta.eval.plots import smooth
+from delta.geometry.distance_grid import GRID_REACH
 from delta.io import atomic_path
 
 #: training-ray PSNR is noisy (one frame a step); this many steps are averaged
@@ -77,7 +78,9 @@ def knobs(settings: dict) -> dict:
             "nerf_backend": raw.get("nerf", {}).get("encoding"),
             "iterations": raw.get("stage1", {}).get("iterations"),
             "max_dist": render.get("max_dist"),
-            "occupancy": bool(render.get("occupancy", {}).get("enabled", False))}  # fmt: skip
+            "occupancy": bool(render.get("occupancy", {}).get("enabled", False)),
+            # the early cull reads the distance grid, built only when max_dist is within its reach
+            "early_cull": bool(render.get("early_cull", True)) and float(render.get("max_dist", 0.0)) <= GRID_REACH}  # fmt: skip
 
 
 def _read_json(path) -> dict:

@@ -19,6 +19,7 @@ from delta.body.model import BodyModel
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.deformers import knn as deformer
 from delta.fields.networks import DeformationField, FieldSpec, NeRFField, VertexField, time_features
+from delta.geometry.distance_grid import GRID_REACH
 from delta.losses import mesh_edges
 from delta.render.hybrid import PosedMesh, RayRender, RenderSettings, render_rays
 from delta.models.trajectory import Trajectory
@@ -64,11 +65,6 @@ class InitParams:
     """(N, 3)."""
     camera: object
     """PinholeCamera (fixed) or OrthographicCamera with (N,) scale, (N, 2) translation."""
-
-
-#: the largest ``render.max_dist`` (m) for which a per-frame distance grid is built (at 0.02 m cells
-#: a 1 m pad is ~10^7 cells, 40 MB; the paper's "no culling" 10 m would be ~10^9)
-GRID_REACH = 1.0
 
 
 def knn_vertex_ids(body: BodyModel, which: str) -> torch.Tensor:

@@ -2,14 +2,16 @@
 
 The recipe (R rays, S samples per ray, V vertices): ray–mesh hits -> mesh colour and
 soft silhouette -> samples on [t_n, t_f] inside the body's box, t_f at the mesh ->
-backward skinning (invalid samples cost nothing) -> optional occupancy test in the
-canonical space (samples in empty cells cost nothing more) -> optional non-rigid offsets ->
-NeRF -> mesh-integrated compositing.
+early cull from the per-frame distance grid (far from the body, or a rough canonical point in
+an empty occupancy cell: no kNN query) -> backward skinning (invalid samples cost nothing) ->
+optional occupancy test in the canonical space (samples in empty cells cost nothing more) ->
+optional non-rigid offsets -> NeRF -> mesh-integrated compositing.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Callable, Optional
 
 import numpy as np
@@ -64,6 +66,11 @@ class RenderSettings:
     knn_vertices: str = "base"
     """Backward skinning over the ``base`` mesh's vertices (before upsampling; 4× fewer) or ``all``."""
     perturb: bool = True
+    early_cull: bool = True
+    """Before the kNN query, drop samples that the distance grid puts beyond ``max_dist`` of the body
+    (with √3 cells of slack: the grid's error) or whose rough canonical point (the nearest vertex's
+    map, ``deformer.rough_canonical``) lies outside the occupancy grid's occupied set grown by
+    ``EARLY_GROW`` cells; the exact tests still run on the samples that pass."""
     occupancy: OccupancySettings = dataclasses.field(default_factory=OccupancySettings)
     """The canonical occupancy grid that skips samples in empty space (training updates it)."""
 
@@ -86,10 +93,15 @@ class RayRender:
     """NeRF queries made (after culling)."""
 
 
+#: cells the occupied set grows by for the early cull: the rough canonical point lies within 3 cm of
+#: the kNN blend's on a trained avatar (99th percentile 0.9 cm), under one 3.2-cm occupancy cell
+EARLY_GROW = 1
+
 NeRF = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 Deform = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 Occupied = Callable[[torch.Tensor], torch.Tensor]
-"""Canonical points (N, 3) -> (N,) bool: may have density (False: skipped)."""
+"""Canonical points (N, 3) -> (N,) bool: may have density (False: skipped); ``grow`` (keyword):
+the same test in the occupied set grown by that many cells."""
 
 
 def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixels: torch.Tensor,
@@ -145,11 +157,23 @@ def body_span(skinning, origins, dirs, t_in, t_far, hit, settings: RenderSetting
     return lo, torch.maximum(hi, lo)
 
 
+def early_cull(skinning: deformer.SkinningFrame, points: torch.Tensor, max_dist: float,
+               occupied: Optional[Occupied] = None) -> torch.Tensor:  # fmt: skip
+    """(N,) bool: posed points that may pass the exact tests (kNN distance, occupancy), from the
+    distance grid alone (no kNN query); needs ``skinning.near``."""
+    rough, dist = deformer.rough_canonical(skinning, points)
+    keep = dist < max_dist + math.sqrt(3) * skinning.near.cell * (1 + 1e-6)
+    if occupied is not None:
+        keep &= occupied(rough, grow=EARLY_GROW)
+    return keep
+
+
 def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: NeRF, nonrigid, occupied=None):
     """Densities and colours of the NeRF samples (all but the last), zero where culled.
 
-    Culling, cheapest first: rays with an empty span, samples beyond ``max_dist`` of the body (kNN),
-    then samples whose canonical point is in an empty occupancy cell (before F_e and the NeRF).
+    Culling, cheapest first: rays with an empty span, the early cull (distance grid and rough
+    canonical point), samples beyond ``max_dist`` of the body (kNN), then samples whose canonical
+    point is in an empty occupancy cell (before F_e and the NeRF).
     """
     R, S = t.shape
     tn = t[:, :-1]
@@ -159,6 +183,8 @@ def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: Ne
     sigma = flat.new_zeros(R * (S - 1))
     rgb = flat.new_zeros(R * (S - 1), 3)
     idx = torch.nonzero(live).squeeze(1)
+    if settings.early_cull and mesh.skinning.near is not None and len(idx):
+        idx = idx[early_cull(mesh.skinning, flat[idx], settings.max_dist, occupied)]
     if len(idx):
         d = deformer.deform(mesh.skinning, flat[idx], settings.k, settings.sigma, settings.max_dist)
         valid = d.valid

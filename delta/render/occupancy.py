@@ -105,13 +105,21 @@ class OccupancyGrid(nn.Module):
         self.occupied.copy_(occ)
         self.active.fill_(True)
 
-    def contains(self, points: torch.Tensor) -> torch.Tensor:
-        """(N,) bool: the point lies in an occupied cell, or outside the grid (never skipped)."""
+    def contains(self, points: torch.Tensor, grow: int = 0) -> torch.Tensor:
+        """(N,) bool: the point lies in an occupied cell, or outside the grid (never skipped).
+
+        ``grow``: in the occupied set grown by this many cells (a test for a point known only
+        to within that many cells; the renderer's cull before the kNN query).
+        """
+        occupied = self.occupied
+        if grow > 0:
+            k = 2 * grow + 1
+            occupied = F.max_pool3d(occupied[None, None].float(), k, stride=1, padding=grow)[0, 0] > 0
         shape = torch.tensor(self.shape, device=points.device)
         fijk = torch.floor((points.detach() - self.lo) / self.cell)
         inside = ((fijk >= 0) & (fijk < shape)).all(-1)
         ijk = torch.where(inside[:, None], fijk, torch.zeros_like(fijk)).long()
-        occ = self.occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+        occ = occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
         return occ | ~inside
 
     def fraction(self) -> float:

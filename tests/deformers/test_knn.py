@@ -140,6 +140,46 @@ def test_empty_query():
     assert d.canonical.shape == (0, 3) and d.valid.shape == (0,) and d.valid.dtype == torch.bool
 
 
+# ----------------------------------------------------------------- the rough map (culling before the kNN)
+def test_rough_canonical_is_exact_where_every_vertex_moves_alike():
+    """One rigid motion for every vertex: any blend of the maps is that motion, so the nearest vertex's is too."""
+    gen = torch.Generator().manual_seed(7)
+    v = torch.randn(300, 3, generator=gen, dtype=D) * 0.3
+    R = torch.linalg.matrix_exp(torch.tensor([[0, -0.4, 0.2], [0.4, 0, -0.7], [-0.2, 0.7, 0]], dtype=D))
+    G = torch.cat([R, torch.tensor([[0.1], [-0.3], [0.5]], dtype=D)], 1).expand(300, 3, 4)
+    posed = apply(G, v)
+    frame = prepare(posed, G, torch.zeros_like(v), torch.eye(3, 4, dtype=D).expand(300, 3, 4), torch.ones(300, 1, dtype=D),
+                    near_cell=0.02, near_pad=0.2)  # fmt: skip
+    x = posed[:50] + 0.05 * torch.randn(50, 3, generator=gen, dtype=D)
+    rough, dist = knn_module.rough_canonical(frame, x)
+    torch.testing.assert_close(rough, deform(frame, x).canonical, rtol=0, atol=1e-10)
+    torch.testing.assert_close(rough, apply(affine_inverse(G[:1]), x), rtol=0, atol=1e-10)
+    exact = deform(frame, x).distance
+    assert float((dist - exact).abs().max()) <= math.sqrt(3) * 0.02 + 1e-6
+
+
+def test_rough_canonical_names_the_nearest_vertex_map_on_a_posed_body():
+    """On the posed tree model (bones bend: the maps differ), the rough point is mostly ``deform(k=1)``'s:
+    the voxel's nearest vertex is the point's own nearest one."""
+    model, out, canonical_T, _ = posed_setup(5)
+    frame = prepare(out.vertices[0], out.vertex_transforms_3x4[0], out.rest_vertices[0] - model.v_template,
+                    canonical_T, model.weights, near_cell=0.005, near_pad=0.1)  # fmt: skip
+    gen = torch.Generator().manual_seed(8)
+    x = out.vertices[0][torch.randint(model.num_vertices, (200,), generator=gen)]
+    x = x + 0.02 * torch.randn(200, 3, generator=gen, dtype=D)
+    rough, _ = knn_module.rough_canonical(frame, x)
+    one = deform(frame, x, k=1).canonical
+    same = (rough - one).norm(dim=-1) < 1e-9
+    assert float(same.double().mean()) > 0.8  # the voxel's nearest vertex is mostly the true nearest
+    assert not rough.requires_grad
+
+
+def test_rough_canonical_needs_the_distance_grid():
+    _, _, _, frame = posed_setup()
+    with pytest.raises(ValueError, match="distance grid"):
+        knn_module.rough_canonical(frame, torch.zeros(2, 3, dtype=D))
+
+
 # ----------------------------------------------------------------- blend weights
 def three_vertex_frame(weights: torch.Tensor):
     posed = torch.tensor([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 2.0, 0.0]], dtype=D)

