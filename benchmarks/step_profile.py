@@ -10,6 +10,7 @@ step and share of the step. Run it on a quiet machine.
 
     python benchmarks/step_profile.py --model results/synthetic/loose/stage1/model.pt \
         --record results/synthetic/loose/frames.h5 --out benchmarks/step_profile_loose.csv
+    python benchmarks/step_profile.py ... --no-early-cull --append   # the same without the early cull
 """
 
 from __future__ import annotations
@@ -105,6 +106,7 @@ def main() -> None:
     ap.add_argument("--fresh", action="store_true", help="every occupancy cell occupied (a stage's first steps)")
     ap.add_argument("--no-early-cull", action="store_true", help="every sample in a ray's span goes to the kNN query")
     ap.add_argument("--out", required=True, help="CSV to write")
+    ap.add_argument("--append", action="store_true", help="add the rows to an existing --out")
     a = ap.parse_args()
     from delta.training.run import load_trained
 
@@ -121,6 +123,8 @@ def main() -> None:
     table["nerf_samples_per_step"] = round(samples)
     table["threads"] = a.threads
     table = table.round(4)
+    if a.append and Path(a.out).exists():
+        table = pd.concat([pd.read_csv(a.out), table], ignore_index=True)
     table.to_csv(a.out, index=False)
     print(table.to_string(index=False))
 
