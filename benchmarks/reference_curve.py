@@ -15,6 +15,12 @@ the 2-core seconds per step of the sweep's own run:
         --cpu-losses results/synthetic/loose/tradeoff/reference/stage1/losses.csv \\
         --variant fast=results/synthetic/loose/stage1/losses.csv --subject loose --out benchmarks/reference_curve.csv --append
 
+``rebound`` recomputes the lower bounds for a new run of a variant from a stored projection
+(the reference's run time and best PSNR), when the long curve itself was not kept:
+
+    python benchmarks/reference_curve.py rebound --reference benchmarks/reference_curve.csv \\
+        --variant fast=results/synthetic/loose/stage1/losses.csv --subject loose --out benchmarks/reference_curve.csv --append
+
 ``project`` writes one row per (subject, variant, target PSNR): the 2-core seconds for the
 reference to first reach the target (smoothed training-ray PSNR, the sweep's definition), the
 variant's seconds, and their ratio. Targets: the variant's final PSNR and, when the reference rose at least MIN_GAIN_DB, its best. A
@@ -96,12 +102,50 @@ def project(args: argparse.Namespace) -> None:
                          "speedup_at_least": (float(projected["seconds"].iloc[-1]) / t_var
                                               if math.isnan(t_ref) and t_var > 0 else math.nan),
                          "device_curve_vs_cpu_max_psnr_diff": round(drift, 4), "curve_device": args.curve_device})  # fmt: skip
+    _write(rows, args.out, args.append)
+
+
+def _write(rows: list[dict], path: str, append: bool) -> None:
     df = pd.DataFrame(rows)
-    out = Path(args.out)
-    if args.append and out.exists():
+    out = Path(path)
+    if append and out.exists():
         df = pd.concat([pd.read_csv(out), df], ignore_index=True)
     df.to_csv(out, index=False)
     print(df.to_string(index=False))
+
+
+def rebound(args: argparse.Namespace) -> None:
+    """Lower bounds for a new run of a variant against a stored projection (its reference curve not kept).
+
+    For each stored row of the subject whose target the reference never reached, and for the
+    variant's own final PSNR when the reference's best lies below it, the bound is the reference's
+    projected run time over the seconds the variant's new run needs to reach that target.
+    """
+    stored = pd.read_csv(args.reference)
+    stored = stored[stored["subject"] == args.subject]
+    if stored.empty:
+        raise SystemExit(f"{args.reference}: no row for subject {args.subject!r}")
+    ref = stored.iloc[0]
+    best, run_s = float(ref["reference_best_psnr"]), float(ref["reference_run_s_2cores"])
+    rows = []
+    for spec in args.variant:
+        name, path = spec.split("=", 1)
+        var = pd.read_csv(path)
+        targets = {f"stored_{r.variant}_final": float(r.target_psnr) for r in stored.itertuples()
+                   if r.target == "variant_final" and math.isnan(float(r.reference_s_2cores))}  # fmt: skip
+        targets["variant_final"] = float(smooth(var["psnr"].to_numpy(), PSNR_WINDOW)[-1])
+        for label, target in targets.items():
+            t_var = time_to_psnr(var, target)
+            rows.append({"subject": args.subject, "variant": name, "target": label, "target_psnr": round(target, 3),
+                         "reference_steps": int(ref["reference_steps"]), "reference_best_psnr": best,
+                         "reference_gain_db": float(ref["reference_gain_db"]),
+                         "reference_s_per_step_2cores": float(ref["reference_s_per_step_2cores"]),
+                         "reference_s_2cores": math.nan, "reference_run_s_2cores": run_s, "variant_s": t_var,
+                         "speedup": math.nan,
+                         "speedup_at_least": run_s / t_var if target > best and t_var > 0 else math.nan,
+                         "device_curve_vs_cpu_max_psnr_diff": float(ref["device_curve_vs_cpu_max_psnr_diff"]),
+                         "curve_device": f"{ref['curve_device']} (stored projection)", "variant_losses": path})  # fmt: skip
+    _write(rows, args.out, args.append)
 
 
 def main() -> None:
@@ -126,8 +170,14 @@ def main() -> None:
     pr.add_argument("--curve-device", default="")
     pr.add_argument("--out", required=True)
     pr.add_argument("--append", action="store_true")
+    rb = sub.add_parser("rebound", help="lower bounds of a new variant run against a stored projection")
+    rb.add_argument("--reference", required=True, help="a reference_curve.csv written by project")
+    rb.add_argument("--variant", action="append", required=True, help="NAME=losses.csv of a 2-core run")
+    rb.add_argument("--subject", required=True)
+    rb.add_argument("--out", required=True)
+    rb.add_argument("--append", action="store_true")
     args = p.parse_args()
-    train(args) if args.cmd == "train" else project(args)
+    {"train": train, "project": project, "rebound": rebound}[args.cmd](args)
 
 
 if __name__ == "__main__":
