@@ -39,7 +39,7 @@ def count(model, data, st, stage: int, steps: int, seed: int = 0) -> list[dict]:
                      "lost": int((exact & ~early).sum())})  # fmt: skip
         return d
 
-    rs.early_cull = False
+    was, rs.early_cull = rs.early_cull, False
     hybrid.deformer.deform = counting
     try:
         g = torch.Generator().manual_seed(seed)
@@ -47,7 +47,7 @@ def count(model, data, st, stage: int, steps: int, seed: int = 0) -> list[dict]:
             _step(model, data, st, stage, g)
     finally:
         hybrid.deformer.deform = deform
-        rs.early_cull = True
+        rs.early_cull = was
     return rows
 
 

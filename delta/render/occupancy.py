@@ -99,10 +99,7 @@ class OccupancyGrid(nn.Module):
             # PE NeRF at a grid's learning rate does) says nothing about where the exterior is, and an
             # empty grid would cut the NeRF off from every gradient for good: keep every cell
             occ = torch.ones_like(occ)
-        if self.dilation:
-            k = 2 * self.dilation + 1
-            occ = F.max_pool3d(occ[None, None].float(), k, stride=1, padding=self.dilation)[0, 0] > 0
-        self.occupied.copy_(occ)
+        self.occupied.copy_(_grow(occ, self.dilation))
         self.active.fill_(True)
 
     def contains(self, points: torch.Tensor, grow: int = 0) -> torch.Tensor:
@@ -111,10 +108,7 @@ class OccupancyGrid(nn.Module):
         ``grow``: in the occupied set grown by this many cells (a test for a point known only
         to within that many cells; the renderer's cull before the kNN query).
         """
-        occupied = self.occupied
-        if grow > 0:
-            k = 2 * grow + 1
-            occupied = F.max_pool3d(occupied[None, None].float(), k, stride=1, padding=grow)[0, 0] > 0
+        occupied = self._grown(grow) if grow > 0 else self.occupied
         shape = torch.tensor(self.shape, device=points.device)
         fijk = torch.floor((points.detach() - self.lo) / self.cell)
         inside = ((fijk >= 0) & (fijk < shape)).all(-1)
@@ -122,6 +116,22 @@ class OccupancyGrid(nn.Module):
         occ = occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
         return occ | ~inside
 
+    def _grown(self, cells: int) -> torch.Tensor:
+        """The occupied set grown by ``cells``, cached until ``occupied`` changes in place (an update,
+        a checkpoint load: both bump its version counter)."""
+        key = (cells, self.occupied._version, self.occupied.data_ptr())
+        if getattr(self, "_grown_key", None) != key:
+            self._grown_cache, self._grown_key = _grow(self.occupied, cells), key
+        return self._grown_cache
+
     def fraction(self) -> float:
         """Share of the cells that are occupied."""
         return float(self.occupied.sum()) / self.occupied.numel()
+
+
+def _grow(occupied: torch.Tensor, cells: int) -> torch.Tensor:
+    """A boolean grid with every occupied cell's (2 cells + 1)³ neighbourhood occupied too."""
+    if cells <= 0:
+        return occupied
+    k = 2 * cells + 1
+    return F.max_pool3d(occupied[None, None].float(), k, stride=1, padding=cells)[0, 0] > 0

@@ -77,6 +77,19 @@ def test_grow_tests_against_the_occupied_set_grown_by_whole_cells():
     assert g.occupied[:6].sum() == 0  # the grid itself is unchanged
 
 
+def test_the_grown_set_follows_updates_and_loaded_state():
+    g = grid(threshold=1.0)
+    g.update(slab_density, seed=1)  # cells 6..9 along x
+    x = torch.tensor([[0.05, 0.0, 0.0], [-0.45, 0.0, 0.0]])
+    assert g.contains(x, grow=1).tolist() == [True, False]
+    g.update(lambda p: 5.0 * (p[:, 0] < -0.4).float(), seed=2)  # decay 0.95: the slab stays, cell 0 joins
+    assert g.contains(x, grow=1).tolist() == [True, True]
+    other = grid(threshold=1.0)
+    other.update(lambda p: 5.0 * (p[:, 0] < -0.4).float(), seed=3)  # cell 0 only
+    g.load_state_dict(other.state_dict())
+    assert g.contains(x, grow=1).tolist() == [False, True]
+
+
 def test_reset_forgets_everything():
     g = grid()
     g.update(slab_density, seed=0)
