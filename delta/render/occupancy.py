@@ -10,7 +10,8 @@ renderer then drops samples whose canonical point (after backward skinning, befo
 the NeRF) lands in an empty cell: they cost neither the NeRF query nor F_e, and contribute
 σ = 0 exactly as if the NeRF had returned ~0 there. Points outside the box are kept (the
 grid says nothing about them). With F_e (stage 2) the occupied set is dilated by F_e's
-largest displacement, since the check happens before F_e moves the point. The mean in the
+largest displacement, since the check happens before F_e moves the point; stage 2 starts from
+stage 1's grid so grown (``carry``), not from an all-occupied one. The mean in the
 threshold (instant-NGP's) keeps a still nearly uniform field (early training) from being
 emptied all at once: the denser part of the cells stays; a perfectly flat one keeps every cell.
 
@@ -47,6 +48,9 @@ class OccupancySettings:
     """Per update, the kept maximum decays by this factor before the new density is folded in."""
     warmup: int = 100
     """Steps of each stage before the first update; no sample is skipped before it."""
+    carry: bool = True
+    """Stage 2 starts from stage 1's grid (its kept densities, the occupied set re-grown by F_e's
+    reach) instead of every cell occupied until its own ``warmup``."""
 
 
 class OccupancyGrid(nn.Module):
@@ -93,6 +97,19 @@ class OccupancyGrid(nn.Module):
         x = x + ((torch.rand(x.shape, generator=gen) - 0.5).to(x) * self.cell)
         new = torch.cat([density_fn(x[s : s + chunk]).float() for s in range(0, len(x), chunk)])
         self.density.copy_(torch.maximum(self.density * self.decay, new.view(self.shape)))
+        self._mark()
+
+    def carry_over(self) -> bool:
+        """Start a stage from the grid as loaded (the previous stage's), its occupied set re-derived
+        from the kept densities with this grid's dilation (stage 2's F_e reach). False, and nothing
+        changed, when the loaded grid was never updated (a stage 1 shorter than its warm-up)."""
+        if not bool(self.active):
+            return False
+        self._mark()
+        return True
+
+    def _mark(self) -> None:
+        """The occupied set from the kept densities, grown by the dilation; the grid is used from now on."""
         occ = self.density > min(self.threshold, float(self.density.mean()))
         if not occ.any():
             # no cell above the field's own mean: a flat field (σ underflowed to 0 everywhere, as a

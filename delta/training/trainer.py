@@ -122,8 +122,7 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
     else:
         if stale:
             log.warning("stage %d: not resuming from %s: %s; training from the start", stage, ckpt, stale)
-        if model.occupancy is not None:
-            model.occupancy.reset()  # a stage starts with every cell occupied (stage 2 adds F_e, dilates the grid)
+        _start_occupancy(model, st, stage)
     skin_color = data.skin_color.to(device)
     t0, seen = time.time(), 0
     before = rows[-1].get("seconds", 0.0) if rows else 0.0  # wall time of the runs this one resumes
@@ -157,6 +156,18 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
     with atomic_path(out_dir / "losses.csv") as tmp:
         losses.to_csv(tmp, index=False)
     return StageResult(end, time.time() - t0, losses)
+
+
+def _start_occupancy(model: HybridAvatar, st: TrainSettings, stage: int) -> None:
+    """A fresh stage 1 starts with every cell occupied; stage 2 from stage 1's grid, grown by F_e's reach."""
+    occ = model.occupancy
+    if occ is None:
+        return
+    if stage == 2 and st.avatar.render.occupancy.carry and occ.carry_over():
+        log.info("stage 2: starting from stage 1's occupancy grid grown by %d cells, %.1f%% of cells occupied",
+                 occ.dilation, 100 * occ.fraction())  # fmt: skip
+        return
+    occ.reset()
 
 
 def _maybe_update_occupancy(model: HybridAvatar, st: TrainSettings, stage: int, step: int) -> None:

@@ -90,6 +90,17 @@ def test_the_grown_set_follows_updates_and_loaded_state():
     assert g.contains(x, grow=1).tolist() == [False, True]
 
 
+def test_carry_over_regrows_the_loaded_grid_by_its_own_dilation():
+    stage1 = grid(threshold=1.0)
+    assert stage1.carry_over() is False and stage1.occupied.all()  # never updated: nothing to carry
+    stage1.update(slab_density, seed=1)  # cells 6..9 along x
+    stage2 = OccupancyGrid(BOX, OccupancySettings(enabled=True, resolution=10, threshold=1.0), dilation=0.15)
+    stage2.load_state_dict(stage1.state_dict())
+    assert stage2.carry_over() is True and stage2.dilation == 2
+    assert bool(stage2.active) and torch.equal(stage2.density, stage1.density)
+    assert stage2.occupied[4:].all() and not stage2.occupied[:4].any()
+
+
 def test_reset_forgets_everything():
     g = grid()
     g.update(slab_density, seed=0)

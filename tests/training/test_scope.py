@@ -64,6 +64,33 @@ def test_occupancy_skips_samples_after_warmup_and_resumes_exactly(tiny_training,
         torch.set_num_threads(threads)
 
 
+def test_stage2_starts_from_stage1s_grid_grown_by_fe_reach(tiny_training, tmp_path):
+    inputs = tiny_training["loose"]
+    model1, data, st = _model(inputs)
+    train_stage(1, model1, data, st, tmp_path / "s1")
+    assert bool(model1.occupancy.active) and model1.occupancy.fraction() < 1
+    stage2 = {"stage2": {"iterations": 2, "rays": 128, "checkpoint_every": 2, "preview_every": 0, "log_every": 100}}
+    runs = {}
+    for carry in (True, False):
+        st2, data, body, init = _setup(inputs, stage2, {"render": {"occupancy": {"carry": carry}}})
+        model2 = build_avatar(body, st2, init, data, 2, torch.device("cpu"))
+        missing, _ = model2.load_state_dict(model1.state_dict(), strict=False)
+        assert all(k.startswith("deformation.") for k in missing)
+        assert model2.occupancy.dilation >= 1  # F_e's reach in cells
+        train_stage(2, model2, data, st2, tmp_path / f"s2_{carry}")
+        runs[carry] = (model2.occupancy, pd.read_csv(tmp_path / f"s2_{carry}" / "losses.csv"))
+    carried, reset = runs[True][0], runs[False][0]
+    assert not bool(reset.active) and reset.occupied.all()  # 2 steps < warm-up: every cell, the grid unused
+    assert bool(carried.active) and torch.equal(carried.density, model1.occupancy.density)
+    # stage 1's occupied set (threshold from the same densities) grown by F_e's reach, whole cells
+    grown = torch.nn.functional.max_pool3d(model1.occupancy.occupied[None, None].float(), 2 * carried.dilation + 1,
+                                           stride=1, padding=carried.dilation)[0, 0] > 0  # fmt: skip
+    assert torch.equal(carried.occupied, grown) and model1.occupancy.fraction() < carried.fraction() < 1
+    # the same rays: from the first step never more samples, fewer in all
+    samples = {carry: run[1]["samples"] for carry, run in runs.items()}
+    assert (samples[True] <= samples[False]).all() and samples[True].sum() < samples[False].sum()
+
+
 def test_frozen_joints_stay_exactly_at_the_init(tiny_training, tmp_path):
     inputs = tiny_training["tight"]
     model, data, st = _model(inputs, {"freeze": ["lowerarm01.L", "lowerarm01.R", "spine03"], "freeze_rest": -1.0,
