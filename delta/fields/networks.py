@@ -40,6 +40,25 @@ class FieldSpec:
     texture, density only the shape, so the colour grid can be finer at little cost."""
     color_levels: int = 0
     """NeRF ``grid``: levels of the colour grids (0: ``levels``)."""
+    density_activation: str = "exp"
+    """NeRF: ``exp`` (σ = exp(raw), capped; starts nearly empty) or ``relu`` (σ = max(raw + noise, 0),
+    SCARF's, with Gaussian noise on raw while training: without it a ReLU or exp density pushed below
+    zero everywhere by the mask losses gets no gradient again)."""
+    density_noise: float = 0.0
+    """NeRF: standard deviation of the noise on raw density at a stage's first step (SCARF: 1)."""
+    density_noise_steps: int = 5000
+    """NeRF: steps over which that noise decays linearly to 0 (SCARF: 5000)."""
+
+    def __post_init__(self):
+        if self.density_activation not in ("exp", "relu"):
+            raise ValueError(f"density_activation {self.density_activation!r}: expected 'exp' or 'relu'")
+        if self.density_noise < 0 or self.density_noise_steps < 1:
+            raise ValueError(f"density_noise {self.density_noise} must be ≥ 0 and density_noise_steps "
+                             f"{self.density_noise_steps} ≥ 1")  # fmt: skip
+
+    def noise_at(self, step: int) -> float:
+        """The raw-density noise's standard deviation at a stage's ``step`` (0-based)."""
+        return self.density_noise * max(0.0, 1.0 - step / self.density_noise_steps)
 
 
 class MLP(nn.Module):
@@ -87,19 +106,35 @@ class NeRFField(nn.Module):
             color = dataclasses.replace(spec, max_res=spec.color_max_res or spec.max_res,
                                         levels=spec.color_levels or spec.levels)  # fmt: skip
             self.color_encoding, self.color_head = _encoder_and_head(color, bounds, 3)
-        with torch.no_grad():
-            self.head.out.bias[-1] = density_bias  # start nearly empty
+        self.relu = spec.density_activation == "relu"
+        with torch.no_grad():  # exp: start nearly empty; relu: the MLP's own start, noise keeps it alive
+            self.head.out.bias[-1] = 0.0 if self.relu else density_bias
+        self.noise_std, self.noise_generator = 0.0, None
+        """Training sets these per step (``set_noise``); zero noise everywhere else."""
+
+    def set_noise(self, std: float, seed: int | None = None) -> None:
+        """Noise on raw density for the next forward calls (a training step), drawn from ``seed``."""
+        self.noise_std = float(std)
+        self.noise_generator = torch.Generator().manual_seed(int(seed)) if std > 0 and seed is not None else None
+
+    def _sigma(self, raw: torch.Tensor, noisy: bool) -> torch.Tensor:
+        if noisy and self.noise_std > 0:
+            noise = torch.randn(raw.shape, generator=self.noise_generator, dtype=raw.dtype)
+            raw = raw + self.noise_std * noise.to(raw.device)
+        if self.relu:
+            return torch.relu(raw).clamp(max=math.exp(MAX_LOG_DENSITY))
+        return torch.exp(raw.clamp(max=MAX_LOG_DENSITY))
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(N, 3) -> rgb (N, 3), sigma (N,)."""
         out = self.head(self.encoding(x))
         color = self.color_head(self.color_encoding(x)) if self.split else out[:, :3]
-        return torch.sigmoid(color), torch.exp(out[:, -1].clamp(max=MAX_LOG_DENSITY))
+        return torch.sigmoid(color), self._sigma(out[:, -1], noisy=True)
 
     def density(self, x: torch.Tensor) -> torch.Tensor:
-        """(N, 3) -> sigma (N,) alone (the colour branch is skipped with the ``grid`` encoding)."""
+        """(N, 3) -> sigma (N,) alone, never noisy (the colour branch is skipped with ``grid``)."""
         out = self.head(self.encoding(x))
-        return torch.exp(out[:, -1].clamp(max=MAX_LOG_DENSITY))
+        return self._sigma(out[:, -1], noisy=False)
 
 
 class VertexField(nn.Module):

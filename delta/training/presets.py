@@ -48,7 +48,9 @@ PRESETS: dict[str, dict] = {
     },
     "paper": {
         "resolution": 512,
-        "nerf": {"encoding": "pe", "num_freqs": 10, "depth": 8, "width": 256, "skip": 4},
+        # SCARF's density: ReLU of raw plus noise (std 1 decaying to 0 over 5000 steps) while training
+        "nerf": {"encoding": "pe", "num_freqs": 10, "depth": 8, "width": 256, "skip": 4,
+                 "density_activation": "relu", "density_noise": 1.0, "density_noise_steps": 5000},
         "offsets": {"encoding": "pe", "num_freqs": 6, "depth": 4, "width": 128},
         "albedo": {"encoding": "pe", "num_freqs": 10, "depth": 6, "width": 256, "skip": 3},
         "deformation": {"encoding": "pe", "num_freqs": 6, "depth": 6, "width": 128},
@@ -131,7 +133,7 @@ def deep_merge(base: dict, over: dict) -> dict:
 def _fields(d: dict, key: str) -> FieldSpec:
     try:
         return FieldSpec(**d[key])
-    except TypeError as err:
+    except (TypeError, ValueError) as err:
         raise DeltaError(f"training.{key}: {err}") from None
 
 

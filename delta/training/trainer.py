@@ -132,6 +132,8 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
         frame = int(data.train[torch.randint(len(data.train), (1,), generator=generator)])
         batch = _to(sample_rays(data, frame, cfg.rays, generator, cfg.patch if semantic else 0), device)
         _maybe_update_occupancy(model, st, stage, step)
+        if model.nerf is not None and model.spec.nerf.density_noise > 0:  # a function of the step: resumes exact
+            model.nerf.set_noise(model.spec.nerf.noise_at(step), st.seed * 1_000_003 + stage * 100_003 + step + 7)
         timeless = False  # with a time-reading F_e, some steps train its time-free input
         if model.deformation is not None and model.spec.time_freqs and st.time_dropout > 0:
             timeless = bool(torch.rand((), generator=generator) < st.time_dropout)
@@ -152,6 +154,8 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
             save_checkpoint(ckpt, model, optimizer, step + 1, generator, rows, key)
         if cfg.preview_every and ((step + 1) % cfg.preview_every == 0 or step + 1 == cfg.iterations):
             write_preview(model, data, int(data.train[0]), out_dir / "previews" / f"step_{step + 1:06d}.png")
+    if model.nerf is not None:
+        model.nerf.set_noise(0.0)  # the trained model renders without noise
     losses = pd.DataFrame(rows)
     with atomic_path(out_dir / "losses.csv") as tmp:
         losses.to_csv(tmp, index=False)

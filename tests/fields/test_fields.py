@@ -277,3 +277,60 @@ def test_nerf_colour_grid_can_be_finer_than_the_density_grid():
     assert same.color_encoding.shapes == same.encoding.shapes
     rgb, sigma = nerf(torch.rand(5, 3) * 2 - 1)
     assert rgb.shape == (5, 3) and sigma.shape == (5,)
+
+
+# ----------------------------------------------------------------- SCARF's ReLU density with training noise
+RELU_PE = FieldSpec(encoding="pe", num_freqs=3, depth=2, width=32, skip=0, density_activation="relu",
+                    density_noise=1.0, density_noise_steps=100)  # fmt: skip
+
+
+def test_relu_density_is_relu_of_raw_and_noise_only_while_set():
+    torch.manual_seed(0)
+    nerf = NeRFField(RELU_PE, BOUNDS)
+    x = inside_points(512, 0)
+    raw = nerf.head(nerf.encoding(x))[:, -1]
+    torch.testing.assert_close(nerf(x)[1], torch.relu(raw))  # no noise unless a training step sets it
+    torch.testing.assert_close(nerf.density(x), torch.relu(raw))
+    nerf.set_noise(0.5, seed=3)
+    noise = torch.randn(raw.shape, generator=torch.Generator().manual_seed(3))
+    torch.testing.assert_close(nerf(x)[1], torch.relu(raw + 0.5 * noise))
+    torch.testing.assert_close(nerf.density(x), torch.relu(raw))  # the occupancy grid and export: never noisy
+    nerf.set_noise(0.0)
+    torch.testing.assert_close(nerf(x)[1], torch.relu(raw))
+
+
+def test_noise_decays_linearly_to_zero():
+    assert [RELU_PE.noise_at(s) for s in (0, 25, 50, 100, 500)] == [1.0, 0.75, 0.5, 0.0, 0.0]
+    assert FieldSpec().noise_at(0) == 0.0
+
+
+def test_noise_gives_a_density_pushed_below_zero_a_gradient_again():
+    torch.manual_seed(0)
+    nerf = NeRFField(RELU_PE, BOUNDS)
+    with torch.no_grad():
+        nerf.head.out.bias[-1] = -3.0  # every raw density well below zero: a dead ReLU
+    x = inside_points(2048, 1)
+    nerf(x)[1].sum().backward()
+    assert nerf.head.out.bias.grad[-1] == 0
+    nerf.zero_grad()
+    nerf.set_noise(1.0, seed=0)
+    nerf(x)[1].sum().backward()
+    assert nerf.head.out.bias.grad[-1] > 0  # the samples the noise lifts above zero pull it up
+
+
+@pytest.mark.parametrize("bad", [{"density_activation": "softplus"}, {"density_noise": -1.0},
+                                 {"density_noise_steps": 0}])  # fmt: skip
+def test_bad_density_settings_name_the_key(bad):
+    from delta import DeltaError
+    from delta.training.presets import resolve
+
+    with pytest.raises(DeltaError, match="training.nerf"):
+        resolve("paper", {"nerf": bad})
+
+
+def test_the_paper_preset_has_scarfs_density():
+    from delta.training.presets import resolve
+
+    spec = resolve("paper").avatar.nerf
+    assert (spec.density_activation, spec.density_noise, spec.density_noise_steps) == ("relu", 1.0, 5000)
+    assert resolve("fast").avatar.nerf.density_activation == "exp"
