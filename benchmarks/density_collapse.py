@@ -1,0 +1,87 @@
+"""Does the NeRF's raw density run away downwards in the first training steps? (#8's reference)
+
+Trains stage 1 of a saved configuration (a sweep's ``settings.json``) for a few steps, once per
+``--variant`` (a JSON override on top of it), and writes the quantiles of the NeRF's raw density
+(before the activation) at uniform points of its box after each listed step. A raw density far
+below zero everywhere means σ = 0 everywhere: no NeRF, and with either activation no gradient back.
+
+    python benchmarks/density_collapse.py --settings results/synthetic/loose/tradeoff/reference/stage1/settings.json \\
+        --record results/synthetic/loose/frames.h5 --body resources/body/anny_sub1.npz \\
+        --init results/synthetic/loose/init/params.npz --out benchmarks/density_collapse.csv \\
+        --variant paper='{}' --variant exp='{"nerf": {"density_activation": "exp", "density_noise": 0}}' \\
+        --variant lr_5e-5='{"stage1": {"lr": {"nerf": 5e-5}}}' --variant no_pixel='{"weights": {"pixel": 0}}'
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import pandas as pd
+import torch
+
+from delta.body.model import load_body_model
+from delta.training.data import load_frames
+from delta.training.presets import deep_merge, resolve
+from delta.training.run import build_avatar, load_init
+from delta.training.trainer import train_stage
+
+QUANTILES = (0.01, 0.1, 0.5, 0.9, 0.99)
+
+
+def raw_density(model, points: torch.Tensor) -> torch.Tensor:
+    nerf = model.nerf
+    with torch.no_grad():
+        return nerf.head(nerf.encoding(points))[:, -1]
+
+
+def run(args: argparse.Namespace, name: str, override: dict) -> list[dict]:
+    saved = json.loads(Path(args.settings).read_text())
+    raw = deep_merge(saved["settings"], override)
+    last = max(args.steps)
+    raw["stage1"] = {**raw["stage1"], "iterations": last, "checkpoint_every": last + 1, "preview_every": 0,
+                     "log_every": last + 1}  # fmt: skip
+    st = resolve(saved["preset"], raw)
+    data = load_frames(args.record, st.resolution, st.background, st.box_margin)
+    model = build_avatar(load_body_model(args.body), st, load_init(args.init, data), data, 1, torch.device("cpu"))
+    lo, hi = model.nerf.encoding.lo, model.nerf.encoding.hi
+    points = lo + torch.rand(args.points, 3, generator=torch.Generator().manual_seed(0)) * (hi - lo)
+    rows, t0 = [], time.time()
+    with tempfile.TemporaryDirectory() as tmp:
+        for step in sorted({0, *args.steps}):
+            if step:
+                train_stage(1, model, data, st, Path(tmp), max_steps=step)  # resumes from its own checkpoint
+            r = raw_density(model, points)
+            q = torch.quantile(r, torch.tensor(QUANTILES))
+            rows.append({"variant": name, "override": json.dumps(override), "step": step,
+                         **{f"raw_q{int(100 * k):02d}": round(float(v), 3) for k, v in zip(QUANTILES, q)},
+                         "share_positive": float((r > 0).float().mean()), "seconds": round(time.time() - t0, 1)})  # fmt: skip
+            print(rows[-1], flush=True)
+    return rows
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--settings", required=True, help="a stage1/settings.json written by training")
+    p.add_argument("--record", required=True)
+    p.add_argument("--body", required=True)
+    p.add_argument("--init", required=True)
+    p.add_argument("--variant", action="append", required=True, help="NAME=JSON override")
+    p.add_argument("--steps", type=int, nargs="+", default=[4, 8, 16, 24, 50])
+    p.add_argument("--points", type=int, default=100_000)
+    p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--out", required=True)
+    args = p.parse_args()
+    torch.set_num_threads(args.threads)
+    rows = []
+    for spec in args.variant:
+        name, override = spec.split("=", 1)
+        rows += run(args, name, json.loads(override))
+    pd.DataFrame(rows).to_csv(args.out, index=False)
+
+
+if __name__ == "__main__":
+    main()
