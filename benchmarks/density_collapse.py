@@ -10,11 +10,16 @@ below zero everywhere means σ = 0 everywhere: no NeRF, and with either activati
         --init results/synthetic/loose/init/params.npz --out benchmarks/density_collapse.csv \\
         --variant paper='{}' --variant exp='{"nerf": {"density_activation": "exp", "density_noise": 0}}' \\
         --variant lr_5e-5='{"stage1": {"lr": {"nerf": 5e-5}}}' --variant no_pixel='{"weights": {"pixel": 0}}'
+
+A variant named ``scarf_losses...`` trains with SCARF's loss shapes in place of the paper's: the NeRF
+alpha loss a Huber penalty (δ = the settings' ``huber_delta``) instead of L1, and the rgb loss masked by
+the person (rays outside the person teach nothing); it patches the two functions for that variant only.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import tempfile
 import time
@@ -23,6 +28,8 @@ from pathlib import Path
 import pandas as pd
 import torch
 
+from delta import losses as L
+import delta.training.trainer as T
 from delta.body.model import load_body_model
 from delta.training.data import load_frames
 from delta.training.presets import deep_merge, resolve
@@ -38,6 +45,27 @@ def raw_density(model, points: torch.Tensor) -> torch.Tensor:
         return nerf.head(nerf.encoding(points))[:, -1]
 
 
+@contextlib.contextmanager
+def scarf_losses(on: bool):
+    """SCARF's loss shapes while the block runs (``on``): Huber NeRF alpha loss, person-masked rgb loss."""
+    if not on:
+        yield
+        return
+    loss_terms = T.loss_terms
+
+    def masked(model, batch, st, *rest, **kw):
+        terms, r = loss_terms(model, batch, st, *rest, **kw)
+        terms["pixel"] = L.huber((r.rgb - batch.rgb) * batch.person[:, None], st.weights.huber_delta)
+        terms["exterior"] = L.huber(r.nerf_mask - batch.exterior, st.weights.huber_delta)
+        return terms, r
+
+    T.loss_terms = masked
+    try:
+        yield
+    finally:
+        T.loss_terms = loss_terms
+
+
 def run(args: argparse.Namespace, name: str, override: dict) -> list[dict]:
     saved = json.loads(Path(args.settings).read_text())
     raw = deep_merge(saved["settings"], override)
@@ -50,7 +78,7 @@ def run(args: argparse.Namespace, name: str, override: dict) -> list[dict]:
     lo, hi = model.nerf.encoding.lo, model.nerf.encoding.hi
     points = lo + torch.rand(args.points, 3, generator=torch.Generator().manual_seed(0)) * (hi - lo)
     rows, t0 = [], time.time()
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, scarf_losses(name.startswith("scarf_losses")):
         for step in sorted({0, *args.steps}):
             if step:
                 train_stage(1, model, data, st, Path(tmp), max_steps=step)  # resumes from its own checkpoint
