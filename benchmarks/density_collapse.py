@@ -39,12 +39,6 @@ from delta.training.trainer import train_stage
 QUANTILES = (0.01, 0.1, 0.5, 0.9, 0.99)
 
 
-def raw_density(model, points: torch.Tensor) -> torch.Tensor:
-    nerf = model.nerf
-    with torch.no_grad():
-        return nerf.head(nerf.encoding(points))[:, -1]
-
-
 @contextlib.contextmanager
 def scarf_losses(on: bool):
     """SCARF's loss shapes while the block runs (``on``): Huber NeRF alpha loss, person-masked rgb loss."""
@@ -82,7 +76,8 @@ def run(args: argparse.Namespace, name: str, override: dict) -> list[dict]:
         for step in sorted({0, *args.steps}):
             if step:
                 train_stage(1, model, data, st, Path(tmp), max_steps=step)  # resumes from its own checkpoint
-            r = raw_density(model, points)
+            with torch.no_grad():
+                r = model.nerf.raw_density(points)
             q = torch.quantile(r, torch.tensor(QUANTILES))
             rows.append({"variant": name, "override": json.dumps(override), "step": step,
                          **{f"raw_q{int(100 * k):02d}": round(float(v), 3) for k, v in zip(QUANTILES, q)},

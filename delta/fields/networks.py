@@ -109,8 +109,7 @@ class NeRFField(nn.Module):
         self.relu = spec.density_activation == "relu"
         with torch.no_grad():  # exp: start nearly empty; relu: the MLP's own start, noise keeps it alive
             self.head.out.bias[-1] = 0.0 if self.relu else density_bias
-        self.noise_std, self.noise_generator = 0.0, None
-        """Training sets these per step (``set_noise``); zero noise everywhere else."""
+        self.noise_std, self.noise_generator = 0.0, None  # set per training step (set_noise); 0 elsewhere
 
     def set_noise(self, std: float, seed: int | None = None) -> None:
         """Noise on raw density for the next forward calls (a training step), drawn from ``seed``."""
@@ -131,10 +130,13 @@ class NeRFField(nn.Module):
         color = self.color_head(self.color_encoding(x)) if self.split else out[:, :3]
         return torch.sigmoid(color), self._sigma(out[:, -1], noisy=True)
 
+    def raw_density(self, x: torch.Tensor) -> torch.Tensor:
+        """(N, 3) -> the density before its activation (N,); the colour branch is skipped with ``grid``."""
+        return self.head(self.encoding(x))[:, -1]
+
     def density(self, x: torch.Tensor) -> torch.Tensor:
-        """(N, 3) -> sigma (N,) alone, never noisy (the colour branch is skipped with ``grid``)."""
-        out = self.head(self.encoding(x))
-        return self._sigma(out[:, -1], noisy=False)
+        """(N, 3) -> sigma (N,) alone, never noisy."""
+        return self._sigma(self.raw_density(x), noisy=False)
 
 
 class VertexField(nn.Module):

@@ -133,7 +133,7 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
         batch = _to(sample_rays(data, frame, cfg.rays, generator, cfg.patch if semantic else 0), device)
         _maybe_update_occupancy(model, st, stage, step)
         if model.nerf is not None and model.spec.nerf.density_noise > 0:  # a function of the step: resumes exact
-            model.nerf.set_noise(model.spec.nerf.noise_at(step), st.seed * 1_000_003 + stage * 100_003 + step + 7)
+            model.nerf.set_noise(model.spec.nerf.noise_at(step), _step_seed(st, stage, step) + 7)
         timeless = False  # with a time-reading F_e, some steps train its time-free input
         if model.deformation is not None and model.spec.time_freqs and st.time_dropout > 0:
             timeless = bool(torch.rand((), generator=generator) < st.time_dropout)
@@ -162,6 +162,12 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
     return StageResult(end, time.time() - t0, losses)
 
 
+def _step_seed(st: TrainSettings, stage: int, step: int) -> int:
+    """A seed of the run, stage and step alone: what a step draws outside the shared generator
+    (occupancy jitter, density noise) is the same after a resume."""
+    return st.seed * 1_000_003 + stage * 100_003 + step
+
+
 def _start_occupancy(model: HybridAvatar, st: TrainSettings, stage: int) -> None:
     """A fresh stage 1 starts with every cell occupied; stage 2 from stage 1's grid, grown by F_e's reach."""
     occ = model.occupancy
@@ -179,7 +185,7 @@ def _maybe_update_occupancy(model: HybridAvatar, st: TrainSettings, stage: int, 
     occ = st.avatar.render.occupancy
     if model.occupancy is None or step < occ.warmup or (step - occ.warmup) % occ.update_every:
         return
-    model.update_occupancy(seed=st.seed * 1_000_003 + stage * 100_003 + step)
+    model.update_occupancy(seed=_step_seed(st, stage, step))
     if step == occ.warmup or (step - occ.warmup) % (occ.update_every * 16) == 0:
         log.info("stage %d step %d: occupancy grid %s, %.1f%% of cells occupied", stage, step,
                  "x".join(map(str, model.occupancy.shape)), 100 * model.occupancy.fraction())  # fmt: skip
