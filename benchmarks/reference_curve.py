@@ -42,16 +42,16 @@ import torch
 
 from delta.body.model import load_body_model
 from delta.eval.plots import smooth
-from delta.eval.tradeoff import MIN_GAIN_DB, PSNR_WINDOW, psnr_gain, time_to_psnr
+from delta.eval.tradeoff import MIN_GAIN_DB, PSNR_WINDOW, hybrid_rows, psnr_gain, time_to_psnr
 from delta.training.data import load_frames
-from delta.training.presets import resolve
+from delta.training.presets import deep_merge, resolve
 from delta.training.run import build_avatar, load_init, pick_device, save_model
 from delta.training.trainer import train_stage
 
 
 def train(args: argparse.Namespace) -> None:
     saved = json.loads(Path(args.settings).read_text())
-    raw = saved["settings"]
+    raw = deep_merge(saved["settings"], json.loads(args.override))
     raw["stage1"] = {**raw["stage1"], "iterations": args.max_steps, "checkpoint_every": args.chunk, "preview_every": 0}
     st = resolve(saved["preset"], raw)
     if st.stage1.lr_final != 1.0:
@@ -74,14 +74,17 @@ def train(args: argparse.Namespace) -> None:
 
 def project(args: argparse.Namespace) -> None:
     curve = pd.read_csv(args.curve)
+    if args.warmup and "warmup" not in curve.columns:  # a curve written before the trainer marked them
+        curve["warmup"] = (curve["step"] <= args.warmup).astype(float)
     cpu = pd.read_csv(args.cpu_losses)
     # 2-core seconds per step of the sweep's run, its first step (warm-up) left out
     per_step = float((cpu["seconds"].iloc[-1] - cpu["seconds"].iloc[0]) / (len(cpu) - 1))
     first = float(cpu["seconds"].iloc[0])
-    projected = curve.assign(seconds=first + (curve["step"] - 1) * per_step)
+    # a curve taken on 2 cores (--cpu-losses the curve itself) keeps its own clock
+    projected = curve if args.measured else curve.assign(seconds=first + (curve["step"] - 1) * per_step)
     head = min(len(cpu), len(curve))
     drift = float(np.abs(cpu["psnr"].to_numpy()[:head] - curve["psnr"].to_numpy()[:head]).max())
-    ref_psnr = smooth(projected["psnr"].to_numpy(), PSNR_WINDOW)
+    ref_psnr = smooth(hybrid_rows(projected)["psnr"].to_numpy(), PSNR_WINDOW)
     gain = psnr_gain(projected)
     rows = []
     for spec in args.variant:
@@ -162,12 +165,16 @@ def main() -> None:
     t.add_argument("--chunk", type=int, default=50, help="steps between checkpoints / budget checks")
     t.add_argument("--device", default="cpu")
     t.add_argument("--threads", type=int, default=2)
+    t.add_argument("--override", default="{}", help="JSON merged over the saved settings (e.g. a changed preset value)")
     pr = sub.add_parser("project")
     pr.add_argument("--curve", required=True, help="losses.csv of the long run")
     pr.add_argument("--cpu-losses", required=True, help="losses.csv of the sweep's 2-core reference run")
     pr.add_argument("--variant", action="append", required=True, help="NAME=losses.csv of a 2-core run")
     pr.add_argument("--subject", required=True)
     pr.add_argument("--curve-device", default="")
+    pr.add_argument("--measured", action="store_true", help="the curve was taken on 2 CPU cores: keep its seconds")
+    pr.add_argument("--warmup", type=int, default=0,
+                    help="its first steps are a NeRF-only warm-up (for curves written before losses.csv marked them)")
     pr.add_argument("--out", required=True)
     pr.add_argument("--append", action="store_true")
     rb = sub.add_parser("rebound", help="lower bounds of a new variant run against a stored projection")

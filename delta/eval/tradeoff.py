@@ -33,8 +33,15 @@ from delta.io import atomic_path
 PSNR_WINDOW = 25
 
 
+def hybrid_rows(losses: pd.DataFrame) -> pd.DataFrame:
+    """The rows of the hybrid objective: a NeRF-only warm-up's rows (``warmup`` 1) score another render."""
+    return losses[losses["warmup"] != 1] if "warmup" in losses.columns else losses
+
+
 def time_to_psnr(losses: pd.DataFrame, target: float, window: int = PSNR_WINDOW) -> float:
-    """Seconds until the moving-average training-ray PSNR first reaches ``target`` (nan: never)."""
+    """Seconds until the moving-average training-ray PSNR first reaches ``target`` (nan: never);
+    the clock runs from the stage's start, warm-up included, the PSNR is the hybrid render's."""
+    losses = hybrid_rows(losses)
     if losses.empty or "seconds" not in losses.columns:
         return math.nan
     psnr = smooth(losses["psnr"].to_numpy(), window)
@@ -48,13 +55,15 @@ MIN_GAIN_DB = 0.5
 
 
 def psnr_gain(losses: pd.DataFrame, window: int = PSNR_WINDOW) -> float:
-    """Final smoothed training-ray PSNR minus the mean of the first ``window`` steps."""
+    """Final smoothed training-ray PSNR minus the mean of the first ``window`` steps (after any warm-up)."""
+    losses = hybrid_rows(losses)
     if losses.empty:
         return math.nan
     return final_psnr(losses, window) - float(losses["psnr"].iloc[:window].mean())
 
 
 def final_psnr(losses: pd.DataFrame, window: int = PSNR_WINDOW) -> float:
+    losses = hybrid_rows(losses)
     return float(smooth(losses["psnr"].to_numpy(), window)[-1]) if not losses.empty else math.nan
 
 

@@ -199,8 +199,9 @@ class HybridAvatar(nn.Module):
         return time_features(self.frame_time[frame], self.spec.time_freqs)
 
     def render(self, frame: int, pixels: torch.Tensor, generator: torch.Generator | None = None,
-               mesh: Optional[PosedMesh] = None, timeless: bool = False) -> RayRender:  # fmt: skip
-        """Render pixel centres (R, 2) of a frame (``timeless``: F_e without the frame's time)."""
+               mesh: Optional[PosedMesh] = None, timeless: bool = False, through_mesh: bool = False) -> RayRender:  # fmt: skip
+        """Render pixel centres (R, 2) of a frame (``timeless``: F_e without the frame's time;
+        ``through_mesh``: the NeRF alone, rays not stopping at the mesh)."""
         if mesh is None:
             mesh = self.posed_mesh(frame)[0]
         origins, dirs = self.camera(frame).rays(pixels)
@@ -211,7 +212,7 @@ class HybridAvatar(nn.Module):
         if code is not None:
             nonrigid = functools.partial(self.deformation, time=code)
         return render_rays(mesh, origins, dirs, pixels, self.background, self.spec.render, self.nerf,
-                           nonrigid, generator, occupied)  # fmt: skip
+                           nonrigid, generator, occupied, through_mesh)  # fmt: skip
 
     def update_occupancy(self, seed: int) -> None:
         """Re-evaluate the occupancy grid's densities (a training step calls this every few steps)."""
@@ -227,18 +228,20 @@ class HybridAvatar(nn.Module):
         return [self.poses, self.transl] + ([] if self.pinhole else [self.ortho_scale, self.ortho_trans])
 
     def param_groups(self, lr: dict) -> list[dict]:
-        """Optimiser groups: networks, shape, per-frame pose, per-frame camera (lr keys: fields, nerf, pose, camera, shape)."""
+        """Optimiser groups, each ``name``d: networks, shape, per-frame pose, per-frame camera (lr keys: fields,
+        nerf, pose, camera, shape, trajectory)."""
         groups = [
-            {"params": list(self.offset_field.parameters()) + list(self.albedo_field.parameters()), "lr": lr["fields"]},
-            {"params": [self.betas], "lr": lr["shape"]},
-            {"params": [self.poses, self.transl], "lr": lr["pose"]},
+            {"params": list(self.offset_field.parameters()) + list(self.albedo_field.parameters()), "lr": lr["fields"],
+             "name": "fields"},
+            {"params": [self.betas], "lr": lr["shape"], "name": "shape"},
+            {"params": [self.poses, self.transl], "lr": lr["pose"], "name": "pose"},
         ]
         if self.nerf is not None:
-            groups.append({"params": list(self.nerf.parameters()), "lr": lr["nerf"]})
+            groups.append({"params": list(self.nerf.parameters()), "lr": lr["nerf"], "name": "nerf"})
         if self.deformation is not None:
-            groups.append({"params": list(self.deformation.parameters()), "lr": lr["nerf"]})
+            groups.append({"params": list(self.deformation.parameters()), "lr": lr["nerf"], "name": "deformation"})
         if not self.pinhole:
-            groups.append({"params": [self.ortho_scale, self.ortho_trans], "lr": lr["camera"]})
+            groups.append({"params": [self.ortho_scale, self.ortho_trans], "lr": lr["camera"], "name": "camera"})
         if self.trajectory is not None:
-            groups.append({"params": list(self.trajectory.parameters()), "lr": lr["trajectory"]})
+            groups.append({"params": list(self.trajectory.parameters()), "lr": lr["trajectory"], "name": "trajectory"})
         return groups

@@ -107,8 +107,12 @@ the same test in the occupied set grown by that many cells."""
 def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixels: torch.Tensor,
                 background: torch.Tensor, settings: RenderSettings, nerf: Optional[NeRF] = None,
                 nonrigid: Optional[Deform] = None, generator: torch.Generator | None = None,
-                occupied: Optional[Occupied] = None) -> RayRender:  # fmt: skip
-    """Render rays (R, 3) through pixels (R, 2) of one frame; ``occupied`` skips samples in empty canonical space."""
+                occupied: Optional[Occupied] = None, through_mesh: bool = False) -> RayRender:  # fmt: skip
+    """Render rays (R, 3) through pixels (R, 2) of one frame; ``occupied`` skips samples in empty canonical space.
+
+    ``through_mesh``: the rays do not stop at the mesh (the NeRF alone over the background, SCARF's
+    NeRF-only stage); the mesh's colour and silhouette are still returned.
+    """
     hits = ray_mesh_hits(mesh.vertices, mesh.faces, origins, dirs)
     mesh_rgb = torch.where(hits.hit[:, None], interpolate(hits, mesh.faces, mesh.albedo), background)
     sil = soft_silhouette(mesh.uv, mesh.faces, pixels, sigma=settings.sil_sigma, k=settings.sil_k)
@@ -120,12 +124,13 @@ def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixe
     lo = mesh.vertices.detach().amin(0) - settings.box_margin
     hi = mesh.vertices.detach().amax(0) + settings.box_margin
     t_in, t_out, in_box = ray_box(origins, dirs, lo, hi)
-    t_far = torch.where(hits.hit, torch.minimum(hits.t, t_out), t_out)
-    t_far = torch.where(in_box | hits.hit, t_far, t_in)
-    t_near, t_far = body_span(mesh.skinning, origins, dirs, t_in, torch.maximum(t_far, t_in), hits.hit, settings)
+    stop = hits.hit & (not through_mesh)
+    t_far = torch.where(stop, torch.minimum(hits.t, t_out), t_out)
+    t_far = torch.where(in_box | stop, t_far, t_in)
+    t_near, t_far = body_span(mesh.skinning, origins, dirs, t_in, torch.maximum(t_far, t_in), stop, settings)
     t = stratified_samples(t_near, t_far, settings.samples, settings.perturb, generator)
     sigma, rgb, n = _query(mesh, origins, dirs, t, settings, nerf, nonrigid, occupied)
-    out = composite(t, sigma, rgb, mesh_rgb)
+    out = composite(t, sigma, rgb, background.expand_as(mesh_rgb) if through_mesh else mesh_rgb)
     nerf_rgb = (out.weights[:, :-1, None] * rgb).sum(1) + (1 - out.nerf_mask[:, None]) * background
     return RayRender(out.rgb, out.nerf_mask, nerf_rgb, mesh_rgb, hits.hit, sil, n)
 

@@ -114,6 +114,13 @@ def frame_times(frame_ids: np.ndarray, train: np.ndarray, split: np.ndarray | No
     return torch.from_numpy(np.where(inside, np.clip(tau, 0.0, 1.0), np.nan)).float()
 
 
+def _central(a: int, b: int, frac: float) -> tuple[int, int]:
+    """The central ``frac`` of the index range [a, b), at least one index."""
+    half, mid = (b - a) * frac / 2, (a + b) / 2
+    lo = min(max(int(np.floor(mid - half + 0.5)), a), b - 1)
+    return lo, min(max(int(np.floor(mid + half + 0.5)), lo + 1), b)
+
+
 @dataclasses.dataclass
 class RayBatch:
     frame: int
@@ -129,9 +136,12 @@ class RayBatch:
 
 
 def sample_rays(data: FrameData, frame: int, num: int, generator: torch.Generator, patch: int = 0,
-                jitter: bool = True) -> RayBatch:  # fmt: skip
+                jitter: bool = True, crop: float = 1.0) -> RayBatch:  # fmt: skip
     """``num`` random pixels inside the frame's person box (rays elsewhere see only background),
     preceded by one ``patch``×``patch`` block of neighbouring pixels when ``patch`` > 0.
+
+    ``crop`` < 1 draws them from the box's central part of that fraction of its sides instead
+    (NeRF's "precrop": mostly person, so that early steps do not teach an empty field).
 
     With ``jitter`` each random ray passes through a uniform point of its pixel, not its centre:
     a target pixel is the area average of the scene over the pixel (the frames are downsampled
@@ -140,6 +150,8 @@ def sample_rays(data: FrameData, frame: int, num: int, generator: torch.Generato
     centres (a regular image for the semantic loss).
     """
     i0, i1, j0, j1 = data.boxes[frame].tolist()
+    if crop < 1.0:
+        i0, i1, j0, j1 = (*_central(i0, i1, crop), *_central(j0, j1, crop))
     ii = torch.randint(i0, i1, (num,), generator=generator)
     jj = torch.randint(j0, j1, (num,), generator=generator)
     if patch:

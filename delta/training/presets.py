@@ -55,8 +55,13 @@ PRESETS: dict[str, dict] = {
         "albedo": {"encoding": "pe", "num_freqs": 10, "depth": 6, "width": 256, "skip": 3},
         "deformation": {"encoding": "pe", "num_freqs": 6, "depth": 6, "width": 128},
         "render": {"samples": 96, "sil_sigma": 2.0, "box_margin": 0.3, "max_dist": 10.0},
-        "stage1": {"iterations": 50000, "rays": 4096, "lr": {"nerf": 5e-4, "fields": 5e-4}},
-        "stage2": {"iterations": 20000, "rays": 4096, "patch": 48, "lr": {"nerf": 5e-4, "fields": 5e-4}},
+        # SCARF trains its NeRF alone on the whole person first (its stage 0 at 5e-4, 400 precrop
+        # steps), then the hybrid at a NeRF rate of 1e-4: a fresh PE NeRF meeting the hybrid
+        # objective's clothing mask collapses to σ = 0 in ~25 steps, and so does one carried into
+        # it at 5e-4 (session 13)
+        "stage1": {"iterations": 50000, "rays": 4096, "lr": {"nerf": 1e-4, "nerf_warmup": 5e-4, "fields": 5e-4},
+                   "nerf_warmup": 400},  # fmt: skip
+        "stage2": {"iterations": 20000, "rays": 4096, "patch": 48, "lr": {"nerf": 1e-4, "fields": 5e-4}},
     },
 }
 
@@ -85,6 +90,12 @@ class StageSettings:
     lr: dict
     lr_final: float = 1.0
     """Every learning rate decays exponentially to this fraction of itself at the last step (1: constant)."""
+    nerf_warmup: int = 0
+    """Stage 1 only: its first steps train the NeRF alone on the whole person (rays through the mesh,
+    opacity against the person mask; SCARF's NeRF-only stage 0) before the hybrid objective, the
+    NeRF at the rate ``lr["nerf_warmup"]`` (default: ``lr["nerf"]``)."""
+    nerf_warmup_crop: float = 0.5
+    """Rays of those steps come from this central fraction of the person box's sides (NeRF's precrop)."""
 
     def lr_factor(self, step: int) -> float:
         """The learning rates' multiplier at a step (a function of the step alone: resumes stay exact)."""
@@ -154,6 +165,11 @@ def resolve(preset: str, *overrides: dict) -> TrainSettings:
         for name, cfg in stage.items():
             if not 0 < cfg.lr_final <= 1:
                 raise DeltaError(f"training.{name}.lr_final: {cfg.lr_final} (expected a fraction in (0, 1])")
+            if not 0 < cfg.nerf_warmup_crop <= 1:
+                raise DeltaError(f"training.{name}.nerf_warmup_crop: {cfg.nerf_warmup_crop} (expected a fraction in (0, 1])")
+            if cfg.nerf_warmup < 0 or (name == "stage2" and cfg.nerf_warmup):
+                raise DeltaError(f"training.{name}.nerf_warmup: {cfg.nerf_warmup} (steps >= 0, stage 1 only: "
+                                 "stage 2 starts from stage 1's NeRF)")  # fmt: skip
         dyn = dict(d["dynamics"])
         knots = int(dyn["pose_knots"])
         if (set(dyn) - {"time_freqs", "dropout", "pose_knots"} or not 0 <= float(dyn["dropout"]) < 1

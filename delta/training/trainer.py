@@ -64,6 +64,23 @@ def loss_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, skin_col
     return terms, r
 
 
+def nerf_only_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, generator=None) -> tuple[dict, object]:
+    """The NeRF-only warm-up's objective (SCARF's stage 0): rays pass through the mesh and the NeRF alone
+    learns the whole person — its colour against the image, its opacity against the person mask.
+
+    A fresh PE MLP is one constant over space, and Adam moves that constant by whole learning-rate
+    steps in every layer at once: when a batch's rays mostly ask for less density (skin and
+    background under the hybrid objective's clothing mask; background under the person mask of a
+    whole-box batch) its density runs to 0 everywhere within ~25 steps and never recovers
+    (``benchmarks/density_collapse.py``). Drawn from the person box's centre (``nerf_warmup_crop``),
+    these rays mostly ask for more, and the NeRF takes the person's shape before the hybrid
+    objective carves the body out of it.
+    """
+    r = model.render(batch.frame, batch.pixels, generator, through_mesh=True)
+    terms = {"pixel": L.pixel(r.rgb, batch.rgb, st.weights.huber_delta), "exterior": L.exterior(r.nerf_mask, batch.person)}
+    return terms, r
+
+
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     mse = float(((a - b) ** 2).mean())
     return 10 * np.log10(1.0 / max(mse, 1e-10))
@@ -124,20 +141,30 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
             log.warning("stage %d: not resuming from %s: %s; training from the start", stage, ckpt, stale)
         _start_occupancy(model, st, stage)
     skin_color = data.skin_color.to(device)
+    if stage == 1 and model.nerf is not None and start < cfg.nerf_warmup:
+        log.info("stage 1: steps %d-%d train the NeRF alone on the whole person (rays through the mesh, from the "
+                 "central %.0f%% of the person box)", start + 1, cfg.nerf_warmup, 100 * cfg.nerf_warmup_crop)  # fmt: skip
     t0, seen = time.time(), 0
     before = rows[-1].get("seconds", 0.0) if rows else 0.0  # wall time of the runs this one resumes
     for step in range(start, end):
+        warm = stage == 1 and step < cfg.nerf_warmup and model.nerf is not None
         for g, lr in zip(optimizer.param_groups, base_lr):
+            if warm and g.get("name") == "nerf":
+                lr = cfg.lr.get("nerf_warmup") or lr
             g["lr"] = lr * cfg.lr_factor(step)
         frame = int(data.train[torch.randint(len(data.train), (1,), generator=generator)])
-        batch = _to(sample_rays(data, frame, cfg.rays, generator, cfg.patch if semantic else 0), device)
+        crop = cfg.nerf_warmup_crop if warm else 1.0
+        batch = _to(sample_rays(data, frame, cfg.rays, generator, cfg.patch if semantic else 0, crop=crop), device)
         _maybe_update_occupancy(model, st, stage, step)
         if model.nerf is not None and model.spec.nerf.density_noise > 0:  # a function of the step: resumes exact
             model.nerf.set_noise(model.spec.nerf.noise_at(step), _step_seed(st, stage, step) + 7)
         timeless = False  # with a time-reading F_e, some steps train its time-free input
         if model.deformation is not None and model.spec.time_freqs and st.time_dropout > 0:
             timeless = bool(torch.rand((), generator=generator) < st.time_dropout)
-        terms, r = loss_terms(model, batch, st, skin_color, semantic, generator, timeless)
+        if warm:
+            terms, r = nerf_only_terms(model, batch, st, generator)
+        else:
+            terms, r = loss_terms(model, batch, st, skin_color, semantic, generator, timeless)
         loss = L.total(terms, st.weights)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -147,6 +174,7 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
         seen += 1
         rows.append({"step": step + 1, "loss": float(loss.detach()), "psnr": _psnr(r.rgb.detach(), batch.rgb),
                      "samples": r.samples_evaluated, "seconds": round(before + time.time() - t0, 3),
+                     **({"warmup": float(warm)} if cfg.nerf_warmup and stage == 1 else {}),
                      **{k: float(v.detach()) for k, v in terms.items()}})  # fmt: skip
         if (step + 1) % cfg.log_every == 0 or step + 1 == end:
             _progress(stage, step + 1, cfg.iterations, rows[-1], seen / (time.time() - t0))

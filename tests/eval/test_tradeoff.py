@@ -26,6 +26,18 @@ def test_time_to_psnr_reads_the_smoothed_curve():
     assert math.isnan(time_to_psnr(df, 99.0))
 
 
+def test_a_nerf_only_warmup_is_timed_but_not_scored():
+    """Warm-up rows (the NeRF alone, another render) count towards the time, never towards the PSNR."""
+    df = losses(0.5, 0.1)
+    warm = df.assign(warmup=(df["step"] <= 50).astype(float))
+    warm.loc[warm["warmup"] == 1, "psnr"] = 40.0  # a warm-up PSNR above every target: must be ignored
+    hybrid = df[df["step"] > 50]
+    assert time_to_psnr(warm, 20.0) == pytest.approx(time_to_psnr(hybrid, 20.0))
+    assert time_to_psnr(warm, 20.0) > 50 * 0.5  # from the stage's start
+    assert tradeoff_gain(warm) == pytest.approx(tradeoff_gain(hybrid))
+    assert tradeoff_gain(warm) == pytest.approx(float(df["psnr"].iloc[-25:].mean() - df["psnr"].iloc[50:75].mean()))
+
+
 def test_pareto_front():
     cost = np.array([1.0, 2.0, 3.0, 2.0, np.nan])
     gain = np.array([20.0, 25.0, 24.0, 22.0, 30.0])

@@ -328,9 +328,10 @@ def test_bad_density_settings_name_the_key(bad):
         resolve("paper", {"nerf": bad})
 
 
-def test_the_paper_preset_has_scarfs_density():
+def test_the_paper_preset_has_scarfs_density_and_nerf_only_start():
     from delta.training.presets import resolve
 
     spec = resolve("paper").avatar.nerf
     assert (spec.density_activation, spec.density_noise, spec.density_noise_steps) == ("relu", 1.0, 5000)
     assert resolve("fast").avatar.nerf.density_activation == "exp"
+    assert (resolve("paper").stage1.nerf_warmup, resolve("fast").stage1.nerf_warmup) == (400, 0)

@@ -73,6 +73,24 @@ def test_nothing_behind_the_mesh_contributes():
     torch.testing.assert_close(out.rgb, MESH_RGB.expand(2, 3))
 
 
+def test_through_the_mesh_the_nerf_alone_is_rendered():
+    """SCARF's NeRF-only stage: a ray that hits the body does not stop there; what lies inside it
+    (here 1e6, never seen when rays stop) is rendered, over the background, not the mesh colour."""
+    mesh = sphere_avatar()
+    o, d = rays([0.0, 0.1, 0.55])
+    st = RenderSettings(samples=16, box_margin=0.3, max_dist=0.1, perturb=False)
+    out = render_rays(mesh, o, d, o[:, :2] * 100, BG, st, shell_nerf(0.3, 0.05, 0.0)[0], through_mesh=True)
+    assert out.hit[:2].all() and not out.hit[2]
+    torch.testing.assert_close(out.mesh_rgb[:2], MESH_RGB.expand(2, 3))  # still returned for the mesh terms
+    torch.testing.assert_close(out.rgb[:2], NERF_RGB.expand(2, 3), atol=1e-3, rtol=0)  # the 1e6 interior
+    assert (out.nerf_mask[:2] > 0.999).all()
+    torch.testing.assert_close(out.rgb[2], BG)  # 0.25 m from the body: empty
+    empty = lambda x: (NERF_RGB.expand(len(x), 3), torch.zeros(len(x)))  # noqa: E731
+    out = render_rays(mesh, o, d, o[:, :2] * 100, BG, st, empty, through_mesh=True)
+    torch.testing.assert_close(out.rgb, BG.expand(3, 3))  # no density: the background, not the mesh
+    assert (out.nerf_mask == 0).all()
+
+
 def test_exterior_in_front_of_the_mesh_is_rendered():
     out, _ = render([0.0], sigma=1e4)  # an opaque shell in front of the body
     assert out.hit.all()

@@ -50,6 +50,20 @@ def test_jittered_rays_pass_through_the_pixel_whose_target_they_carry():
     assert torch.equal(centred.pixels - centred.pixels.floor(), torch.full((50, 2), 0.5))
 
 
+def test_a_crop_draws_rays_from_the_central_part_of_the_person_box():
+    data = _Frames(n=20)
+    data.boxes = torch.tensor([[2, 18, 4, 12]])  # rows 2..17, cols 4..11
+    b = sample_rays(data, 0, 4000, torch.Generator().manual_seed(0), crop=0.5)
+    row, col = b.pixels[:, 1].floor().long(), b.pixels[:, 0].floor().long()
+    assert int(row.min()) == 6 and int(row.max()) == 13  # the middle 8 of 16 rows
+    assert int(col.min()) == 6 and int(col.max()) == 9  # the middle 4 of 8 columns
+    one = sample_rays(data, 0, 5, torch.Generator().manual_seed(0), crop=1e-6)
+    assert (one.pixels[:, 1].floor() == 10).all() and (one.pixels[:, 0].floor() == 8).all()  # at least a pixel
+    full = sample_rays(data, 0, 50, torch.Generator().manual_seed(3), crop=1.0)
+    same = sample_rays(data, 0, 50, torch.Generator().manual_seed(3))
+    assert torch.equal(full.pixels, same.pixels)
+
+
 @pytest.mark.slow
 def test_supersampled_silhouette_is_fractional_only_at_the_edge(tiny_trained):
     from delta.training.run import load_trained

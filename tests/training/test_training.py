@@ -12,7 +12,7 @@ from delta.body.model import load_body_model
 from delta.training.data import load_frames, sample_rays
 from delta.training.presets import resolve
 from delta.training.run import build_avatar, load_init, run_stage
-from delta.training.trainer import CHECKPOINT, loss_terms, train_stage
+from delta.training.trainer import CHECKPOINT, loss_terms, nerf_only_terms, train_stage
 from delta import losses as L
 
 pytestmark = pytest.mark.slow
@@ -60,21 +60,25 @@ def test_every_parameter_group_gets_a_gradient(tiny_training, subject):
     assert model.poses.grad[other].abs().sum() == 0
 
 
-@pytest.mark.parametrize("nerf", [{}, {"density_activation": "relu", "density_noise": 1.0, "density_noise_steps": 4}],
-                         ids=["exp", "relu_noise"])  # fmt: skip
-def test_interrupted_stage_resumes_to_the_same_parameters(tiny_training, tmp_path, nerf):
+_RELU_NOISE = {"nerf": {"density_activation": "relu", "density_noise": 1.0, "density_noise_steps": 4}}
+
+
+@pytest.mark.parametrize("over", [{}, _RELU_NOISE, {**_RELU_NOISE, "stage1": {"nerf_warmup": 5}}],
+                         ids=["exp", "relu_noise", "nerf_warmup"])  # fmt: skip
+def test_interrupted_stage_resumes_to_the_same_parameters(tiny_training, tmp_path, over):
     """Bit for bit on one thread (multi-threaded reductions differ in the last bits from run to run);
-    with SCARF's noisy ReLU density too (the noise is drawn from the step)."""
+    with SCARF's noisy ReLU density too (the noise is drawn from the step), and with a NeRF-only
+    warm-up that the interruption (step 4) cuts in two."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        _resume_equivalence(tiny_training, tmp_path, nerf)
+        _resume_equivalence(tiny_training, tmp_path, over)
     finally:
         torch.set_num_threads(threads)
 
 
-def _resume_equivalence(tiny_training, tmp_path, nerf):
-    st = resolve("fast", TINY, {"nerf": nerf})
+def _resume_equivalence(tiny_training, tmp_path, over):
+    st = resolve("fast", TINY, over)
     inputs = tiny_training["loose"]
     model_a, data = _model(inputs, st)
     train_stage(1, model_a, data, st, tmp_path / "a")
@@ -98,6 +102,34 @@ def _resume_equivalence(tiny_training, tmp_path, nerf):
     # wall time accumulates across the resume; everything else is identical
     assert (lc["seconds"].diff().dropna() >= 0).all() and (la["seconds"] > 0).all()
     pd.testing.assert_frame_equal(la.drop(columns="seconds"), lc.drop(columns="seconds"))
+
+
+def test_nerf_warmup_trains_the_nerf_alone_on_the_person(tiny_training, tmp_path):
+    """SCARF's stage 0: the first steps move the NeRF (and what places its samples), never the mesh's
+    colour; their objective is the NeRF over the background against the image and the person mask."""
+    st = resolve("fast", TINY, {"stage1": {"iterations": 3, "nerf_warmup": 3, "lr": {"nerf_warmup": 3e-3}}})
+    model, data = _model(tiny_training["loose"], st)
+    albedo = [p.detach().clone() for p in model.albedo_field.parameters()]
+    nerf = [p.detach().clone() for p in model.nerf.parameters()]
+    res = train_stage(1, model, data, st, tmp_path)
+    assert all(torch.equal(a, p) for a, p in zip(albedo, model.albedo_field.parameters()))
+    assert any(not torch.equal(a, p) for a, p in zip(nerf, model.nerf.parameters()))
+    assert set(res.losses.columns) == {"step", "loss", "psnr", "samples", "seconds", "warmup", "pixel", "exterior"}
+    assert (res.losses["warmup"] == 1).all()
+    # the NeRF's own warm-up rate (SCARF's stage 0 at 5e-4, its hybrid at 1e-4), decayed like the rest
+    groups = {g["name"]: g["lr"] for g in torch.load(tmp_path / CHECKPOINT, weights_only=False)["optimizer"]["param_groups"]}
+    assert groups["nerf"] == pytest.approx(3e-3 * st.stage1.lr_factor(2))
+    assert groups["fields"] == pytest.approx(st.stage1.lr["fields"] * st.stage1.lr_factor(2))
+    # the loss is the NeRF-only render's, by hand on a fresh batch
+    batch = sample_rays(data, int(data.train[0]), 64, torch.Generator().manual_seed(1), crop=0.5)
+    terms, r = nerf_only_terms(model, batch, st)
+    assert r.hit.any()
+    torch.testing.assert_close(r.rgb, r.nerf_rgb)  # the NeRF over the background: no mesh colour in it
+    torch.testing.assert_close(terms["exterior"], (r.nerf_mask - batch.person).abs().mean())
+    with pytest.raises(DeltaError, match="stage2.nerf_warmup"):
+        resolve("fast", {"stage2": {"nerf_warmup": 10}})
+    with pytest.raises(DeltaError, match="stage1.nerf_warmup_crop"):
+        resolve("fast", {"stage1": {"nerf_warmup_crop": 0.0}})
 
 
 def test_learning_rate_decay_by_hand():
