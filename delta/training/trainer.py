@@ -141,13 +141,14 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
             log.warning("stage %d: not resuming from %s: %s; training from the start", stage, ckpt, stale)
         _start_occupancy(model, st, stage)
     skin_color = data.skin_color.to(device)
-    if stage == 1 and model.nerf is not None and start < cfg.nerf_warmup:
+    warmup_end = cfg.nerf_warmup if stage == 1 and model.nerf is not None else 0  # steps before it: NeRF alone
+    if start < warmup_end:
         log.info("stage 1: steps %d-%d train the NeRF alone on the whole person (rays through the mesh, from the "
-                 "central %.0f%% of the person box)", start + 1, cfg.nerf_warmup, 100 * cfg.nerf_warmup_crop)  # fmt: skip
+                 "central %.0f%% of the person box)", start + 1, warmup_end, 100 * cfg.nerf_warmup_crop)  # fmt: skip
     t0, seen = time.time(), 0
     before = rows[-1].get("seconds", 0.0) if rows else 0.0  # wall time of the runs this one resumes
     for step in range(start, end):
-        warm = stage == 1 and step < cfg.nerf_warmup and model.nerf is not None
+        warm = step < warmup_end
         for g, lr in zip(optimizer.param_groups, base_lr):
             if warm and g.get("name") == "nerf":
                 lr = cfg.lr.get("nerf_warmup") or lr
@@ -174,7 +175,7 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
         seen += 1
         rows.append({"step": step + 1, "loss": float(loss.detach()), "psnr": _psnr(r.rgb.detach(), batch.rgb),
                      "samples": r.samples_evaluated, "seconds": round(before + time.time() - t0, 3),
-                     **({"warmup": float(warm)} if cfg.nerf_warmup and stage == 1 else {}),
+                     **({"warmup": float(warm)} if warmup_end else {}),
                      **{k: float(v.detach()) for k, v in terms.items()}})  # fmt: skip
         if (step + 1) % cfg.log_every == 0 or step + 1 == end:
             _progress(stage, step + 1, cfg.iterations, rows[-1], seen / (time.time() - t0))
