@@ -15,6 +15,9 @@ the 2-core seconds per step of the sweep's own run:
         --cpu-losses results/synthetic/loose/tradeoff/reference/stage1/losses.csv \\
         --variant fast=results/synthetic/loose/stage1/losses.csv --subject loose --out benchmarks/reference_curve.csv --append
 
+``--settings paper --override '{"resolution": 128, "stage1": {"rays": 1024}}'`` trains the same
+configuration without a sweep run (the sweep's reference takes no subject's own training keys).
+
 ``rebound`` recomputes the lower bounds for a new run of a variant from a stored projection
 (the reference's run time and best PSNR), when the long curve itself was not kept:
 
@@ -50,9 +53,13 @@ from delta.training.trainer import train_stage
 
 
 def train(args: argparse.Namespace) -> None:
-    saved = json.loads(Path(args.settings).read_text())
+    if Path(args.settings).is_file():  # a stage's settings.json: the preset and every resolved key
+        saved = json.loads(Path(args.settings).read_text())
+    else:  # a preset's name: its own settings, --override on top
+        saved = {"preset": args.settings, "settings": {}}
     raw = deep_merge(saved["settings"], json.loads(args.override))
-    raw["stage1"] = {**raw["stage1"], "iterations": args.max_steps, "checkpoint_every": args.chunk, "preview_every": 0}
+    raw["stage1"] = {**raw.get("stage1", {}), "iterations": args.max_steps, "checkpoint_every": args.chunk,
+                     "preview_every": 0}
     st = resolve(saved["preset"], raw)
     if st.stage1.lr_final != 1.0:
         raise SystemExit("the curve is a prefix of a longer run only without learning-rate decay (lr_final 1)")
@@ -155,7 +162,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("train")
-    t.add_argument("--settings", required=True, help="the sweep's reference stage1/settings.json")
+    t.add_argument("--settings", required=True,
+                   help="the sweep's reference stage1/settings.json, or a preset's name (e.g. paper) with --override")
     t.add_argument("--record", required=True)
     t.add_argument("--body", required=True)
     t.add_argument("--init", required=True)

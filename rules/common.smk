@@ -427,6 +427,7 @@ def variant_spec(variant):
         raise ValueError(f"trade-off variant '{variant}' is not configured; configured: {sorted(TRADE['variants'])}")
     spec = dict(TRADE["variants"][variant])
     spec.pop("subjects", None)
+    spec.pop("inherit_training", None)
     return spec.pop("preset", None), int(spec.pop("stages", 2)), spec
 
 
@@ -437,9 +438,15 @@ def variant_subjects(dataset, variant):
 
 
 def variant_training(subject, variant):
-    """(preset, overrides): the subject's training settings with the variant's on top."""
+    """(preset, overrides): the subject's training settings with the variant's on top.
+
+    A variant with ``inherit_training: false`` (the paper reference) takes neither training.overrides
+    nor the subject's own: what it trains is its preset and its own keys, on every subject alike.
+    """
     preset, overrides = subject_training(subject)
     own_preset, _, over = variant_spec(variant)
+    if not TRADE["variants"][variant].get("inherit_training", True):
+        return own_preset or config["preset"], [over]
     return own_preset or preset, overrides + [over]
 
 
@@ -449,6 +456,8 @@ def tradeoff_subjects(dataset):
 
 # every swept variant's settings and subjects are checked now, before any job runs
 for _v, _spec in TRADE["variants"].items():
+    if not isinstance(_spec.get("inherit_training", True), bool):
+        raise ValueError(f"tradeoff.variants.{_v}.inherit_training: {_spec['inherit_training']!r} is not true or false")
     _unknown = sorted(set(_spec.get("subjects") or []) - ALL_SUBJECTS)
     if _unknown:
         raise ValueError(f"tradeoff.variants.{_v}.subjects: {_unknown} are not subjects of any dataset ({sorted(ALL_SUBJECTS)})")

@@ -276,6 +276,22 @@ def test_tradeoff_variants_reuse_the_main_run_and_name_their_subjects(tmp_path):
     assert {s for s, v in trained if v == "few_rays"} == {subjects[0]}
     # fast is scored from the main run's stage 1
     assert all(f"results/synthetic/{s}/stage1/model.pt" in out for s in subjects)
+    # a subject's own training keys reach every variant but one that does not inherit them (the reference)
+    cfg.setdefault("training", {})["subjects"] = {subjects[0]: {"render": {"samples": 7}}}
+    cfg["tradeoff"]["variants"]["ref"] = {"stages": 1, "inherit_training": False, "stage1": {"rays": 32}}
+    (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
+    res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run", "--printshellcmds")
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out[-3000:]
+    overrides = {m.group(1): json.loads(m.group(2)) for m in re.finditer(
+        rf"delta train --stage 1 [^\n]*--out results/synthetic/{subjects[0]}/tradeoff/(\w+)/stage1 [^\n]*--overrides '([^']*)'", out)}  # fmt: skip
+    assert overrides["ref"] == [{"stage1": {"rays": 32}}]
+    assert overrides["few_rays"][1]["render"]["samples"] == 7  # the subject's own, after training.overrides
+    cfg["tradeoff"]["variants"]["ref"]["inherit_training"] = "no"
+    (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
+    res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run")
+    assert res.returncode != 0 and "tradeoff.variants.ref.inherit_training: 'no' is not true or false" in res.stdout + res.stderr
+    del cfg["tradeoff"]["variants"]["ref"], cfg["training"]["subjects"]
     cfg["tradeoff"]["variants"]["few_rays"]["subjects"] = ["nobody"]
     (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
     res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run")
