@@ -55,6 +55,8 @@ from delta.training.trainer import train_stage
 def train(args: argparse.Namespace) -> None:
     if Path(args.settings).is_file():  # a stage's settings.json: the preset and every resolved key
         saved = json.loads(Path(args.settings).read_text())
+    elif args.settings.endswith(".json") or "/" in args.settings:
+        raise SystemExit(f"{args.settings}: no such settings file")
     else:  # a preset's name: its own settings, --override on top
         saved = {"preset": args.settings, "settings": {}}
     raw = deep_merge(saved["settings"], json.loads(args.override))
