@@ -95,6 +95,18 @@ def test_no_speedup_against_a_reference_that_did_not_learn(tmp_path):
     assert tradeoff_gain(climbing) == pytest.approx(gain) and gain > 0.5
 
 
+def test_a_resumed_stage_is_timed_by_the_training_clock(tmp_path):
+    """A job resumed from a checkpoint: its benchmark timed the last invocation only (100 s of 400)."""
+    manifest = {"s": {"reference": write_variant(tmp_path, "ref", 2.0, 0.05, 21.0, 100.0, 1e9),
+                      "fast": write_variant(tmp_path, "fast", 0.2, 0.1, 23.0, 45.0, 1e8)}}  # fmt: skip
+    (tmp_path / "peak.json").write_text(json.dumps({"flop_per_s": 1e10}))
+    df = tradeoff(manifest, tmp_path / "peak.json", "reference", tmp_path / "t.csv", tmp_path / "t.png").set_index("variant")
+    # the reference's clock ends at 200 steps x 2 s; fast's benchmark (45 s, set-up included) outlasts its 40-s clock
+    assert df.loc["reference", "stage1_s"] == 400.0 and df.loc["reference", "stage1_resumed"]
+    assert df.loc["fast", "stage1_s"] == 45.0 and not df.loc["fast", "stage1_resumed"]
+    assert df.loc["reference", "train_s"] == 400.0 and df.loc["fast", "pareto"] and not df.loc["reference", "pareto"]
+
+
 def test_matmul_peak_is_a_rate():
     peak = matmul_peak(256, repeats=3)
     assert 1e8 < peak < 1e14
