@@ -93,12 +93,9 @@ def knobs(settings: dict) -> dict:
             "early_cull": bool(render.get("early_cull", True)) and float(render.get("max_dist", 0.0)) <= GRID_REACH}  # fmt: skip
 
 
-def training_clock(losses_csv) -> float:
+def training_clock(losses: pd.DataFrame) -> float:
     """The trainer's clock at a stage's last step (0: none): it continues across resumes."""
-    if losses_csv is None or not Path(losses_csv).is_file():
-        return 0.0
-    df = pd.read_csv(losses_csv)
-    return float(df["seconds"].iloc[-1]) if "seconds" in df.columns and not df.empty else 0.0
+    return float(losses["seconds"].iloc[-1]) if "seconds" in losses.columns and not losses.empty else 0.0
 
 
 def stage_seconds(bench_s: float, clock_s: float) -> float:
@@ -119,10 +116,11 @@ def variant_row(subject: str, variant: str, files: dict, peak: float) -> dict:
     prof = _read_json(files["profile"])
     row = {"subject": subject, "variant": variant} | knobs(prof)
     total = 0.0
+    curves = {k: pd.read_csv(files[f"losses{k}"]) for k in (1, 2) if f"losses{k}" in files}
     for stage in (1, 2):
         if f"bench{stage}" in files:
             b = benchmark_row(files[f"bench{stage}"])
-            clock = training_clock(files.get(f"losses{stage}"))
+            clock = training_clock(curves[stage])
             row[f"stage{stage}_s"], row[f"stage{stage}_max_rss_mb"] = stage_seconds(b["s"], clock), b["max_rss_mb"]
             row[f"stage{stage}_resumed"] = clock > b["s"]
             total += row[f"stage{stage}_s"]
@@ -140,8 +138,7 @@ def variant_row(subject: str, variant: str, files: dict, peak: float) -> dict:
     row |= {"step_s": prof["seconds"], "samples_per_step": prof["samples"], "samples_per_s": prof["samples"] / prof["seconds"],
             "flop_per_step": prof["flops"], "flop_per_s": prof["flops"] / prof["seconds"], "matmul_peak_flop_per_s": peak,
             "peak_fraction": prof["flops"] / prof["seconds"] / peak}  # fmt: skip
-    losses = pd.read_csv(files["losses1"])
-    row["train_psnr_final"] = final_psnr(losses)
+    row["train_psnr_final"] = final_psnr(curves[1])
     row["_losses1"] = files["losses1"]
     return row
 
