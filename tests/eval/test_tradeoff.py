@@ -13,9 +13,9 @@ from delta.eval.tradeoff import psnr_gain as tradeoff_gain
 from delta.training.profile import matmul_peak, profile_steps
 
 
-def losses(seconds_per_step, psnr_per_step, steps=200):
+def losses(seconds_per_step, psnr_per_step, steps=200, start=10.0):
     s = np.arange(1, steps + 1)
-    return pd.DataFrame({"step": s, "psnr": 10 + psnr_per_step * s, "seconds": seconds_per_step * s})
+    return pd.DataFrame({"step": s, "psnr": start + psnr_per_step * s, "seconds": seconds_per_step * s})
 
 
 def test_time_to_psnr_reads_the_smoothed_curve():
@@ -45,10 +45,10 @@ def test_pareto_front():
     assert pareto_front(cost, gain).tolist() == [True, True, False, False, False]
 
 
-def write_variant(root, name, sec_per_step, psnr_per_step, held_out, train_s, flops, eval_resolution=None):
+def write_variant(root, name, sec_per_step, psnr_per_step, held_out, train_s, flops, eval_resolution=None, start=10.0):
     d = root / name
     d.mkdir()
-    losses(sec_per_step, psnr_per_step).to_csv(d / "losses.csv", index=False)
+    losses(sec_per_step, psnr_per_step, start=start).to_csv(d / "losses.csv", index=False)
     (d / "bench.tsv").write_text(f"s\tmax_rss\n{train_s}\t900\n")
     summary = {"scores": {"test_view": {"unrefined": {"psnr": held_out, "ssim": 0.9}}}}
     if eval_resolution:  # summaries written before scoring at a common resolution have no 'resolution'
@@ -93,6 +93,23 @@ def test_no_speedup_against_a_reference_that_did_not_learn(tmp_path):
     climbing = losses(2.0, 0.05)
     gain = climbing["psnr"].iloc[-25:].mean() - climbing["psnr"].iloc[:25].mean()
     assert tradeoff_gain(climbing) == pytest.approx(gain) and gain > 0.5
+
+
+def test_no_speedup_for_a_run_that_starts_past_a_short_reference(tmp_path):
+    """A reference cut short ends at 12.4 dB; a run whose first 25 steps already average more 'reaches'
+    it at its first step — the ratio would set the reference's whole run against one step."""
+    manifest = {"s": {"reference": write_variant(tmp_path, "ref", 2.0, 0.0125, 14.0, 100.0, 1e9, start=10.0),
+                      "fast": write_variant(tmp_path, "fast", 0.2, 0.01, 23.0, 40.0, 1e8, start=15.0),
+                      "slow_start": write_variant(tmp_path, "slow", 0.2, 0.1, 20.0, 40.0, 1e8, start=5.0)}}  # fmt: skip
+    (tmp_path / "peak.json").write_text(json.dumps({"flop_per_s": 1e10}))
+    df = tradeoff(manifest, tmp_path / "peak.json", "reference", tmp_path / "t.csv", tmp_path / "t.png").set_index("variant")
+    target = df.loc["reference", "reference_psnr"]
+    assert df.loc["fast", "train_psnr_start"] == pytest.approx(15.0 + 0.01 * 13) and df.loc["fast", "train_psnr_start"] > target
+    assert math.isnan(df.loc["fast", "speedup_vs_reference"])
+    assert df.loc["fast", "time_to_reference_psnr_s"] == pytest.approx(0.2)  # measured all the same: its first step
+    t_ref, t_slow = time_to_psnr(losses(2.0, 0.0125), target), time_to_psnr(losses(0.2, 0.1, start=5.0), target)
+    assert df.loc["slow_start", "speedup_vs_reference"] == pytest.approx(t_ref / t_slow)
+    assert df.loc["reference", "speedup_vs_reference"] == pytest.approx(1.0)
 
 
 def test_a_resumed_stage_is_timed_by_the_training_clock(tmp_path):
