@@ -13,8 +13,9 @@ reference variant (the paper's settings, no culling) — the speed-up to the sam
 with T(P) the wall time at which a stage-1 run's smoothed training-ray PSNR first reaches P
 (from the ``seconds`` column of its losses.csv). No ratio where it would measure step times, not
 learning: a reference that gained less than ``MIN_GAIN_DB``, or a variant whose first
-``PSNR_WINDOW`` steps already average P or more (a short reference run's P). Training-ray PSNR is the proxy because
-held-out PSNR is only measured at the end; the held-out PSNR of both is in the row.
+``PSNR_WINDOW`` steps already average P or more (a short reference run's P). Training-ray PSNR
+is the proxy because held-out PSNR is only measured at the end; the held-out PSNR of both is in
+the row.
 """
 
 from __future__ import annotations
@@ -144,7 +145,7 @@ def variant_row(subject: str, variant: str, files: dict, peak: float) -> dict:
             "flop_per_step": prof["flops"], "flop_per_s": prof["flops"] / prof["seconds"], "matmul_peak_flop_per_s": peak,
             "peak_fraction": prof["flops"] / prof["seconds"] / peak}  # fmt: skip
     row["train_psnr_start"], row["train_psnr_final"] = start_psnr(curves[1]), final_psnr(curves[1])
-    row["_losses1"] = files["losses1"]
+    row["_curve1"] = curves[1]  # for the speed-ups, once every row (and so the reference's) is known
     return row
 
 
@@ -172,20 +173,20 @@ def tradeoff(manifest: dict, peak_json: str | Path, reference: str, out_csv: str
         if ref.empty:
             continue
         target = float(ref["train_psnr_final"].iloc[0])
-        ref_losses = pd.read_csv(ref["_losses1"].iloc[0])
+        ref_losses = ref["_curve1"].iloc[0]
         gain = psnr_gain(ref_losses)
         df.loc[g.index, "reference_gain_db"] = gain
         if not gain >= MIN_GAIN_DB:
             continue  # the reference did not learn in its steps: no speed-up to measure
         t_ref = time_to_psnr(ref_losses, target)
         for i in g.index:
-            t = time_to_psnr(pd.read_csv(df.at[i, "_losses1"]), target)
+            t = time_to_psnr(df.at[i, "_curve1"], target)
             df.loc[i, ["reference_psnr", "time_to_reference_psnr_s"]] = [target, t]
             # a run that starts at or above the target "reaches" it in its first steps: the ratio
             # would compare the reference's whole run with one step, not the time to a quality
             if t > 0 and df.at[i, "train_psnr_start"] < target:
                 df.loc[i, "speedup_vs_reference"] = t_ref / t
-    df = df.drop(columns="_losses1")
+    df = df.drop(columns="_curve1")
     with atomic_path(out_csv) as tmp:
         df.to_csv(tmp, index=False)
     plot(df, out_png)
