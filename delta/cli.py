@@ -273,13 +273,32 @@ def cmd_matmul_peak(args: argparse.Namespace) -> None:
     log.info("float32 matmul peak: %.3g FLOP/s on %d threads", peak, args.threads)
 
 
-def cmd_tradeoff(args: argparse.Namespace) -> None:
+def json_or_file(text: str, name: str):
+    """Parse an argument that is inline JSON (it starts with ``{`` or ``[``) or the path of a JSON file.
+
+    Inline JSON is never tried as a path first: a whole sweep's manifest is longer than the system's
+    PATH_MAX, and asking the file system about it fails with ENAMETOOLONG.
+    """
     import json
 
+    if text.lstrip().startswith(("{", "[")):
+        try:
+            return json.loads(text)
+        except json.JSONDecodeError as err:
+            raise DeltaError(f"{name}: not valid JSON ({err})") from None
+    path = Path(text)
+    if not path.is_file():
+        raise DeltaError(f"{name}: {text} is neither inline JSON nor an existing JSON file")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise DeltaError(f"{name}: {path} is not valid JSON ({err})") from None
+
+
+def cmd_tradeoff(args: argparse.Namespace) -> None:
     from delta.eval.tradeoff import tradeoff
 
-    manifest = json.loads(Path(args.manifest).read_text()) if Path(args.manifest).is_file() else json.loads(args.manifest)
-    tradeoff(manifest, args.peak, args.reference, args.out, args.plot)
+    tradeoff(json_or_file(args.manifest, "--manifest"), args.peak, args.reference, args.out, args.plot)
 
 
 def cmd_aggregate(args: argparse.Namespace) -> None:

@@ -82,6 +82,30 @@ def test_speedup_against_the_reference(tmp_path):
     assert (tmp_path / "t.png").stat().st_size > 1000 and (tmp_path / "t.csv").is_file()
 
 
+def test_cli_takes_a_manifest_longer_than_path_max(tmp_path, capsys):
+    # a whole sweep's manifest (~7 kB inline) is longer than PATH_MAX: it must not be tried as a path
+    from delta.cli import main
+
+    variants = {"reference": write_variant(tmp_path, "ref", 2.0, 0.05, 21.0, 400.0, 1e9)}
+    for i in range(40):
+        variants[f"fast_{i:02d}_" + "x" * 40] = write_variant(tmp_path, f"fast{i}", 0.2, 0.1, 23.0, 40.0, 1e8)
+    manifest = json.dumps({"s": variants})
+    assert len(manifest) > 4096
+    (tmp_path / "peak.json").write_text(json.dumps({"flop_per_s": 1e10}))
+    common = ["--peak", str(tmp_path / "peak.json"), "--reference", "reference", "--plot", str(tmp_path / "t.png")]
+    assert main(["tradeoff", "--manifest", manifest, "--out", str(tmp_path / "inline.csv"), *common]) == 0
+    (tmp_path / "manifest.json").write_text(manifest)
+    assert main(["tradeoff", "--manifest", str(tmp_path / "manifest.json"), "--out", str(tmp_path / "file.csv"), *common]) == 0
+    inline, from_file = pd.read_csv(tmp_path / "inline.csv"), pd.read_csv(tmp_path / "file.csv")
+    assert len(inline) == 41 and inline.equals(from_file)
+    # bad input names the argument and what is wrong, with the CLI's error code
+    assert main(["tradeoff", "--manifest", "{not json", "--out", str(tmp_path / "x.csv"), *common]) == 2
+    assert "--manifest: not valid JSON" in capsys.readouterr().err
+    assert main(["tradeoff", "--manifest", str(tmp_path / "missing.json"), "--out", str(tmp_path / "x.csv"), *common]) == 2
+    assert "missing.json is neither inline JSON nor an existing JSON file" in capsys.readouterr().err
+    assert not (tmp_path / "x.csv").exists()
+
+
 def test_no_speedup_against_a_reference_that_did_not_learn(tmp_path):
     """A flat reference curve is 'reached' at every run's first step: the ratio would be the step times'."""
     manifest = {"s": {"reference": write_variant(tmp_path, "ref", 2.0, 0.0, 14.0, 400.0, 1e9),
