@@ -199,18 +199,25 @@ def plot(df: pd.DataFrame, out_png: str | Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     subjects = sorted(df["subject"].unique())
     fig, axes = plt.subplots(1, len(subjects), figsize=(5.5 * len(subjects), 4.2), squeeze=False)
     for ax, subject in zip(axes[0], subjects):
         g = df[df["subject"] == subject]
         ax.scatter(g["train_s"] / 60, g["held_out_psnr"], c=np.where(g["pareto"], "C3", "C0"))
-        for _, r in g.iterrows():
-            ax.annotate(r["variant"], (r["train_s"] / 60, r["held_out_psnr"]), fontsize=7, xytext=(3, 3),
-                        textcoords="offset points")  # fmt: skip
+        # variants that are the same run (loose's samples_32 is its fast) share one label
+        for (minutes, psnr), same in g.groupby([g["train_s"] / 60, "held_out_psnr"], sort=False):
+            names = list(same["variant"])
+            label = " = ".join(names) if len(names) <= 3 else " = ".join(names[:2]) + f" (+{len(names) - 2} more)"
+            ax.annotate(label, (minutes, psnr), fontsize=7, xytext=(3, 3), textcoords="offset points")
         front = g[g["pareto"]].sort_values("train_s")
         ax.plot(front["train_s"] / 60, front["held_out_psnr"], color="C3", lw=1, label="Pareto front")
         ax.set_xscale("log")
+        plain = matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}")
+        ax.xaxis.set_major_formatter(plain)
+        ax.xaxis.set_minor_formatter(plain)
+        ax.tick_params(axis="x", which="minor", labelsize=7)
         ax.set_xlabel("training time (min, both stages)")
         ax.set_ylabel("held-out PSNR (dB)")
         ax.set_title(subject)
