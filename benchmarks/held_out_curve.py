@@ -1,0 +1,96 @@
+"""Held-out PSNR along a training run: #8's 10x read on held-out views, not on training rays.
+
+The sweep scores each variant's held-out views once, at its end, and times it to a PSNR on its
+training rays. This script reruns a finished stage 1 from its own settings.json (the same preset,
+subject keys and seed, so the same run up to float rounding: the first rows are checked against the
+run's losses.csv), stops it at the given steps through the trainer's exact-resume path, saves each
+snapshot and scores it with the sweep's scoring (test views, no refinement, 2x2 rays a pixel).
+Seconds are the trainer's clock at that step (this rerun's, and with --run-losses the finished
+run's); scoring is not counted.
+
+    python benchmarks/held_out_curve.py --settings results/synthetic/upper/stage1/settings.json \\
+        --record results/synthetic/upper/frames.h5 --body resources/body/anny_sub1.npz \\
+        --init results/synthetic/upper/init/params.npz --gt-meshes data/synthetic/upper/gt/meshes.h5 \\
+        --subject upper --run-losses results/synthetic/upper/stage1/losses.csv \\
+        --steps 25,50,100,200,400,800 --out /tmp/held_out_upper --csv benchmarks/held_out_curve.csv --append
+
+Each row: subject, step, the trainer's seconds at it, the smoothed training-ray PSNR, and the
+held-out PSNR / SSIM / ST-LPIPS / NeRF IoU of the snapshot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import pandas as pd
+import torch
+
+from delta.body.model import load_body_model
+from delta.eval.evaluate import EvalSettings, evaluate, summarize
+from delta.eval.plots import smooth
+from delta.eval.tradeoff import PSNR_WINDOW
+from delta.training.data import load_frames
+from delta.training.presets import resolve
+from delta.training.run import build_avatar, load_init, load_trained, pick_device, save_model
+from delta.training.trainer import train_stage
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--settings", required=True, help="settings.json of the finished stage 1")
+    p.add_argument("--record", required=True)
+    p.add_argument("--body", required=True)
+    p.add_argument("--init", required=True)
+    p.add_argument("--gt-meshes", default=None)
+    p.add_argument("--subject", required=True)
+    p.add_argument("--run-losses", default=None, help="the finished run's losses.csv: its first rows are compared")
+    p.add_argument("--steps", required=True, help="comma-separated steps to score at")
+    p.add_argument("--max-frames", type=int, default=5)
+    p.add_argument("--perceptual", default="resources/models/stlpips")
+    p.add_argument("--out", required=True, help="a directory for the checkpoint and the snapshots")
+    p.add_argument("--csv", required=True)
+    p.add_argument("--append", action="store_true")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, default=2)
+    args = p.parse_args()
+
+    saved = json.loads(Path(args.settings).read_text())
+    st = resolve(saved["preset"], saved["settings"])
+    steps = sorted({int(s) for s in args.steps.split(",")})
+    if steps[-1] > st.stage1.iterations:
+        raise SystemExit(f"--steps: {steps[-1]} is past the run's {st.stage1.iterations} iterations")
+    torch.set_num_threads(args.threads)
+    dev = pick_device(args.device)
+    data = load_frames(args.record, st.resolution, st.background, st.box_margin)
+    model = build_avatar(load_body_model(args.body), st, load_init(args.init, data), data, 1, dev)
+    out = Path(args.out)
+    scoring = EvalSettings(splits=("test_view",), max_frames=args.max_frames, refine_steps=0, supersample=2,
+                           perceptual_dir=args.perceptual)  # fmt: skip
+    rows = []
+    for step in steps:
+        losses = train_stage(1, model, data, st, out, max_steps=step).losses
+        snapshot = out / f"step_{step:06d}.pt"
+        save_model(snapshot, model, 1, saved["preset"], st, step)
+        scores = summarize(evaluate(load_trained(snapshot, args.record, args.body, args.device), args.record, scoring,
+                                    args.gt_meshes, args.subject))["test_view"]["unrefined"]  # fmt: skip
+        row = {"subject": args.subject, "preset": saved["preset"], "step": step,
+               "seconds": float(losses["seconds"].iloc[-1]),
+               "train_psnr": float(smooth(losses["psnr"].to_numpy(), PSNR_WINDOW)[-1]),
+               **{f"held_out_{k}": scores.get(k, float("nan")) for k in ("psnr", "ssim", "stlpips_alex", "nerf_iou")}}
+        if args.run_losses:  # the finished run's clock at this step, and how closely the rerun follows it
+            run = pd.read_csv(args.run_losses).head(step)
+            row["run_seconds"] = float(run["seconds"].iloc[-1])
+            row["max_loss_rel_diff_to_run"] = float(((losses["loss"].head(step) - run["loss"]).abs() / run["loss"]).max())
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    df = pd.DataFrame(rows)
+    path = Path(args.csv)
+    if args.append and path.is_file():
+        df = pd.concat([pd.read_csv(path), df], ignore_index=True)
+    df.to_csv(path, index=False)
+
+
+if __name__ == "__main__":
+    main()
