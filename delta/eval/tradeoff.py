@@ -193,6 +193,30 @@ def tradeoff(manifest: dict, peak_json: str | Path, reference: str, out_csv: str
     return df
 
 
+LABEL_FONT = 7.0
+"""Point size of the plot's variant labels."""
+
+
+def place_labels(anchors: np.ndarray, widths: np.ndarray, height: float, gap: float = 3.0,
+                 tries: int = 12) -> np.ndarray:  # fmt: skip
+    """Offsets (N, 2), in points, that keep N labels' boxes apart: each label goes right of and
+    above its anchor (N, 2 points) unless that box meets one already placed; then it moves down or
+    up by a line at a time, alternately, up to ``tries`` lines; the highest anchors are placed first.
+    """
+    offsets = np.zeros((len(anchors), 2))
+    placed: list[tuple[float, float, float, float]] = []
+    for i in np.argsort(-anchors[:, 1], kind="stable"):
+        x0 = anchors[i, 0] + gap
+        for k in range(tries + 1):
+            dy = gap + (height + 1.0) * ((k + 1) // 2) * (-1 if k % 2 else 1)
+            box = (x0, anchors[i, 1] + dy, x0 + widths[i], anchors[i, 1] + dy + height)
+            if not any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in placed):
+                break
+        placed.append(box)
+        offsets[i] = (gap, dy)
+    return offsets
+
+
 def plot(df: pd.DataFrame, out_png: str | Path) -> None:
     """Held-out PSNR against training time per subject; the Pareto front joined by a line."""
     import matplotlib
@@ -206,14 +230,21 @@ def plot(df: pd.DataFrame, out_png: str | Path) -> None:
     for ax, subject in zip(axes[0], subjects):
         g = df[df["subject"] == subject]
         ax.scatter(g["train_s"] / 60, g["held_out_psnr"], c=np.where(g["pareto"], "C3", "C0"))
-        # variants that are the same run (loose's samples_32 is its fast) share one label
-        for (minutes, psnr), same in g.groupby([g["train_s"] / 60, "held_out_psnr"], sort=False):
-            names = list(same["variant"])
-            label = " = ".join(names) if len(names) <= 3 else " = ".join(names[:2]) + f" (+{len(names) - 2} more)"
-            ax.annotate(label, (minutes, psnr), fontsize=7, xytext=(3, 3), textcoords="offset points")
         front = g[g["pareto"]].sort_values("train_s")
         ax.plot(front["train_s"] / 60, front["held_out_psnr"], color="C3", lw=1, label="Pareto front")
         ax.set_xscale("log")
+        # variants that are the same run (loose's samples_32 is its fast) share one label
+        points, labels = [], []
+        for (minutes, psnr), same in g.groupby([g["train_s"] / 60, "held_out_psnr"], sort=False):
+            names = list(same["variant"])
+            labels.append(" = ".join(names) if len(names) <= 3 else " = ".join(names[:2]) + f" (+{len(names) - 2} more)")
+            points.append((minutes, psnr))
+        fig.canvas.draw()  # the axes' limits are final: data -> points
+        anchors = ax.transData.transform(np.asarray(points, dtype=float)) * 72.0 / fig.dpi
+        offsets = place_labels(anchors, np.array([LABEL_FONT * 0.6 * len(t) for t in labels]), LABEL_FONT + 1.0)
+        for point, label, (dx, dy) in zip(points, labels, offsets):
+            ax.annotate(label, point, fontsize=LABEL_FONT, xytext=(dx, dy), textcoords="offset points",
+                        arrowprops={"arrowstyle": "-", "lw": 0.4, "color": "0.6"} if abs(dy) > 3 else None)  # fmt: skip
         plain = matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}")
         ax.xaxis.set_major_formatter(plain)
         ax.xaxis.set_minor_formatter(plain)

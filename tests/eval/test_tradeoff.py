@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 import torch
 
-from delta.eval.tradeoff import pareto_front, time_to_psnr, tradeoff
+from delta.eval.tradeoff import pareto_front, place_labels, time_to_psnr, tradeoff
 from delta.eval.tradeoff import psnr_gain as tradeoff_gain
 from delta.training.profile import matmul_peak, profile_steps
 
@@ -43,6 +43,21 @@ def test_pareto_front():
     gain = np.array([20.0, 25.0, 24.0, 22.0, 30.0])
     # 3 is slower and worse than 2; 4 costs as much as 2 and is worse; nan is never on the front
     assert pareto_front(cost, gain).tolist() == [True, True, False, False, False]
+
+
+def test_plot_labels_do_not_overlap():
+    # five labels on one point and one far away: the lone one stays at the default offset,
+    # the five are moved a line at a time until no two boxes meet
+    anchors = np.array([[100.0, 100.0]] * 5 + [[400.0, 10.0]])
+    widths, height = np.full(6, 50.0), 8.0
+    off = place_labels(anchors, widths, height, gap=3.0)
+    assert off[5].tolist() == [3.0, 3.0] and off[0].tolist() == [3.0, 3.0]
+    boxes = [(a[0] + o[0], a[1] + o[1], a[0] + o[0] + w, a[1] + o[1] + height) for a, o, w in zip(anchors, off, widths)]
+    for i in range(6):
+        for j in range(i):
+            a, b = boxes[i], boxes[j]
+            assert not (a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]), (i, j)
+    assert sorted(off[:5, 1].tolist()) == [3.0 - 18, 3.0 - 9, 3.0, 3.0 + 9, 3.0 + 18]  # a line is height + 1
 
 
 def write_variant(root, name, sec_per_step, psnr_per_step, held_out, train_s, flops, eval_resolution=None, start=10.0):
