@@ -12,7 +12,7 @@ from delta.body.model import load_body_model
 from delta.training.data import load_frames, sample_rays
 from delta.training.presets import resolve
 from delta.training.run import build_avatar, load_init, run_stage
-from delta.training.trainer import CHECKPOINT, loss_terms, nerf_only_terms, train_stage
+from delta.training.trainer import CHECKPOINT, loss_terms, nerf_only_terms, reproducible, train_stage
 from delta import losses as L
 
 pytestmark = pytest.mark.slow
@@ -66,11 +66,11 @@ _RELU_NOISE = {"nerf": {"density_activation": "relu", "density_noise": 1.0, "den
 @pytest.mark.parametrize("over", [{}, _RELU_NOISE, {**_RELU_NOISE, "stage1": {"nerf_warmup": 5}}],
                          ids=["exp", "relu_noise", "nerf_warmup"])  # fmt: skip
 def test_interrupted_stage_resumes_to_the_same_parameters(tiny_training, tmp_path, over):
-    """Bit for bit on one thread (multi-threaded reductions differ in the last bits from run to run);
-    with SCARF's noisy ReLU density too (the noise is drawn from the step), and with a NeRF-only
-    warm-up that the interruption (step 4) cuts in two."""
+    """Bit for bit on two threads (a CPU stage runs torch's deterministic kernels: without them the
+    gathers' backward adds from both threads in any order); with SCARF's noisy ReLU density too (the
+    noise is drawn from the step), and with a NeRF-only warm-up that the interruption (step 4) cuts in two."""
     threads = torch.get_num_threads()
-    torch.set_num_threads(1)
+    torch.set_num_threads(2)
     try:
         _resume_equivalence(tiny_training, tmp_path, over)
     finally:
@@ -102,6 +102,35 @@ def _resume_equivalence(tiny_training, tmp_path, over):
     # wall time accumulates across the resume; everything else is identical
     assert (lc["seconds"].diff().dropna() >= 0).all() and (la["seconds"] > 0).all()
     pd.testing.assert_frame_equal(la.drop(columns="seconds"), lc.drop(columns="seconds"))
+
+
+def test_reproducible_makes_a_two_thread_gather_backward_bit_exact():
+    """The op that made two 2-thread runs of a stage part: the backward of x[idx] with repeated
+    indices. Under ``reproducible`` it is the same bits every time; the previous mode comes back,
+    and a non-CPU device is left alone."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    idx = torch.randint(0, 1000, (400_000,), generator=torch.Generator().manual_seed(0))
+    weight = torch.randn(400_000, 3, generator=torch.Generator().manual_seed(1))
+
+    def grad():
+        x = torch.randn(1000, 3, generator=torch.Generator().manual_seed(2)).requires_grad_()
+        (x[idx] * weight).sum().backward()
+        return x.grad
+
+    try:
+        assert not torch.are_deterministic_algorithms_enabled()
+        with reproducible(torch.device("cpu")):
+            assert torch.are_deterministic_algorithms_enabled()
+            first = grad()
+            assert all(torch.equal(first, grad()) for _ in range(3))
+        assert not torch.are_deterministic_algorithms_enabled()
+        with reproducible(torch.device("cuda")):  # only the device's type is read: no GPU needed
+            assert not torch.are_deterministic_algorithms_enabled()
+        # and the same numbers, to float32 rounding of ~400-term sums, as the default kernels
+        torch.testing.assert_close(first, grad(), rtol=1e-5, atol=1e-4)
+    finally:
+        torch.set_num_threads(threads)
 
 
 def test_nerf_warmup_trains_the_nerf_alone_on_the_person(tiny_training, tmp_path):
