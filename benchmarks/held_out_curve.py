@@ -2,8 +2,7 @@
 
 The sweep scores each variant's held-out views once, at its end, and times it to a PSNR on its
 training rays. This script reruns a finished stage 1 from its own settings.json (the same preset,
-subject keys and seed, so the same run up to float rounding: the first rows are checked against the
-run's losses.csv), stops it at the given steps through the trainer's exact-resume path, saves each
+subject keys and seed; with --run-losses each snapshot's losses are compared with the run's), stops it at the given steps through the trainer's exact-resume path, saves each
 snapshot and scores it with the sweep's scoring (test views, no refinement, 2x2 rays a pixel).
 Seconds are the trainer's clock at that step (this rerun's, and with --run-losses the finished
 run's); scoring is not counted.
@@ -68,6 +67,7 @@ def main() -> None:
     out = Path(args.out)
     scoring = EvalSettings(splits=("test_view",), max_frames=args.max_frames, refine_steps=0, supersample=2,
                            perceptual_dir=args.perceptual)  # fmt: skip
+    run = pd.read_csv(args.run_losses) if args.run_losses else None
     rows = []
     for step in steps:
         losses = train_stage(1, model, data, st, out, max_steps=step).losses
@@ -79,10 +79,10 @@ def main() -> None:
                "seconds": float(losses["seconds"].iloc[-1]),
                "train_psnr": float(smooth(losses["psnr"].to_numpy(), PSNR_WINDOW)[-1]),
                **{f"held_out_{k}": scores.get(k, float("nan")) for k in ("psnr", "ssim", "stlpips_alex", "nerf_iou")}}
-        if args.run_losses:  # the finished run's clock at this step, and how closely the rerun follows it
-            run = pd.read_csv(args.run_losses).head(step)
-            row["run_seconds"] = float(run["seconds"].iloc[-1])
-            row["max_loss_rel_diff_to_run"] = float(((losses["loss"].head(step) - run["loss"]).abs() / run["loss"]).max())
+        if run is not None:  # the finished run's clock at this step, and how closely the rerun follows it
+            ran = run.head(step)
+            row["run_seconds"] = float(ran["seconds"].iloc[-1])
+            row["max_loss_rel_diff_to_run"] = float(((losses["loss"] - ran["loss"]).abs() / ran["loss"]).max())
         rows.append(row)
         print(json.dumps(row), flush=True)
     df = pd.DataFrame(rows)

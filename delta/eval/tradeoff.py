@@ -195,9 +195,11 @@ def tradeoff(manifest: dict, peak_json: str | Path, reference: str, out_csv: str
 
 LABEL_FONT = 7.0
 """Point size of the plot's variant labels."""
+LABEL_GAP = 3.0
+"""Points between a label and its point, right and up, where nothing is in the way."""
 
 
-def place_labels(anchors: np.ndarray, widths: np.ndarray, height: float, gap: float = 3.0,
+def place_labels(anchors: np.ndarray, widths: np.ndarray, height: float, gap: float = LABEL_GAP,
                  tries: int = 12) -> np.ndarray:  # fmt: skip
     """Offsets (N, 2), in points, that keep N labels' boxes apart: each label goes right of and
     above its anchor (N, 2 points) unless that box meets one already placed; then it moves down or
@@ -244,7 +246,7 @@ def plot(df: pd.DataFrame, out_png: str | Path) -> None:
         offsets = place_labels(anchors, np.array([LABEL_FONT * 0.6 * len(t) for t in labels]), LABEL_FONT + 1.0)
         for point, label, (dx, dy) in zip(points, labels, offsets):
             ax.annotate(label, point, fontsize=LABEL_FONT, xytext=(dx, dy), textcoords="offset points",
-                        arrowprops={"arrowstyle": "-", "lw": 0.4, "color": "0.6"} if abs(dy) > 3 else None)  # fmt: skip
+                        arrowprops={"arrowstyle": "-", "lw": 0.4, "color": "0.6"} if dy != LABEL_GAP else None)  # fmt: skip
         plain = matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}")
         ax.xaxis.set_major_formatter(plain)
         ax.xaxis.set_minor_formatter(plain)

@@ -120,9 +120,10 @@ def reproducible(device: torch.device):
 
     With 2 threads the backward of a gather with repeated indices (``vertices[faces]``, a feature
     table indexed per sample) adds into the same rows from both threads in any order: two runs of the
-    same stage parted from step ~40 (tight, ``fast``) and ended 0.1 dB apart. The deterministic path
-    made them bit-identical at no measurable cost (80 steps: 36-38 s against 40 s). On CUDA the mode
-    stays as it is: there it needs cuBLAS set up before the first call and slows scatter kernels.
+    same stage parted from step ~40 (tight, ``fast``; reruns of the three subjects ended 0.05-0.07 dB
+    apart held-out). The deterministic path made them bit-identical at no measurable cost (80 steps:
+    36-38 s against 40 s). On CUDA the mode stays as it is: there it needs cuBLAS configured before
+    the first call, and ops without a deterministic CUDA kernel would raise.
     """
     if device.type != "cpu":
         yield
