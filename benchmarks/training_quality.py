@@ -24,6 +24,7 @@ import h5py
 import numpy as np
 import pandas as pd
 import torch
+from delta.io import load_state
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -79,7 +80,7 @@ def one(subject: str, preset: str, out: Path, extra: dict, refine: int) -> dict:
     st = resolve(preset, *overrides)
     data = load_frames(rec, st.resolution, st.background, st.box_margin)
     for stage in (1, 2):
-        state = torch.load(out / f"stage{stage}" / "model.pt", weights_only=False)
+        state = load_state(out / f"stage{stage}" / "model.pt")
         model = build_avatar(load_body_model(body), st, load_init_from_state(state["model"], data), data, stage,
                              torch.device("cpu"))  # fmt: skip
         model.load_state_dict(state["model"])

@@ -95,13 +95,12 @@ def cmd_upsample(args: argparse.Namespace) -> None:
 
 
 def cmd_synthesize(args: argparse.Namespace) -> None:
-    import json
 
     from delta.synthetic.generate import generate
     from delta.synthetic.spec import parse_subject
 
     _threads(args.threads)
-    raw = json.loads(args.spec)
+    raw = json_or_file(args.spec, "--spec")
     spec = parse_subject(args.subject, raw)
     generate(spec, args.body, args.out, shape_space=args.shape_space, anny_cache=args.anny_cache)
     log.info("synthetic capture '%s' written to %s", args.subject, args.out)
@@ -115,14 +114,13 @@ def cmd_to_peoplesnapshot(args: argparse.Namespace) -> None:
 
 
 def cmd_prepare(args: argparse.Namespace) -> None:
-    import json
 
     from delta.data.sources import peoplesnapshot_source, synthetic_source, video_source
     from delta.io import save_json
     from delta.preprocess.frames import prepare
     from delta.preprocess.steps import attach
 
-    cfg = json.loads(args.subject_config)
+    cfg = json_or_file(args.subject_config, "--subject-config")
     adapters = {"synthetic": lambda: synthetic_source(args.root, args.subject),
                 "peoplesnapshot": lambda: peoplesnapshot_source(args.root, args.subject, cfg),
                 "video": lambda: video_source(args.root, args.subject, cfg)}  # fmt: skip
@@ -171,24 +169,21 @@ def cmd_fit_init(args: argparse.Namespace) -> None:
     from delta.fitting.run import run
     from delta.io import save_json
 
-    import json
 
     from delta.fitting.fit import fit_config
 
     _threads(args.threads)
-    settings = json.loads(args.settings)
+    settings = json_or_file(args.settings, "--settings")
     cfg = fit_config(*(settings if isinstance(settings, list) else [settings]), where="--settings")
     summary = run(args.record, args.body, args.out, cfg=cfg)
     save_json(Path(args.out) / "summary.json", summary)
 
 
 def cmd_train(args: argparse.Namespace) -> None:
-    import json
-
     from delta.training.run import run_stage
 
     _threads(args.threads)
-    over = json.loads(args.overrides)
+    over = json_or_file(args.overrides, "--overrides")
     run_stage(args.stage, args.record, args.body, args.start, args.out, args.preset,
               over if isinstance(over, list) else [over], args.device, args.perceptual)  # fmt: skip
 

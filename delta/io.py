@@ -1,16 +1,20 @@
-"""Atomic file output: nothing half-written survives an interruption."""
+"""File input and output: atomic writes (nothing half-written survives an interruption) and a
+loader for shared model files that cannot run code."""
 
 from __future__ import annotations
 
 import contextlib
 import json
 import os
+import re
 import tempfile
 import zipfile
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
+
+from delta import DeltaError
 
 
 @contextlib.contextmanager
@@ -58,3 +62,33 @@ def save_json(path: str | os.PathLike, obj: Any) -> None:
     """Write ``obj`` as indented JSON atomically."""
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(obj, indent=2, sort_keys=True) + "\n")
+
+
+def load_state(path: str | os.PathLike, map_location: Any = "cpu") -> dict:
+    """A ``model.pt`` or ``checkpoint.pt``: tensors and plain values only, never code.
+
+    Avatars and checkpoints are files people share. ``torch.load(weights_only=True)`` builds
+    tensors, numbers, strings and containers and refuses every other object, so a crafted
+    pickle that would call ``os.system`` is rejected before anything in it runs. A missing,
+    truncated or corrupt file is a :class:`DeltaError` naming it.
+    """
+    import pickle
+
+    import torch
+
+    path = Path(path)
+    if not path.is_file():
+        raise DeltaError(f"{path}: file not found")
+    try:
+        state = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        found = re.search(r"GLOBAL (\S+)", str(exc))
+        what = f" ({found.group(1)})" if found else ""
+        raise DeltaError(f"{path}: refused: it holds objects other than tensors and plain values{what}, "
+                         "which could run code when loaded") from None  # fmt: skip
+    except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile) as exc:
+        why = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
+        raise DeltaError(f"{path}: cannot be read (truncated or corrupt: {why})") from None
+    if not isinstance(state, dict):
+        raise DeltaError(f"{path}: holds a {type(state).__name__}, not the dictionary a model or checkpoint file holds")
+    return state

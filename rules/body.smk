@@ -10,7 +10,7 @@ rule convert_anny:
         num_shape=BODY["anny"]["num_shape"],
         num_samples=BODY["anny"]["num_samples"],
         seed=BODY["anny"]["seed"],
-        merge=" ".join(BODY["anny"]["merge_bones"]),
+        merge=BODY["anny"]["merge_bones"],
         cache=PATHS["anny_cache"],
     conda:
         "../workflow/envs/delta.yaml"
@@ -23,9 +23,9 @@ rule convert_anny:
         mem_mb=lambda w, attempt: 6000 * attempt,
         runtime=30,
     shell:
-        "delta convert-anny --out {output.model} --report {output.report} --shape-space {output.shape_space}"
-        " --num-shape {params.num_shape} --num-samples {params.num_samples} --seed {params.seed}"
-        " --merge {params.merge} --cache-dir {params.cache} --threads {threads} > {log} 2>&1"
+        "delta convert-anny --out {output.model:q} --report {output.report:q} --shape-space {output.shape_space:q}"
+        " --num-shape {params.num_shape:q} --num-samples {params.num_samples:q} --seed {params.seed:q}"
+        " --merge {params.merge:q} --cache-dir {params.cache:q} --threads {threads} > {log:q} 2>&1"
 
 
 rule load_smplx:
@@ -43,8 +43,8 @@ rule load_smplx:
     resources:
         mem_mb=2000,
     shell:
-        "delta load-smplx --src {input} --out {output}"
-        " --num-shape {params.num_shape} --num-expression {params.num_expression} > {log} 2>&1"
+        "delta load-smplx --src {input:q} --out {output:q}"
+        " --num-shape {params.num_shape:q} --num-expression {params.num_expression:q} > {log:q} 2>&1"
 
 
 rule upsample_body:
@@ -62,5 +62,5 @@ rule upsample_body:
     resources:
         mem_mb=4000,
     shell:
-        "delta upsample --src {input} --out {output.model} --level {wildcards.level}"
-        " --summary {output.summary} > {log} 2>&1"
+        "delta upsample --src {input:q} --out {output.model:q} --level {wildcards.level:q}"
+        " --summary {output.summary:q} > {log:q} 2>&1"

@@ -1,12 +1,13 @@
 # Config validation, wildcard constraints, every path pattern and input function.
 import json
+import shlex
 from pathlib import Path
 
 from delta.config import validate_config
 from delta.data.sources import PROVIDES
 from delta.fitting.fit import fit_config
 from delta.synthetic.spec import parse_subject
-from delta.training.presets import resolve as resolve_training
+from delta.training.presets import resolve as resolve_training, stage_view
 
 config = validate_config(
     config,
@@ -245,17 +246,30 @@ def subject_settings(subject):
 TRAINING = {s: subject_settings(s) for spec in DATASETS.values() for s in spec["subjects"]}
 
 
-def training_overrides_json(wildcards):
-    return json.dumps(subject_training(wildcards.subject)[1], sort_keys=True)
+def wildcard_training(wildcards):
+    """(preset, [overrides...]) of a main-run stage, or of a sweep variant's when the wildcards name one."""
+    if "variant" in wildcards.keys():
+        return variant_training(wildcards.subject, wildcards.variant)
+    return subject_training(wildcards.subject)
 
 
-def training_preset(wildcards):
-    return subject_training(wildcards.subject)[0]
+def stage_training(wildcards):
+    """(preset, JSON of the resolved settings the stage reads): a training job's whole configuration."""
+    preset, overrides = wildcard_training(wildcards)
+    raw = resolve_training(preset, *overrides).raw
+    return preset, json.dumps(stage_view(raw, int(wildcards.stage)), sort_keys=True)
 
 
-def stage2_inputs(wildcards):
-    files = {"stage1": PATHS["stage_model"].format(stage=1, **wildcards)}
-    st = TRAINING[wildcards.subject]
+def train_inputs(wildcards):
+    """Stage 1 starts from the init fit; stage 2 from stage 1's model (and the VGG weights of its semantic loss)."""
+    w = dict(wildcards)
+    files = {"record": PATHS["record"].format(**w), "body": body_model_file()}
+    if wildcards.stage == "1":
+        files["start"] = PATHS["init_params"].format(**w)
+        return files
+    model = "variant_model" if "variant" in wildcards.keys() else "stage_model"
+    files["start"] = PATHS[model].format(**{**w, "stage": 1})
+    st = resolve_training(*[wildcard_training(wildcards)[0]] + wildcard_training(wildcards)[1])
     if st.semantic != "none" and st.weights.semantic > 0:
         files["vgg"] = PATHS["perceptual_vgg"]
     return files
@@ -267,16 +281,12 @@ def train_mem_mb(wildcards, attempt):
     return _grow(1500 + 0.02 * st.resolution**2 + 0.5 * st.stage1.rays, attempt)
 
 
-def train_runtime(stage):
-    """Minutes as a function of (wildcards, attempt): ~0.6 s a step at the fast preset on 2 cores, times 3."""
-
-    def runtime(wildcards, attempt):
-        st = TRAINING[wildcards.subject]
-        cfg = st.stage1 if stage == 1 else st.stage2
-        scale = (st.resolution / 128) * cfg.rays / 1024 * st.avatar.render.samples / 24
-        return int(10 + attempt * 3 * cfg.iterations * 0.6 * scale / 60)
-
-    return runtime
+def train_runtime(wildcards, attempt):
+    """Minutes: ~0.6 s a step at the fast preset on 2 cores, times 3."""
+    st = TRAINING[wildcards.subject]
+    cfg = st.stage1 if wildcards.stage == "1" else st.stage2
+    scale = (st.resolution / 128) * cfg.rays / 1024 * st.avatar.render.samples / 24
+    return int(10 + attempt * 3 * cfg.iterations * 0.6 * scale / 60)
 
 
 def all_targets():
@@ -355,20 +365,21 @@ def eval_inputs(wildcards):
 
 
 def eval_args(wildcards, input, settings=None):
+    """The evaluation's options as one shell-quoted string."""
     settings = settings or EVAL
-    args = (f"--max-frames {settings['max_frames']} --refine-steps {settings['refine_steps']}"
-            f" --supersample {settings['supersample']} --splits {' '.join(settings['splits'])}")  # fmt: skip
+    args = ["--max-frames", settings["max_frames"], "--refine-steps", settings["refine_steps"],
+            "--supersample", settings["supersample"], "--splits", *settings["splits"]]  # fmt: skip
     if settings.get("resolution"):
-        args += f" --resolution {settings['resolution']}"
+        args += ["--resolution", settings["resolution"]]
     if not EVAL["report_unrefined"]:
-        args += " --refined-only"
+        args += ["--refined-only"]
     if EVAL["lpips_alex"]:
-        args += " --lpips-alex " + " ".join(f"'{p}'" for p in EVAL["lpips_alex"])
+        args += ["--lpips-alex", *EVAL["lpips_alex"]]
     if "gt" in input.keys():
-        args += f" --gt-meshes {input.gt}"
+        args += ["--gt-meshes", input.gt]
     if "export" in input.keys():
-        args += f" --export-dir {Path(input.export).parent}"
-    return args
+        args += ["--export-dir", Path(input.export).parent]
+    return shlex.join(map(str, args))
 
 
 def export_args(wildcards):
@@ -390,8 +401,8 @@ def aggregate_inputs(wildcards):
         "summaries": fmt("eval_summary"),
         "exports": fmt("export_json"),
         "plots": fmt("loss_plot", stage=1) + fmt("loss_plot", stage=2),
-        "bench1": [benchmark_path("train_stage1", f"{wildcards.dataset}_{s}") for s in subjects],
-        "bench2": [benchmark_path("train_stage2", f"{wildcards.dataset}_{s}") for s in subjects],
+        "bench1": [benchmark_path("train", f"{wildcards.dataset}_{s}_stage1") for s in subjects],
+        "bench2": [benchmark_path("train", f"{wildcards.dataset}_{s}_stage2") for s in subjects],
     }
 
 
@@ -399,7 +410,7 @@ def aggregate_benchmarks(wildcards, input):
     subjects = dataset_subjects(wildcards)
     pairs = [f"{s}/stage1={b}" for s, b in zip(subjects, input.bench1)]
     pairs += [f"{s}/stage2={b}" for s, b in zip(subjects, input.bench2)]
-    return " ".join(pairs)
+    return pairs
 
 
 def dataset_metrics_targets():
@@ -484,25 +495,16 @@ def variant_stage_file(kind, stage, **w):
     """A variant's stage output (``model``, ``losses`` or ``bench``): the main run's when it is the main run."""
     if variant_is_main(w["subject"], w["variant"]):
         if kind == "bench":
-            return benchmark_path(f"train_stage{stage}", f"{w['dataset']}_{w['subject']}")
+            return benchmark_path("train", f"{w['dataset']}_{w['subject']}_stage{stage}")
         return PATHS[f"stage_{kind}"].format(stage=stage, **w)
     if kind == "bench":
-        return benchmark_path(f"tradeoff_stage{stage}", f"{w['dataset']}_{w['subject']}_{w['variant']}")
+        return benchmark_path("tradeoff_train", f"{w['dataset']}_{w['subject']}_{w['variant']}_stage{stage}")
     return PATHS[f"variant_{kind}"].format(stage=stage, **w)
 
 
 def variant_model(wildcards):
     """The model a variant is scored with: its last stage."""
     return variant_stage_file("model", variant_stages(wildcards.variant), **wildcards)
-
-
-def variant_stage2_inputs(wildcards):
-    files = {"stage1": PATHS["variant_model"].format(stage=1, **wildcards)}
-    preset, overrides = variant_training(wildcards.subject, wildcards.variant)
-    st = resolve_training(preset, *overrides)
-    if st.semantic != "none" and st.weights.semantic > 0:
-        files["vgg"] = PATHS["perceptual_vgg"]
-    return files
 
 
 def variant_eval_inputs(wildcards):

@@ -13,12 +13,14 @@ rule plot_losses:
             subcategory="{dataset} {subject}",
             labels={"subject": "{subject}", "stage": "{stage}", "figure": "losses"},
         ),
+    params:
+        title=lambda w: f"{w.subject}, stage {w.stage}",
     conda:
         "../workflow/envs/delta.yaml"
     log:
         log_path("plot_losses", "{dataset}_{subject}_{stage}"),
     shell:
-        "delta plot-losses --losses {input} --out {output} --title '{wildcards.subject}, stage {wildcards.stage}' > {log} 2>&1"
+        "delta plot-losses --losses {input:q} --out {output:q} --title {params.title:q} > {log:q} 2>&1"
 
 
 rule export_avatar:
@@ -66,8 +68,8 @@ rule export_avatar:
         mem_mb=lambda w, attempt: _grow(3000, attempt),
         runtime=lambda w, attempt: 20 * attempt,
     shell:
-        "delta export --model {input.model} --record {input.record} --body {input.body} --out {params.out}"
-        " {params.args} --device {params.device} --threads {threads} > {log} 2>&1"
+        "delta export --model {input.model:q} --record {input.record:q} --body {input.body:q} --out {params.out:q}"
+        " {params.args} --device {params.device:q} --threads {threads} > {log:q} 2>&1"
 
 
 rule evaluate:
@@ -91,9 +93,9 @@ rule evaluate:
         mem_mb=lambda w, attempt: _grow(2500, attempt),
         runtime=lambda w, attempt: 30 * attempt,
     shell:
-        "delta evaluate --model {input.model} --record {input.record} --body {input.body} --subject {wildcards.subject}"
-        " --out {output.metrics} --summary {output.summary} --perceptual {params.perceptual} {params.args}"
-        " --device {params.device} --threads {threads} > {log} 2>&1"
+        "delta evaluate --model {input.model:q} --record {input.record:q} --body {input.body:q} --subject {wildcards.subject:q}"
+        " --out {output.metrics:q} --summary {output.summary:q} --perceptual {params.perceptual:q} {params.args}"
+        " --device {params.device:q} --threads {threads} > {log:q} 2>&1"
 
 
 rule aggregate_metrics:
@@ -114,5 +116,5 @@ rule aggregate_metrics:
     log:
         log_path("aggregate_metrics", "{dataset}"),
     shell:
-        "delta aggregate --dataset {wildcards.dataset} --subjects {params.subjects} --summaries {input.summaries}"
-        " --exports {input.exports} --benchmarks {params.benchmarks} --out {output} > {log} 2>&1"
+        "delta aggregate --dataset {wildcards.dataset:q} --subjects {params.subjects:q} --summaries {input.summaries:q}"
+        " --exports {input.exports:q} --benchmarks {params.benchmarks:q} --out {output:q} > {log:q} 2>&1"

@@ -22,5 +22,5 @@ rule fit_init:
         mem_mb=3000,
         runtime=60,
     shell:
-        "delta fit-init --record {input.record} --body {input.body} --out {params.out}"
-        " --settings '{params.settings}' --threads {threads} > {log} 2>&1"
+        "delta fit-init --record {input.record:q} --body {input.body:q} --out {params.out:q}"
+        " --settings {params.settings:q} --threads {threads} > {log:q} 2>&1"

@@ -13,8 +13,8 @@ rule prepare_frames:
         cfg=subject_config_json,
         size=PRE["resolution"],
         margin=PRE["crop_margin"],
-        use=lambda w: " ".join(used_provided(w.dataset)),
-        steps=lambda w: " ".join(step_files(w).values()),
+        use=lambda w: used_provided(w.dataset),
+        steps=lambda w: list(step_files(w).values()),
     conda:
         "../workflow/envs/delta.yaml"
     log:
@@ -25,10 +25,10 @@ rule prepare_frames:
         mem_mb=prepare_mem_mb,
         runtime=30,
     shell:
-        "delta prepare --kind {params.kind} --root {params.root} --subject {wildcards.subject}"
-        " --subject-config {params.cfg:q} --size {params.size} --margin {params.margin}"
-        " --use-provided {params.use} --steps {params.steps}"
-        " --out {output.record} --summary {output.summary} > {log} 2>&1"
+        "delta prepare --kind {params.kind:q} --root {params.root:q} --subject {wildcards.subject:q}"
+        " --subject-config {params.cfg:q} --size {params.size:q} --margin {params.margin:q}"
+        " --use-provided {params.use:q} --steps {params.steps:q}"
+        " --out {output.record:q} --summary {output.summary:q} > {log:q} 2>&1"
 
 
 rule matte:
@@ -49,8 +49,8 @@ rule matte:
     resources:
         mem_mb=4000,
     shell:
-        "delta matte --video {input.video} --model {params.model} --path {input.model} --out {output}"
-        " --threads {threads} > {log} 2>&1"
+        "delta matte --video {input.video:q} --model {params.model:q} --path {input.model:q} --out {output:q}"
+        " --threads {threads} > {log:q} 2>&1"
 
 
 rule parse:
@@ -71,8 +71,8 @@ rule parse:
     resources:
         mem_mb=4000,
     shell:
-        "delta parse --video {input.video} --model {params.model} --path {input.model} --out {output}"
-        " --threads {threads} > {log} 2>&1"
+        "delta parse --video {input.video:q} --model {params.model:q} --path {input.model:q} --out {output:q}"
+        " --threads {threads} > {log:q} 2>&1"
 
 
 rule keypoints:
@@ -84,7 +84,7 @@ rule keypoints:
         PATHS["keypoints"],
     params:
         model=PRE["keypoints"]["model"],
-        face=lambda w, input: f"--face-path {input.face}" if PRE["face_landmarks"] else "",
+        face=lambda w, input: ["--face-path", input.face] if PRE["face_landmarks"] else [],
     conda:
         "../workflow/envs/delta.yaml"
     log:
@@ -94,8 +94,8 @@ rule keypoints:
     resources:
         mem_mb=2000,
     shell:
-        "delta keypoints --video {input.video} --model {params.model} --path {input.model} {params.face}"
-        " --out {output} > {log} 2>&1"
+        "delta keypoints --video {input.video:q} --model {params.model:q} --path {input.model:q} {params.face:q}"
+        " --out {output:q} > {log:q} 2>&1"
 
 
 rule convert_mediapipe:
@@ -115,4 +115,4 @@ rule convert_mediapipe:
         mem_mb=4000,
         runtime=30,
     shell:
-        "delta convert-mediapipe --out {params.out} --env {params.env} > {log} 2>&1"
+        "delta convert-mediapipe --out {params.out:q} --env {params.env:q} > {log:q} 2>&1"

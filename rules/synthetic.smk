@@ -26,9 +26,9 @@ rule synthesize:
         mem_mb=synth_mem_mb,
         runtime=synth_runtime,
     shell:
-        "delta synthesize --subject {wildcards.subject} --spec {params.spec:q} --body {input.body}"
-        " --shape-space {input.shape_space} --anny-cache {params.cache} --out {params.out}"
-        " --threads {threads} > {log} 2>&1"
+        "delta synthesize --subject {wildcards.subject:q} --spec {params.spec:q} --body {input.body:q}"
+        " --shape-space {input.shape_space:q} --anny-cache {params.cache:q} --out {params.out:q}"
+        " --threads {threads} > {log:q} 2>&1"
 
 
 rule synthetic_peoplesnapshot:
@@ -48,5 +48,5 @@ rule synthetic_peoplesnapshot:
     resources:
         mem_mb=2000,
     shell:
-        "delta to-peoplesnapshot --capture {params.capture} --subject {wildcards.subject}"
-        " --out {params.out} > {log} 2>&1"
+        "delta to-peoplesnapshot --capture {params.capture:q} --subject {wildcards.subject:q}"
+        " --out {params.out:q} > {log:q} 2>&1"

@@ -3,39 +3,20 @@
 # (`use rule ... with:`), under results/{dataset}/{subject}/tradeoff/{variant}/.
 
 
-use rule train_stage1 as tradeoff_stage1 with:
+use rule train as tradeoff_train with:
     output:
-        model=PATHS["variant_model"].replace("{stage}", "1"),
-        losses=PATHS["variant_losses"].replace("{stage}", "1"),
+        model=PATHS["variant_model"],
+        losses=PATHS["variant_losses"],
     params:
-        out=lambda w: PATHS["variant_stage_dir"].format(stage=1, **w),
-        preset=lambda w: variant_training(w.subject, w.variant)[0],
-        overrides=lambda w: json.dumps(variant_training(w.subject, w.variant)[1], sort_keys=True),
-        device=config["device"],
-    log:
-        log_path("tradeoff_stage1", "{dataset}_{subject}_{variant}"),
-    benchmark:
-        benchmark_path("tradeoff_stage1", "{dataset}_{subject}_{variant}")
-
-
-use rule train_stage2 as tradeoff_stage2 with:
-    input:
-        unpack(variant_stage2_inputs),
-        record=PATHS["record"],
-        body=body_model_file(),
-    output:
-        model=PATHS["variant_model"].replace("{stage}", "2"),
-        losses=PATHS["variant_losses"].replace("{stage}", "2"),
-    params:
-        out=lambda w: PATHS["variant_stage_dir"].format(stage=2, **w),
-        preset=lambda w: variant_training(w.subject, w.variant)[0],
-        overrides=lambda w: json.dumps(variant_training(w.subject, w.variant)[1], sort_keys=True),
+        out=lambda w: PATHS["variant_stage_dir"].format(**w),
+        preset=lambda w: stage_training(w)[0],
+        settings=lambda w: stage_training(w)[1],
         device=config["device"],
         perceptual=lambda w: str(Path(PATHS["perceptual_vgg"]).parent),
     log:
-        log_path("tradeoff_stage2", "{dataset}_{subject}_{variant}"),
+        log_path("tradeoff_train", "{dataset}_{subject}_{variant}_stage{stage}"),
     benchmark:
-        benchmark_path("tradeoff_stage2", "{dataset}_{subject}_{variant}")
+        benchmark_path("tradeoff_train", "{dataset}_{subject}_{variant}_stage{stage}")
 
 
 use rule evaluate as tradeoff_evaluate with:
@@ -65,7 +46,7 @@ rule matmul_peak:
         log_path("matmul_peak"),
     threads: 2
     shell:
-        "delta matmul-peak --out {output} --threads {threads} --device {params.device} > {log} 2>&1"
+        "delta matmul-peak --out {output:q} --threads {threads} --device {params.device:q} > {log:q} 2>&1"
 
 
 rule profile_step:
@@ -86,8 +67,8 @@ rule profile_step:
     resources:
         mem_mb=lambda w, attempt: _grow(3000, attempt),
     shell:
-        "delta profile-step --model {input.model} --record {input.record} --body {input.body} --out {output}"
-        " --steps {params.steps} --device {params.device} --threads {threads} > {log} 2>&1"
+        "delta profile-step --model {input.model:q} --record {input.record:q} --body {input.body:q} --out {output:q}"
+        " --steps {params.steps:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"
 
 
 rule tradeoff_table:
@@ -110,5 +91,5 @@ rule tradeoff_table:
     log:
         log_path("tradeoff_table", "{dataset}"),
     shell:
-        "delta tradeoff --manifest {params.manifest:q} --peak {params.peak} --reference {params.reference}"
-        " --out {output.csv} --plot {output.png} > {log} 2>&1"
+        "delta tradeoff --manifest {params.manifest:q} --peak {params.peak:q} --reference {params.reference:q}"
+        " --out {output.csv:q} --plot {output.png:q} > {log:q} 2>&1"

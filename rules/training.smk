@@ -1,5 +1,7 @@
 # Training: stage 1 (mesh + NeRF), stage 2 (adds the non-rigid deformation and the semantic loss).
-# Each stage keeps checkpoint.pt beside its outputs; a rerun after an interruption resumes from it.
+# One rule over {stage}: each stage's params hold only the settings that stage reads, so a change to
+# stage 2's settings reruns stage 2 alone. Each stage keeps checkpoint.pt beside its outputs; a rerun
+# after an interruption resumes from it, and one whose last step is done writes it out.
 
 
 rule fetch_perceptual:
@@ -13,65 +15,33 @@ rule fetch_perceptual:
     log:
         log_path("fetch_perceptual"),
     shell:
-        "delta fetch-perceptual --out {params.out} > {log} 2>&1"
+        "delta fetch-perceptual --out {params.out:q} > {log:q} 2>&1"
 
 
-rule train_stage1:
+rule train:
     input:
-        record=PATHS["record"],
-        init=PATHS["init_params"],
-        body=body_model_file(),
+        unpack(train_inputs),
     output:
-        model=PATHS["stage_model"].replace("{stage}", "1"),
-        losses=PATHS["stage_losses"].replace("{stage}", "1"),
+        model=PATHS["stage_model"],
+        losses=PATHS["stage_losses"],
     params:
-        out=lambda w: PATHS["stage_dir"].format(stage=1, **w),
-        preset=training_preset,
-        overrides=training_overrides_json,
-        device=config["device"],
-    conda:
-        "../workflow/envs/delta.yaml"
-    log:
-        log_path("train_stage1", "{dataset}_{subject}"),
-    benchmark:
-        benchmark_path("train_stage1", "{dataset}_{subject}")
-    threads: 2
-    resources:
-        mem_mb=train_mem_mb,
-        runtime=train_runtime(1),
-        **train_gpu_resources(),
-    shell:
-        "delta train --stage 1 --record {input.record} --body {input.body} --start {input.init}"
-        " --out {params.out} --preset {params.preset} --overrides {params.overrides:q}"
-        " --device {params.device} --threads {threads} > {log} 2>&1"
-
-
-rule train_stage2:
-    input:
-        unpack(stage2_inputs),
-        record=PATHS["record"],
-        body=body_model_file(),
-    output:
-        model=PATHS["stage_model"].replace("{stage}", "2"),
-        losses=PATHS["stage_losses"].replace("{stage}", "2"),
-    params:
-        out=lambda w: PATHS["stage_dir"].format(stage=2, **w),
-        preset=training_preset,
-        overrides=training_overrides_json,
+        out=lambda w: PATHS["stage_dir"].format(**w),
+        preset=lambda w: stage_training(w)[0],
+        settings=lambda w: stage_training(w)[1],
         device=config["device"],
         perceptual=lambda w: str(Path(PATHS["perceptual_vgg"]).parent),
     conda:
         "../workflow/envs/delta.yaml"
     log:
-        log_path("train_stage2", "{dataset}_{subject}"),
+        log_path("train", "{dataset}_{subject}_stage{stage}"),
     benchmark:
-        benchmark_path("train_stage2", "{dataset}_{subject}")
+        benchmark_path("train", "{dataset}_{subject}_stage{stage}")
     threads: 2
     resources:
         mem_mb=train_mem_mb,
-        runtime=train_runtime(2),
+        runtime=train_runtime,
         **train_gpu_resources(),
     shell:
-        "delta train --stage 2 --record {input.record} --body {input.body} --start {input.stage1}"
-        " --out {params.out} --preset {params.preset} --overrides {params.overrides:q}"
-        " --perceptual {params.perceptual} --device {params.device} --threads {threads} > {log} 2>&1"
+        "delta train --stage {wildcards.stage:q} --record {input.record:q} --body {input.body:q} --start {input.start:q}"
+        " --out {params.out:q} --preset {params.preset:q} --overrides {params.settings:q}"
+        " --perceptual {params.perceptual:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"

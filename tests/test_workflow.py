@@ -83,8 +83,8 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
             out = work / "results" / dataset / subject / f"stage{stage}"
             assert (out / "model.pt").is_file() and (out / "checkpoint.pt").is_file()
             assert len((out / "losses.csv").read_text().splitlines()) == 1 + (6 if stage == 1 else 4)
-            assert (work / "logs" / f"train_stage{stage}" / f"{dataset}_{subject}.log").is_file()
-            assert (work / "results/benchmarks" / f"train_stage{stage}" / f"{dataset}_{subject}.tsv").is_file()
+            assert (work / "logs/train" / f"{dataset}_{subject}_stage{stage}.log").is_file()
+            assert (work / "results/benchmarks/train" / f"{dataset}_{subject}_stage{stage}.tsv").is_file()
     # evaluation, export and the per-dataset tables
     for dataset, subjects in (("synthetic", ["tight", "loose", "upper"]), ("peoplesnapshot", ["tight"])):
         table = pd.read_csv(work / "results" / dataset / "metrics.csv")
@@ -115,6 +115,12 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
     # a rerun has nothing to do
     again = snakemake(work, "--configfile", ".test/config/ci.yaml", "--dry-run")
     assert "Nothing to be done" in again.stdout + again.stderr
+    # a setting only stage 2 reads reruns stage 2 (and what reads it), never stage 1
+    cfg["training"].setdefault("overrides", {}).setdefault("stage2", {})["lr_final"] = 0.5
+    (work / ".test/config/stage2.yaml").write_text(yaml.safe_dump(cfg))
+    changed = snakemake(work, "--configfile", ".test/config/stage2.yaml", "--dry-run")
+    jobs = re.findall(r"rule train:.*?wildcards: ([^\n]*)", changed.stdout, re.S)
+    assert jobs and all(j.endswith("stage=2") for j in jobs), jobs
 
 
 def test_bad_config_stops_before_any_job(tmp_path):
@@ -189,9 +195,9 @@ def test_cluster_profiles_build_the_dag(tmp_path, profile):
     assert "synthesize" in out and "prepare_frames" in out
 
 
-def _job_resources(dry_run_output: str, rule: str) -> dict:
-    """The ``resources:`` line of a rule's first job in a dry run, as a dict."""
-    block = dry_run_output.split(f"rule {rule}:", 1)[1]
+def _job_resources(dry_run_output: str, rule: str, job: int = 0) -> dict:
+    """The ``resources:`` line of a rule's ``job``-th job in a dry run, as a dict."""
+    block = dry_run_output.split(f"rule {rule}:")[1 + job]
     line = next(ln for ln in block.splitlines() if ln.strip().startswith("resources:"))
     return dict(kv.split("=", 1) for kv in line.split(":", 1)[1].strip().split(", "))
 
@@ -206,8 +212,8 @@ def test_training_jobs_request_a_gpu_only_for_cuda(tmp_path, device, gpu_model, 
     res = snakemake(work, "--profile", "workflow/profiles/slurm", "--executor", "dryrun", "--dry-run",
                     "--configfile", ".test/config/config.yaml", "gpu.yaml")  # fmt: skip
     assert res.returncode == 0, res.stdout[-2000:] + res.stderr[-2000:]
-    for rule in ("train_stage1", "train_stage2"):
-        res_ = _job_resources(res.stdout, rule)
+    for job in range(res.stdout.count("rule train:")):  # both stages of every subject
+        res_ = _job_resources(res.stdout, "train", job)
         assert {k: v for k, v in res_.items() if k.startswith("gpu")} == expected
         assert int(res_["mem_mb"]) > 1000 and int(res_["runtime"]) >= 10
     assert "gpu" not in _job_resources(res.stdout, "fit_init")  # CPU-only stages ask for none

@@ -134,6 +134,22 @@ class TrainSettings:
     (teaches the time-free deformation novel poses get)."""
 
 
+#: Top-level settings a stage never reads: changing them leaves that stage's work valid.
+NOT_READ_BY_STAGE = {1: ("stage2", "deformation", "semantic"), 2: ("stage1",)}
+
+
+def stage_view(raw: dict, stage: int) -> dict:
+    """The merged settings stage ``stage`` reads: ``raw`` less the other stage's own keys.
+
+    The training rule of a stage passes this view (so Snakemake reruns a stage only when what it
+    reads changes), and the stage's checkpoint fingerprint hashes it. ``resolve(preset, view)``
+    gives the same settings for everything the stage reads.
+    """
+    if stage not in NOT_READ_BY_STAGE:
+        raise DeltaError(f"stage: {stage} (expected 1 or 2)")
+    return {k: copy.deepcopy(v) for k, v in raw.items() if k not in NOT_READ_BY_STAGE[stage]}
+
+
 def deep_merge(base: dict, over: dict) -> dict:
     out = copy.deepcopy(base)
     for k, v in (over or {}).items():

@@ -19,13 +19,13 @@ import torch
 from delta import DeltaError
 from delta.body.model import load_body_model
 from delta.cameras.models import OrthographicCamera
-from delta.io import atomic_path, save_json
+from delta.io import atomic_path, load_state, save_json
 from delta.models.avatar import HybridAvatar, InitParams
 from delta.render.occupancy import OccupancySettings
 from delta.training.data import FrameData, frame_times, load_frames
-from delta.training.presets import TrainSettings, resolve
+from delta.training.presets import TrainSettings, deep_merge, resolve
 from delta.training.scope import detect_capture, frozen_joints
-from delta.training.trainer import train_stage
+from delta.training.trainer import file_digest, train_stage
 
 log = logging.getLogger(__name__)
 #: Below this fraction of exterior pixels (of the person, over the training frames) there is no NeRF.
@@ -115,7 +115,7 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
         init = load_init(start, data)
         model = build_avatar(body, st, init, data, 1, dev)
     else:
-        prev = torch.load(start, map_location=dev, weights_only=False)
+        prev = migrate_model(load_state(start, map_location=dev), start)
         init = load_init_from_state(prev["model"], data)
         model = build_avatar(body, st, init, data, 2, dev, _scope(prev))
         missing, unexpected = model.load_state_dict(prev["model"], strict=False)
@@ -127,7 +127,7 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
                                       "nerf": model.nerf is not None, "device": str(dev)})  # fmt: skip
     sem = semantic_loss(st, perceptual_dir, dev) if stage == 2 else None
     t0 = time.time()
-    res = train_stage(stage, model, data, st, out, sem)
+    res = train_stage(stage, model, data, st, out, sem, origin=file_digest(start) if stage == 2 else "")
     save_model(out / "model.pt", model, stage, preset, st, res.steps)
     last = res.losses.tail(max(1, len(res.losses) // 20)).mean(numeric_only=True)
     summary = {"stage": stage, "steps": res.steps, "seconds": round(time.time() - t0, 1),
@@ -136,9 +136,13 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
     return summary
 
 
+#: The layout of ``model.pt`` this code writes; :func:`migrate_model` brings older files up to it.
+MODEL_FORMAT = 2
+
+
 def save_model(path: str | Path, model: HybridAvatar, stage: int, preset: str, st: TrainSettings, steps: int) -> None:
     """A stage's output (``model.pt``): the weights and what :func:`load_trained` rebuilds the avatar from."""
-    final = {"model": model.state_dict(), "stage": stage, "preset": preset, "settings": st.raw,
+    final = {"format": MODEL_FORMAT, "model": model.state_dict(), "stage": stage, "preset": preset, "settings": st.raw,
              "nerf": model.nerf is not None, "deformation": model.deformation is not None,
              "pinhole": model.pinhole, "steps": steps, "capture": model.spec.capture,
              "frozen_joints": list(model.spec.frozen_joints)}  # fmt: skip
@@ -146,11 +150,35 @@ def save_model(path: str | Path, model: HybridAvatar, stage: int, preset: str, s
         torch.save(final, tmp)
 
 
-def _scope(state: dict) -> dict | None:
-    """The capture and frozen joints a model.pt was trained with (None: written before they existed)."""
-    if "capture" not in state:
-        return None
-    return {"capture": state["capture"], "frozen_joints": state.get("frozen_joints", [])}
+def migrate_model(state: dict, path: str | Path) -> dict:
+    """A ``model.pt``'s contents in the layout of :data:`MODEL_FORMAT`, whatever format wrote them.
+
+    Format 1 (no ``format`` key) predates the dynamics settings, the capture scope and, in its
+    oldest files, the occupancy grid: such a model was trained without time input to F_e, without
+    a pose trajectory, on the full body, with every joint free and no occupancy grid.
+    """
+    version = state.get("format", 1)
+    if not isinstance(version, int) or not 1 <= version <= MODEL_FORMAT:
+        raise DeltaError(f"{path}: model format {version!r}; this code reads formats 1 to {MODEL_FORMAT} "
+                         "(a newer delta wrote it?)")  # fmt: skip
+    for key in ("model", "stage", "preset", "settings"):
+        if key not in state:
+            raise DeltaError(f"{path}: missing '{key}'; not a model.pt written by 'delta train'")
+    if version == 1:
+        state = dict(state, format=MODEL_FORMAT)
+        written = state["settings"].get("dynamics", {})
+        settings = deep_merge(state["settings"], {"dynamics": {k: 0 for k in ("time_freqs", "pose_knots") if k not in written}})
+        if not any(k.startswith("occupancy.") for k in state["model"]):
+            settings = deep_merge(settings, {"render": {"occupancy": dataclasses.asdict(OccupancySettings())}})
+        state["settings"] = settings
+        state.setdefault("capture", "full")
+        state.setdefault("frozen_joints", [])
+    return state
+
+
+def _scope(state: dict) -> dict:
+    """The capture and frozen joints a (migrated) model.pt was trained with."""
+    return {"capture": state["capture"], "frozen_joints": list(state["frozen_joints"])}
 
 
 def load_init_from_state(state: dict, data: FrameData) -> InitParams:
@@ -184,21 +212,12 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
     if resolution < 0:
         raise DeltaError(f"resolution: {resolution} (expected > 0, or 0 for the training resolution)")
     dev = pick_device(device)
-    state = torch.load(model_path, map_location=dev, weights_only=False)
-    for key in ("model", "stage", "preset", "settings"):
-        if key not in state:
-            raise DeltaError(f"{model_path}: missing '{key}'; not a model.pt written by 'delta train'")
-    # a model.pt from before a 'dynamics' key existed was trained without it: F_e without time
-    # (time_freqs), no pose trajectory (pose_knots)
-    written = state["settings"].get("dynamics", {})
-    legacy = {"dynamics": {k: 0 for k in ("time_freqs", "pose_knots") if k not in written}}
-    st = resolve(state["preset"], state["settings"], legacy)
+    state = migrate_model(load_state(model_path, map_location=dev), model_path)
+    st = resolve(state["preset"], state["settings"])
     data = load_frames(record, resolution or st.resolution, st.background, st.box_margin)
     spec = st.avatar if state.get("nerf", True) else dataclasses.replace(st.avatar, nerf=None)
-    scope = _scope(state) or {"capture": "full", "frozen_joints": []}
+    scope = _scope(state)
     spec = dataclasses.replace(spec, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]))
-    if not any(k.startswith("occupancy.") for k in state["model"]):  # trained before the occupancy grid
-        spec = dataclasses.replace(spec, render=dataclasses.replace(spec.render, occupancy=OccupancySettings()))
     if state.get("deformation"):
         spec = dataclasses.replace(spec, deformation=st.deformation)
     bg = torch.tensor(st.background, dtype=torch.float32)

@@ -12,6 +12,7 @@ import dataclasses
 import hashlib
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -22,14 +23,16 @@ import numpy as np
 import pandas as pd
 import torch
 
+from delta import DeltaError
 from delta import losses as L
-from delta.io import atomic_path
+from delta.io import atomic_path, load_state
 from delta.models.avatar import HybridAvatar
 from delta.training.data import FrameData, RayBatch, sample_rays
-from delta.training.presets import StageSettings, TrainSettings
+from delta.training.presets import StageSettings, TrainSettings, stage_view
 
 log = logging.getLogger(__name__)
 CHECKPOINT = "checkpoint.pt"
+PREVIOUS_CHECKPOINT = "checkpoint.prev.pt"
 
 
 @dataclasses.dataclass
@@ -83,33 +86,64 @@ def nerf_only_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, gen
 
 def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     mse = float(((a - b) ** 2).mean())
-    return 10 * np.log10(1.0 / max(mse, 1e-10))
+    return float(10 * np.log10(1.0 / max(mse, 1e-10)))
 
 
-def fingerprint(stage: int, st: TrainSettings, data: FrameData) -> str:
-    """What a checkpoint must have been trained with to be resumed: the stage, its settings, the frames."""
-    key = json.dumps({"stage": stage, "settings": st.raw, "frames": np.asarray(data.frame_ids).tolist(),
-                      "resolution": data.resolution}, sort_keys=True, default=str)  # fmt: skip
+def fingerprint(stage: int, st: TrainSettings, data: FrameData, origin: str = "") -> str:
+    """What a checkpoint must have been trained with to be resumed: the stage, the settings it reads
+    (:func:`stage_view`), the frames and, for stage 2, ``origin`` (a digest of the stage-1 model it starts
+    from)."""
+    key = json.dumps({"stage": stage, "settings": stage_view(st.raw, stage), "frames": np.asarray(data.frame_ids).tolist(),
+                      "resolution": data.resolution, "origin": origin}, sort_keys=True, default=str)  # fmt: skip
     return hashlib.sha256(key.encode()).hexdigest()[:16]
 
 
-def resumable(state: dict, key: str, end: int) -> Optional[str]:
-    """None when ``state`` continues the run of fingerprint ``key``, else why it is set aside.
+def file_digest(path: str | Path) -> str:
+    """A digest of a file's bytes (a stage-2 checkpoint belongs to the stage-1 model it started from)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()[:16]
 
-    A checkpoint of other settings or frames is stale; one at the stage's last step belongs to a
-    finished run whose model.pt was removed — a rerun asked for (e.g. ``--forcerun``), which must train.
+
+def load_checkpoint(out_dir: Path, key: str, stage: int, device) -> Optional[dict]:
+    """The newest readable checkpoint of the run ``key`` in ``out_dir``, else None (train from the start).
+
+    A checkpoint that cannot be read (truncated, corrupt, or holding objects that could run code) is
+    set aside as ``<name>.corrupt`` with a warning, and the one before it (``checkpoint.prev.pt``) is
+    tried; one written with other settings, frames or stage-1 model is stale and not resumed.
     """
-    if state.get("fingerprint") != key:
-        return "it was written with other settings or frames"
-    if state["step"] >= end:
-        return "it is the last step of a finished run (the stage's model.pt was removed: a rerun)"
+    for name in (CHECKPOINT, PREVIOUS_CHECKPOINT):
+        path = out_dir / name
+        if not path.is_file():
+            continue
+        try:
+            state = load_state(path, map_location=device)
+            for field in ("model", "optimizer", "step", "generator", "rows"):
+                if field not in state:
+                    raise DeltaError(f"{path}: missing '{field}'")
+        except DeltaError as exc:
+            aside = path.with_name(path.name + ".corrupt")
+            os.replace(path, aside)
+            log.warning("stage %d: %s; set aside as %s, trying the checkpoint before it", stage, exc, aside.name)
+            continue
+        if state.get("fingerprint") != key:
+            log.warning("stage %d: not resuming from %s: it was written with other settings, frames or stage-1 "
+                        "model; training from the start", stage, path)  # fmt: skip
+            return None
+        return state
     return None
 
 
 def save_checkpoint(path: Path, model, optimizer, step: int, generator: torch.Generator, rows: list,
                     fingerprint: str = "") -> None:  # fmt: skip
+    """Write a checkpoint atomically; the one it replaces is kept as ``checkpoint.prev.pt``."""
     state = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step,
              "generator": generator.get_state(), "rows": rows, "fingerprint": fingerprint}  # fmt: skip
+    path = Path(path)
+    if path.is_file():
+        os.replace(path, path.with_name(PREVIOUS_CHECKPOINT))
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
 
@@ -137,16 +171,19 @@ def reproducible(device: torch.device):
 
 
 def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSettings, out_dir: Path,
-                semantic: Optional[Callable] = None, max_steps: Optional[int] = None) -> StageResult:  # fmt: skip
+                semantic: Optional[Callable] = None, max_steps: Optional[int] = None, origin: str = "") -> StageResult:  # fmt: skip
     """Run (or resume) a stage; ``max_steps`` stops early (tests use it to simulate an interruption).
 
+    A checkpoint of the same run at the stage's last step is finished work: the model is loaded from
+    it and written out, not trained again (delete the stage's folder to train from scratch).
+    ``origin`` identifies what the stage starts from (stage 2: the stage-1 model's digest).
     On the CPU a stage is bit-reproducible for a given thread count (:func:`reproducible`)."""
     with reproducible(model.background.device):
-        return _train_stage(stage, model, data, st, out_dir, semantic, max_steps)
+        return _train_stage(stage, model, data, st, out_dir, semantic, max_steps, origin)
 
 
 def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSettings, out_dir: Path,
-                 semantic: Optional[Callable], max_steps: Optional[int]) -> StageResult:  # fmt: skip
+                 semantic: Optional[Callable], max_steps: Optional[int], origin: str) -> StageResult:  # fmt: skip
     cfg: StageSettings = st.stage1 if stage == 1 else st.stage2
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -157,18 +194,19 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
     start, rows = 0, []
     ckpt = out_dir / CHECKPOINT
     end = cfg.iterations if max_steps is None else min(cfg.iterations, max_steps)
-    key = fingerprint(stage, st, data)
-    state = torch.load(ckpt, map_location=device, weights_only=False) if ckpt.is_file() else None
-    stale = resumable(state, key, cfg.iterations) if state is not None else None
-    if state is not None and stale is None:
+    key = fingerprint(stage, st, data, origin)
+    state = load_checkpoint(out_dir, key, stage, device)
+    if state is not None:
         model.load_state_dict(state["model"])
         optimizer.load_state_dict(state["optimizer"])
         generator.set_state(state["generator"].cpu())  # map_location moved it
         start, rows = state["step"], state["rows"]
-        log.info("stage %d: resuming from %s at step %d", stage, ckpt, start)
+        if start >= cfg.iterations:
+            log.info("stage %d: %s holds this run's last step (%d): the stage is finished; writing it out "
+                     "without training (delete %s to train from scratch)", stage, ckpt, start, out_dir)  # fmt: skip
+        else:
+            log.info("stage %d: resuming from %s at step %d", stage, ckpt, start)
     else:
-        if stale:
-            log.warning("stage %d: not resuming from %s: %s; training from the start", stage, ckpt, stale)
         _start_occupancy(model, st, stage)
     skin_color = data.skin_color.to(device)
     warmup_end = cfg.nerf_warmup if stage == 1 and model.nerf is not None else 0  # steps before it: NeRF alone

@@ -21,6 +21,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import torch
+from delta.io import load_state
 import yaml
 
 SLURM = [
@@ -32,7 +33,7 @@ SLURM = [
 #: machine differ in the last bits of a few parameters and Adam moments (run to run, SLURM or not; MKL_CBWR
 #: does not change it: ATen's threaded CPU kernels); on 1 thread they are bitwise equal, so the comparison
 #: can be exact. The other rules' outputs compared bitwise equal on 2 threads.
-THREADS = ["--set-threads", "train_stage1=1", "train_stage2=1"]
+THREADS = ["--set-threads", "train=1"]
 #: Compared file trees, and what they may differ in: wall-clock figures.
 TREES = ("data", "resources/body", "results")
 SKIPPED = ("results/benchmarks/",)
@@ -138,7 +139,7 @@ def file_differences(a: Path, b: Path) -> list[str]:
         with np.load(a) as x, np.load(b) as y:
             return differences(dict(x), dict(y))
     if ext == ".pt":
-        return differences(torch.load(a, weights_only=False), torch.load(b, weights_only=False))
+        return differences(load_state(a), load_state(b))
     if ext == ".json":
         return differences(json.loads(a.read_text()), json.loads(b.read_text()))
     if ext == ".csv":
@@ -186,7 +187,7 @@ def kill_when_checkpointed(work: Path, proc: subprocess.Popen) -> int:
     ids = jobs.stdout.split()
     assert len(ids) == 1, f"expected one running job, squeue lists {ids}"
     subprocess.run(["scancel", ids[0]], check=True)
-    step = torch.load(ckpt, weights_only=False)["step"]
+    step = load_state(ckpt)["step"]
     print(f"scancel {ids[0]} with the checkpoint at step {step} of {KILL_STAGE1['iterations']}")
     return step
 
@@ -208,7 +209,7 @@ def scancel_test(repo: Path, finished: Path, scratch: Path) -> dict:
         rc = proc.wait(timeout=1800)
     log_text = (killed / "snakemake.log").read_text()
     assert rc == 0, f"the run with the killed job failed, see {killed / 'snakemake.log'}:\n{log_text[-3000:]}"
-    train_log = (killed / "logs/train_stage1" / f"{KILL_DATASET}_{KILL_SUBJECT}.log").read_text()
+    train_log = (killed / "logs/train" / f"{KILL_DATASET}_{KILL_SUBJECT}_stage1.log").read_text()
     resumed = re.search(r"resuming from .* at step (\d+)", train_log)
     assert resumed, f"the resubmitted job did not resume:\n{train_log[-2000:]}"
     assert len(re.findall(r"submitted with SLURM jobid", log_text)) == 2, "expected one submission and one retry"

@@ -10,6 +10,7 @@ from delta.training.data import frame_times, load_frames, sample_rays
 from delta.training.presets import resolve
 from delta.training.run import build_avatar, load_init
 from delta.training.trainer import loss_terms
+from delta.io import load_state
 
 
 def test_frame_times_by_hand():
@@ -76,12 +77,12 @@ def test_a_model_from_before_the_time_input_loads_pose_only(tiny_training, tmp_p
     run_stage(1, inputs["record"], inputs["body"], inputs["init"], str(tmp_path / "s1"), "fast", [tiny])
     run_stage(2, inputs["record"], inputs["body"], str(tmp_path / "s1" / "model.pt"), str(tmp_path / "s2"), "fast",
               [tiny], perceptual_dir=str(perceptual_weights))  # fmt: skip
-    state = torch.load(tmp_path / "s2" / "model.pt", weights_only=False)
+    state = load_state(tmp_path / "s2" / "model.pt")
     del state["settings"]["dynamics"]  # as written before the key existed (the fast preset now reads time)
     torch.save(state, tmp_path / "old.pt")
     tr = load_trained(tmp_path / "old.pt", inputs["record"], inputs["body"])
     assert tr.model.spec.time_freqs == 0 and tr.model.time_code(0) is None and tr.model.trajectory is None
-    state = torch.load(tmp_path / "s2" / "model.pt", weights_only=False)
+    state = load_state(tmp_path / "s2" / "model.pt")
     state["settings"]["dynamics"] = {"time_freqs": 3}  # written before the pose trajectory existed
     torch.save(state, tmp_path / "older.pt")
     with pytest.raises(DeltaError, match="older.pt"):  # time_freqs 3 is not what F_e was built with

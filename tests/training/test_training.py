@@ -9,6 +9,7 @@ import torch
 
 from delta import DeltaError
 from delta.body.model import load_body_model
+from delta.io import load_state
 from delta.training.data import load_frames, sample_rays
 from delta.training.presets import resolve
 from delta.training.run import build_avatar, load_init, run_stage
@@ -85,12 +86,12 @@ def _resume_equivalence(tiny_training, tmp_path, over):
     assert model_a.nerf.noise_std == 0  # a trained model renders without noise
     model_b, _ = _model(inputs, st)
     train_stage(1, model_b, data, st, tmp_path / "b", max_steps=4)  # "killed" after the checkpoint at step 4
-    assert torch.load(tmp_path / "b" / CHECKPOINT, weights_only=False)["step"] == 4
+    assert load_state(tmp_path / "b" / CHECKPOINT)["step"] == 4
     model_c, _ = _model(inputs, st)  # a fresh process: everything comes from the checkpoint
     res = train_stage(1, model_c, data, st, tmp_path / "b")
     # the learning rates decayed to lr_final at the last step (5 of 0..5), in both runs
     for run in ("a", "b"):
-        groups = torch.load(tmp_path / run / CHECKPOINT, weights_only=False)["optimizer"]["param_groups"]
+        groups = load_state(tmp_path / run / CHECKPOINT)["optimizer"]["param_groups"]
         assert groups[0]["lr"] == pytest.approx(st.stage1.lr["fields"] * 0.1)
     assert res.steps == 6 and list(res.losses["step"]) == list(range(1, 7))
     a, c = model_a.state_dict(), model_c.state_dict()
@@ -146,7 +147,7 @@ def test_nerf_warmup_trains_the_nerf_alone_on_the_person(tiny_training, tmp_path
     assert set(res.losses.columns) == {"step", "loss", "psnr", "samples", "seconds", "warmup", "pixel", "exterior"}
     assert (res.losses["warmup"] == 1).all()
     # the NeRF's own warm-up rate (SCARF's stage 0 at 5e-4, its hybrid at 1e-4), decayed like the rest
-    groups = {g["name"]: g["lr"] for g in torch.load(tmp_path / CHECKPOINT, weights_only=False)["optimizer"]["param_groups"]}
+    groups = {g["name"]: g["lr"] for g in load_state(tmp_path / CHECKPOINT)["optimizer"]["param_groups"]}
     assert groups["nerf"] == pytest.approx(3e-3 * st.stage1.lr_factor(2))
     assert groups["fields"] == pytest.approx(st.stage1.lr["fields"] * st.stage1.lr_factor(2))
     # the loss is the NeRF-only render's, by hand on a fresh batch
@@ -168,40 +169,16 @@ def test_learning_rate_decay_by_hand():
         resolve("fast", {"stage1": {"lr_final": 0.0}})
 
 
-def test_finished_or_stale_checkpoints_are_not_resumed(tiny_training, tmp_path, caplog):
-    """A rerun (model.pt removed, e.g. --forcerun) trains again; so does one with other settings."""
-    st = resolve("fast", TINY)
-    inputs = tiny_training["tight"]
-    model, data = _model(inputs, st)
-    train_stage(1, model, data, st, tmp_path / "run")
-    done = torch.load(tmp_path / "run" / CHECKPOINT, weights_only=False)
-    assert done["step"] == 6 and done["fingerprint"]
-    model_b, _ = _model(inputs, st)
-    with caplog.at_level("WARNING"):
-        res = train_stage(1, model_b, data, st, tmp_path / "run")
-    assert "last step of a finished run" in caplog.text
-    assert list(res.losses["step"]) == list(range(1, 7))  # every step trained again, none resumed
-    assert not torch.equal(model_b.poses, _model(inputs, st)[0].poses)  # and it did train
-    # an interrupted run of other settings is set aside too
-    other = resolve("fast", TINY, {"stage1": {"lr": {"nerf": 1e-3}}})
-    model_c, _ = _model(inputs, other)
-    train_stage(1, model_c, data, other, tmp_path / "other", max_steps=4)
-    caplog.clear()
-    with caplog.at_level("WARNING"):
-        res = train_stage(1, _model(inputs, st)[0], data, st, tmp_path / "other")
-    assert "other settings or frames" in caplog.text and list(res.losses["step"]) == list(range(1, 7))
-
-
 def test_both_stages_end_to_end(tiny_training, tmp_path, perceptual_weights):
     inputs = tiny_training["tight"]
     s1 = run_stage(1, inputs["record"], inputs["body"], inputs["init"], str(tmp_path / "stage1"), "fast", [TINY])
     assert s1["steps"] == 6
-    first = torch.load(tmp_path / "stage1" / "model.pt", weights_only=False)
+    first = load_state(tmp_path / "stage1" / "model.pt")
     assert first["nerf"] and not first["deformation"]
     s2 = run_stage(2, inputs["record"], inputs["body"], str(tmp_path / "stage1" / "model.pt"),
                    str(tmp_path / "stage2"), "fast", [TINY], perceptual_dir=str(perceptual_weights))  # fmt: skip
     assert s2["steps"] == 4
-    second = torch.load(tmp_path / "stage2" / "model.pt", weights_only=False)
+    second = load_state(tmp_path / "stage2" / "model.pt")
     assert second["deformation"] and any(k.startswith("deformation.") for k in second["model"])
     # stage 2 starts from stage 1: the shared parameters moved on from there, the body is the same size
     assert second["model"]["betas"].shape == first["model"]["betas"].shape
@@ -254,10 +231,10 @@ def test_a_killed_training_process_resumes_to_the_same_result(tiny_training, tmp
     proc.send_signal(signal.SIGKILL)
     assert proc.wait() == -signal.SIGKILL, "the run finished before it could be killed"
     assert not (tmp_path / "killed" / "model.pt").exists()
-    assert torch.load(ckpt, weights_only=False)["step"] < 14
+    assert load_state(ckpt)["step"] < 14
     subprocess.run(cmd(tmp_path / "killed"), check=True, env=env, capture_output=True)
-    a = torch.load(tmp_path / "whole" / "model.pt", weights_only=False)["model"]
-    b = torch.load(tmp_path / "killed" / "model.pt", weights_only=False)["model"]
+    a = load_state(tmp_path / "whole" / "model.pt")["model"]
+    b = load_state(tmp_path / "killed" / "model.pt")["model"]
     for k in a:
         assert torch.equal(a[k], b[k]), f"{k} differs after the kill and resume"
 
