@@ -303,9 +303,9 @@ def cmd_aggregate(args: argparse.Namespace) -> None:
 
 
 def cmd_validate_config(args: argparse.Namespace) -> None:
-    from delta.config import load_config
+    from delta.config import DEFAULT_SCHEMA, load_config
 
-    load_config(args.config, args.schema)
+    load_config(args.config, args.schema or DEFAULT_SCHEMA, device=not args.cluster)
     print(f"{args.config}: valid")
 
 
@@ -501,7 +501,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("validate-config", help="check a config file against the workflow schema")
     p.add_argument("config")
-    p.add_argument("--schema", default="workflow/schemas/config.schema.yaml")
+    p.add_argument("--schema", default=None, help="the workflow's schema (default: the one beside the package)")
+    p.add_argument("--cluster", action="store_true", help="jobs run elsewhere: do not ask for a CUDA device here")
     p.set_defaults(func=cmd_validate_config)
     return parser
 

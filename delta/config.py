@@ -1,9 +1,14 @@
-"""Validate the workflow configuration against its JSON schema before any job runs."""
+"""The workflow configuration's one validation, run before any job starts (``rules/common.smk``)
+and by ``delta validate-config`` alike: the JSON schema, finite numbers everywhere, safe dataset and
+subject names, every subject's synthetic spec, fit and training settings, the trade-off variants,
+frame ranges against the videos they index, and the device."""
 
 from __future__ import annotations
 
 import copy
+import math
 import os
+import re
 from pathlib import Path
 from typing import Any
 
@@ -82,8 +87,181 @@ def _check_files(config: dict, base: Path) -> None:
             raise DeltaError(f"config key 'body_model.smplx_path': file not found: {path}. {MISSING_HELP}")
 
 
-def load_config(path: str | os.PathLike, schema_path: str | os.PathLike) -> dict:
-    """Read a YAML config file and validate it; errors name the file."""
+#: Where the workflow writes its People Snapshot stand-in (rules/common.smk's ``syn_ps_dir``).
+SYNTHETIC_PEOPLESNAPSHOT_ROOT = "data/synthetic_ps"
+#: Dataset and subject names become folder names and wildcards: letters, digits, '_' and '-'.
+SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]*$")
+#: The schema beside the package's checkout (an editable install or a clone).
+DEFAULT_SCHEMA = Path(__file__).resolve().parents[1] / "workflow" / "schemas" / "config.schema.yaml"
+
+
+def _non_finite(value: Any, path: tuple = ()) -> list[str]:
+    """Keys whose value is a NaN or an infinity, anywhere in the tree."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return [_key(path)]
+    if isinstance(value, dict):
+        return [k for name, v in value.items() for k in _non_finite(v, path + (name,))]
+    if isinstance(value, list):
+        return [k for i, v in enumerate(value) for k in _non_finite(v, path + (i,))]
+    return []
+
+
+def _check_names(config: dict) -> list[str]:
+    out = []
+    for dataset, spec in config["datasets"].items():
+        for what, name, key in [("dataset", dataset, f"datasets.{dataset}")] + [
+            ("subject", s, f"datasets.{dataset}.subjects.{s}") for s in spec["subjects"]
+        ]:
+            if not SAFE_NAME.match(str(name)):
+                out.append(f"config key '{key}': {what} name {name!r} is not allowed (it names folders: letters, "
+                           "digits, '_' and '-', starting with a letter or digit)")  # fmt: skip
+    return out
+
+
+def check_device(name: str) -> None:
+    """``cuda`` needs a CUDA device that torch can see here."""
+    if name == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise DeltaError("config key 'device': cuda is configured but torch sees no CUDA device on this machine "
+                             "(set device: auto or cpu; a cluster run checks on its GPU nodes)")  # fmt: skip
+
+
+def _video_frames(path: Path) -> int | None:
+    """The frame count of a video file, None when it is absent."""
+    if not path.is_file():
+        return None
+    import cv2
+
+    cap = cv2.VideoCapture(str(path))
+    n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else 0
+    cap.release()
+    if n <= 0:
+        raise DeltaError(f"{path}: cannot be read as a video (no frames)")
+    return n
+
+
+def _check_frame_ranges(config: dict, base: Path, generated: set[str]) -> list[str]:
+    """Every non-synthetic subject has a ``train`` and a ``test`` range within its video."""
+    from delta.data.peoplesnapshot import STANDARD_SPLITS
+
+    out = []
+    for dataset, spec in config["datasets"].items():
+        kind = "synthetic" if dataset == "synthetic" else spec.get("kind")
+        if kind in ("synthetic", None):
+            continue
+        for subject, cfg in spec["subjects"].items():
+            key = f"datasets.{dataset}.subjects.{subject}"
+            ranges = {**(STANDARD_SPLITS.get(subject, {}) if kind == "peoplesnapshot" else {}), **(cfg or {})}
+            unknown = sorted(set(ranges) - {"train", "test"})
+            if unknown:
+                out.append(f"config key '{key}': unknown key(s) {unknown}; allowed: ['test', 'train']")
+            missing = [s for s in ("train", "test") if s not in ranges]
+            if missing:
+                out.append(f"config key '{key}': no {' and no '.join(repr(m) for m in missing)} frame range "
+                           "[start, end, step] (inclusive end): evaluation scores the test frames")  # fmt: skip
+                continue
+            root = Path(spec["root"]) if Path(spec["root"]).is_absolute() else base / spec["root"]
+            video = (root / subject if kind == "peoplesnapshot" else root) / f"{subject}.mp4"
+            n = None if spec["root"] in generated else _video_frames(video)
+            for split in ("train", "test"):
+                r = ranges[split]
+                if not (isinstance(r, list) and len(r) == 3 and all(isinstance(v, int) and not isinstance(v, bool) for v in r)):
+                    out.append(f"config key '{key}.{split}': expected [start, end, step] (whole numbers), got {r!r}")
+                elif r[0] < 0 or r[1] < r[0] or r[2] < 1:
+                    out.append(f"config key '{key}.{split}': [start, end, step] = {r} is not a valid range")
+                elif n is not None and r[1] >= n:
+                    out.append(f"config key '{key}.{split}': ends at frame {r[1]}, but {video} has {n} frames (0 to {n - 1})")
+    return out
+
+
+def _check_settings(config: dict) -> list[str]:
+    """Each subject's synthetic spec, fit and training settings, and every trade-off variant, resolved."""
+    from delta.fitting.fit import fit_config
+    from delta.synthetic.spec import parse_subject
+    from delta.training.presets import resolve
+
+    out = []
+
+    def attempt(fn, *args, **kw):
+        try:
+            fn(*args, **kw)
+        except DeltaError as exc:
+            out.append(str(exc))
+
+    for name, raw in config["datasets"].get("synthetic", {}).get("subjects", {}).items():
+        attempt(parse_subject, name, raw)
+    subjects = {s for spec in config["datasets"].values() for s in spec["subjects"]}
+    fit, train, trade = config["fitting"], config["training"], config["tradeoff"]
+    for section, named in (("fitting", fit["subjects"]), ("training", train["subjects"])):
+        for s in sorted(set(named) - subjects):
+            out.append(f"config key '{section}.subjects.{s}': not a configured subject ({sorted(subjects)})")
+    for s in sorted(subjects):
+        attempt(fit_config, fit["settings"], fit["subjects"].get(s, {}), where=f"fitting (subject '{s}')")
+        preset, overrides = subject_training(config, s)
+        attempt(resolve, preset, *overrides, where=f"training (subject '{s}')")
+    for v, spec in trade["variants"].items():
+        if not isinstance(spec.get("inherit_training", True), bool):
+            out.append(f"config key 'tradeoff.variants.{v}.inherit_training': {spec['inherit_training']!r} is not true or false")
+        unknown = sorted(set(spec.get("subjects") or []) - subjects)
+        if unknown:
+            out.append(f"config key 'tradeoff.variants.{v}.subjects': {unknown} are not configured subjects")
+        for s in sorted(set(trade["subjects"] or subjects) & subjects):
+            preset, overrides = variant_training(config, s, v)
+            attempt(resolve, preset, *overrides, where=f"tradeoff.variants.{v} (subject '{s}')")
+    return out
+
+
+def subject_training(config: dict, subject: str) -> tuple[str, list[dict]]:
+    """(preset, [overrides...]) of a subject: the config's preset and overrides, then the subject's own."""
+    own = dict(config["training"]["subjects"].get(subject, {}))
+    return own.pop("preset", config["preset"]), [config["training"]["overrides"], own]
+
+
+def variant_training(config: dict, subject: str, variant: str) -> tuple[str, list[dict]]:
+    """(preset, overrides) of a trade-off variant on a subject: the subject's settings with the variant's
+    on top; a variant with ``inherit_training: false`` (the paper reference) takes its preset and its
+    own keys alone, on every subject alike."""
+    spec = dict(config["tradeoff"]["variants"][variant])
+    own_preset = spec.pop("preset", None)
+    for k in ("subjects", "inherit_training", "stages"):
+        spec.pop(k, None)
+    if not config["tradeoff"]["variants"][variant].get("inherit_training", True):
+        return own_preset or config["preset"], [spec]
+    preset, overrides = subject_training(config, subject)
+    return own_preset or preset, overrides + [spec]
+
+
+def validate_workflow_config(config: dict, schema_path: str | os.PathLike = DEFAULT_SCHEMA,
+                             base_dir: str | os.PathLike = ".", device: bool = True,
+                             generated_roots: tuple[str, ...] = ()) -> dict:  # fmt: skip
+    """The whole check of a workflow configuration; returns it with defaults filled in.
+
+    Every problem found is listed in one DeltaError. ``device`` checks that a configured CUDA device
+    exists here (off for cluster submission); ``generated_roots`` are dataset roots the workflow writes
+    itself (their videos do not exist yet).
+    """
+    config = validate_config(config, schema_path, base_dir)
+    problems = [f"config key '{k}': {v} is not a finite number" for k, v in
+                ((k, "NaN or infinity") for k in _non_finite(config))]  # fmt: skip
+    problems += _check_names(config)
+    if not problems:
+        problems += _check_settings(config)
+        problems += _check_frame_ranges(config, Path(base_dir), set(generated_roots))
+    if device:
+        try:
+            check_device(config["device"])
+        except DeltaError as exc:
+            problems.append(str(exc))
+    if problems:
+        lines = "\n  ".join(problems)
+        raise DeltaError(f"invalid configuration ({len(problems)} problem(s)):\n  {lines}")
+    return config
+
+
+def load_config(path: str | os.PathLike, schema_path: str | os.PathLike = DEFAULT_SCHEMA, device: bool = True) -> dict:
+    """Read a YAML config file and validate it as the workflow does; errors name the file."""
     path = Path(path)
     try:
         raw = yaml.safe_load(path.read_text()) or {}
@@ -91,7 +269,9 @@ def load_config(path: str | os.PathLike, schema_path: str | os.PathLike) -> dict
         raise DeltaError(f"{path}: cannot read configuration ({exc})") from exc
     if not isinstance(raw, dict):
         raise DeltaError(f"{path}: the configuration must be a mapping of keys")
+    base = path.resolve().parent.parent
     try:
-        return validate_config(raw, schema_path, base_dir=path.parent.parent)
+        return validate_workflow_config(raw, schema_path, base_dir=base, device=device,
+                                        generated_roots=(SYNTHETIC_PEOPLESNAPSHOT_ROOT,))  # fmt: skip
     except DeltaError as exc:
         raise DeltaError(f"{path}: {exc}") from exc

@@ -3,22 +3,25 @@ import json
 import shlex
 from pathlib import Path
 
-from delta.config import validate_config
+from delta.config import SYNTHETIC_PEOPLESNAPSHOT_ROOT, subject_training as _subject_training
+from delta.config import validate_workflow_config, variant_training as _variant_training
 from delta.data.sources import PROVIDES
-from delta.fitting.fit import fit_config
 from delta.synthetic.spec import parse_subject
 from delta.training.presets import resolve as resolve_training, stage_view
 
-config = validate_config(
+# the one validation (delta validate-config runs the same): every problem before any job starts;
+# the device is checked where jobs run here (a cluster's GPU nodes check their own)
+config = validate_workflow_config(
     config,
     schema_path=Path(workflow.basedir) / "workflow" / "schemas" / "config.schema.yaml",
     base_dir=Path.cwd(),
+    device=workflow.local_exec and not workflow.dryrun,
+    generated_roots=(SYNTHETIC_PEOPLESNAPSHOT_ROOT,),
 )
 
 BODY = config["body_model"]
 PRE = config["preprocess"]
 DATASETS = config["datasets"]
-# synthetic subject specs are checked now, before any job runs
 SYNTHETIC = {
     name: parse_subject(name, raw) for name, raw in DATASETS.get("synthetic", {}).get("subjects", {}).items()
 }
@@ -48,7 +51,7 @@ PATHS = {
     "syn_meshes": "data/synthetic/{subject}/gt/meshes.h5",
     "syn_splits": "data/synthetic/{subject}/gt/splits.json",
     # the same captures in People Snapshot's layout: a People Snapshot root anyone can generate
-    "syn_ps_dir": "data/synthetic_ps/{subject}",
+    "syn_ps_dir": f"{SYNTHETIC_PEOPLESNAPSHOT_ROOT}/{{subject}}",
     "record": "results/{dataset}/{subject}/frames.h5",
     "matting": "results/{dataset}/{subject}/matting.h5",
     "keypoints": "results/{dataset}/{subject}/keypoints.h5",
@@ -207,20 +210,11 @@ def record_targets():
 
 # ------------------------------------------------------------- init fitting
 FIT = config["fitting"]
-ALL_SUBJECTS = {s for spec in DATASETS.values() for s in spec["subjects"]}
-if set(FIT["subjects"]) - ALL_SUBJECTS:
-    raise ValueError(f"fitting.subjects names {sorted(set(FIT['subjects']) - ALL_SUBJECTS)}, "
-                     f"not configured subjects {sorted(ALL_SUBJECTS)}")  # fmt: skip
 
 
 def subject_fit_settings(subject):
     """[settings, subject's own] FitConfig overrides of a subject."""
     return [FIT["settings"], FIT["subjects"].get(subject, {})]
-
-
-# every subject's fit settings are checked now, before any job runs
-for _s in ALL_SUBJECTS:
-    fit_config(*subject_fit_settings(_s), where=f"fitting (subject '{_s}')")
 
 
 def fit_settings_json(wildcards):
@@ -233,8 +227,7 @@ TRAIN = config["training"]
 
 def subject_training(subject):
     """(preset, [overrides...]) of a subject: the config's preset and overrides, then the subject's own."""
-    own = dict(TRAIN["subjects"].get(subject, {}))
-    return own.pop("preset", config["preset"]), [TRAIN["overrides"], own]
+    return _subject_training(config, subject)
 
 
 def subject_settings(subject):
@@ -242,7 +235,6 @@ def subject_settings(subject):
     return resolve_training(preset, *overrides)
 
 
-# every subject's training settings are checked now, before any job runs
 TRAINING = {s: subject_settings(s) for spec in DATASETS.values() for s in spec["subjects"]}
 
 
@@ -449,35 +441,13 @@ def variant_subjects(dataset, variant):
 
 
 def variant_training(subject, variant):
-    """(preset, overrides): the subject's training settings with the variant's on top.
-
-    A variant with ``inherit_training: false`` (the paper reference) takes neither training.overrides
-    nor the subject's own: what it trains is its preset and its own keys, on every subject alike.
-    """
-    preset, overrides = subject_training(subject)
-    own_preset, _, over = variant_spec(variant)
-    if not TRADE["variants"][variant].get("inherit_training", True):
-        return own_preset or config["preset"], [over]
-    return own_preset or preset, overrides + [over]
+    """(preset, overrides) of a sweep variant on a subject."""
+    variant_spec(variant)
+    return _variant_training(config, subject, variant)
 
 
 def tradeoff_subjects(dataset):
     return TRADE["subjects"] or list(DATASETS[dataset]["subjects"])
-
-
-# every swept variant's settings and subjects are checked now, before any job runs
-for _v, _spec in TRADE["variants"].items():
-    if not isinstance(_spec.get("inherit_training", True), bool):
-        raise ValueError(f"tradeoff.variants.{_v}.inherit_training: {_spec['inherit_training']!r} is not true or false")
-    _unknown = sorted(set(_spec.get("subjects") or []) - ALL_SUBJECTS)
-    if _unknown:
-        raise ValueError(f"tradeoff.variants.{_v}.subjects: {_unknown} are not subjects of any dataset ({sorted(ALL_SUBJECTS)})")
-for _d in DATASETS:
-    for _s in tradeoff_subjects(_d):
-        for _v in TRADE["variants"]:
-            if _s not in variant_subjects(_d, _v):
-                continue
-            resolve_training(*[variant_training(_s, _v)[0]] + variant_training(_s, _v)[1])
 
 
 def variant_stages(variant):

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 
 from delta import DeltaError
 from delta.fields.networks import FieldSpec
@@ -164,13 +165,78 @@ def _fields(d: dict, key: str) -> FieldSpec:
         raise DeltaError(f"training.{key}: {err}") from None
 
 
-def resolve(preset: str, *overrides: dict) -> TrainSettings:
-    """The preset's settings with overrides deep-merged in order."""
+_INT, _NUM = True, False
+_FIELD_RANGES = {"num_freqs": (0, 32, _INT), "levels": (1, 32, _INT), "features": (1, 64, _INT), "base_res": (1, 4096, _INT),
+                 "max_res": (1, 4096, _INT), "depth": (0, 64, _INT), "width": (1, 4096, _INT), "skip": (-1, 64, _INT)}  # fmt: skip
+#: (low, high, integer) of every number a training setting holds (high None: unbounded); keys with ``*``
+#: stand for every name at that level.
+RANGES = {
+    "resolution": (16, 4096, _INT), "seed": (0, None, _INT), "box_margin": (0, 10, _NUM), "offset_scale": (0, 1, _NUM),
+    "nerf_margin": (0, 10, _NUM), "freeze_rest": (None, None, _NUM),
+    "render.samples": (1, 1024, _INT), "render.k": (1, 64, _INT), "render.sigma": (1e-6, None, _NUM),
+    "render.max_dist": (1e-6, None, _NUM), "render.sil_sigma": (1e-6, None, _NUM), "render.sil_k": (1, 256, _INT),
+    "render.probe": (1, 4096, _INT), "render.probe_cell": (1e-5, 1, _NUM), "render.box_margin": (0, 10, _NUM),
+    "render.occupancy.resolution": (4, 512, _INT), "render.occupancy.update_every": (1, None, _INT),
+    "render.occupancy.threshold": (0, None, _NUM), "render.occupancy.decay": (0, 1, _NUM),
+    "render.occupancy.warmup": (0, None, _INT),
+    "stage*.iterations": (1, 10_000_000, _INT), "stage*.rays": (1, 1_000_000, _INT), "stage*.patch": (0, 512, _INT),
+    "stage*.checkpoint_every": (1, None, _INT), "stage*.preview_every": (0, None, _INT), "stage*.log_every": (1, None, _INT),
+    "stage*.lr.*": (1e-12, 10, _NUM), "weights.*": (0, None, _NUM),
+    **{f"{f}.{k}": v for f in ("nerf", "offsets", "albedo", "deformation") for k, v in _FIELD_RANGES.items()},
+}  # fmt: skip
+
+
+def _match(pattern: str, key: str) -> bool:
+    a, b = pattern.split("."), key.split(".")
+    return len(a) == len(b) and all(p == "*" or p == k or (p.endswith("*") and k.startswith(p[:-1])) for p, k in zip(a, b))
+
+
+def _flat(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def check_numbers(d: dict) -> None:
+    """Every number of the merged settings is finite, of the right kind and in its range (:data:`RANGES`)."""
+    for key, value in _flat(d).items():
+        if isinstance(value, float) and not math.isfinite(value):
+            raise DeltaError(f"training.{key}: {value} is not a finite number")
+        rule = next((r for pattern, r in RANGES.items() if _match(pattern, key)), None)
+        if rule is None:
+            continue
+        low, high, integer = rule
+        if isinstance(value, bool) or not isinstance(value, int if integer else (int, float)):
+            raise DeltaError(f"training.{key}: {value!r} is not {'a whole number' if integer else 'a number'}")
+        if (low is not None and value < low) or (high is not None and value > high):
+            bounds = f">= {low}" if high is None else f"<= {high}" if low is None else f"in [{low}, {high}]"
+            raise DeltaError(f"training.{key}: {value} (expected {bounds})")
+
+
+def resolve(preset: str, *overrides: dict, where: str = "") -> TrainSettings:
+    """The preset's settings with overrides deep-merged in order; ``where`` prefixes every error (the
+    subject or variant they belong to)."""
+    try:
+        return _resolve(preset, *overrides)
+    except DeltaError as exc:
+        if where:
+            raise DeltaError(f"{where}: {exc}") from None
+        raise
+
+
+def _resolve(preset: str, *overrides: dict) -> TrainSettings:
     if preset not in PRESETS:
         raise DeltaError(f"unknown preset '{preset}'; choose one of {sorted(PRESETS)}")
     d = deep_merge(_COMMON, PRESETS[preset])
     for o in overrides:
+        if not isinstance(o or {}, dict):
+            raise DeltaError(f"training settings: expected a mapping of keys, got {o!r}")
         d = deep_merge(d, o or {})
+    check_numbers(d)
     stages = {s: deep_merge(_STAGE_DEFAULTS, d[s]) for s in ("stage1", "stage2")}
     try:
         render = dict(d["render"])

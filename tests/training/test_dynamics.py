@@ -78,11 +78,12 @@ def test_a_model_from_before_the_time_input_loads_pose_only(tiny_training, tmp_p
     run_stage(2, inputs["record"], inputs["body"], str(tmp_path / "s1" / "model.pt"), str(tmp_path / "s2"), "fast",
               [tiny], perceptual_dir=str(perceptual_weights))  # fmt: skip
     state = load_state(tmp_path / "s2" / "model.pt")
-    del state["settings"]["dynamics"]  # as written before the key existed (the fast preset now reads time)
+    del state["format"], state["settings"]["dynamics"]  # format 1, before the key existed (fast now reads time)
     torch.save(state, tmp_path / "old.pt")
     tr = load_trained(tmp_path / "old.pt", inputs["record"], inputs["body"])
     assert tr.model.spec.time_freqs == 0 and tr.model.time_code(0) is None and tr.model.trajectory is None
     state = load_state(tmp_path / "s2" / "model.pt")
+    del state["format"]
     state["settings"]["dynamics"] = {"time_freqs": 3}  # written before the pose trajectory existed
     torch.save(state, tmp_path / "older.pt")
     with pytest.raises(DeltaError, match="older.pt"):  # time_freqs 3 is not what F_e was built with

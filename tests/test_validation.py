@@ -1,0 +1,111 @@
+"""The one validation: every mistake a user makes in a config is named before any job starts, by the
+workflow and by ``delta validate-config`` alike (each case here passed validate-config before)."""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from delta import DeltaError
+from delta.config import load_config, validate_workflow_config
+from delta.training.presets import resolve
+
+REPO = Path(__file__).resolve().parents[1]
+SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
+SYN = {"synthetic": {"subjects": {"tight": {}}}}
+
+
+def problems(cfg: dict, base: Path = REPO, device: bool = True) -> str:
+    with pytest.raises(DeltaError) as err:
+        validate_workflow_config(cfg, SCHEMA, base_dir=base, device=device)
+    return str(err.value)
+
+
+def video(path: Path, frames: int, size: int = 32) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    out = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 10, (size, size))
+    for i in range(frames):
+        out.write(np.full((size, size, 3), (10 * i) % 256, np.uint8))
+    out.release()
+    return path
+
+
+@pytest.mark.parametrize("cfg,expected", [
+    ({"preset": "fast", "training": {"subjects": {"tight": {"preset": "fastest"}}}}, "unknown preset 'fastest'"),
+    ({"training": {"overrides": {"stage1": {"iteratons": 5}}}}, "iteratons"),
+    ({"fitting": {"settings": {"sil_wieght": 3}}}, "unknown key 'sil_wieght'"),
+    ({"datasets": {"synthetic": {"subjects": {"tight": {"garmnets": []}}}}}, "garmnets"),
+    ({"fitting": {"settings": {"iterations": [-1, 10, 10]}}}, "'iterations' must be three step counts >= 0"),
+    ({"training": {"overrides": {"stage2": {"lr_final": float("nan")}}}}, "training.overrides.stage2.lr_final': NaN"),
+    ({"training": {"overrides": {"stage1": {"iterations": -5}}}}, "training.stage1.iterations: -5"),
+    ({"training": {"overrides": {"stage1": {"rays": 0}}}}, "training.stage1.rays: 0"),
+    ({"training": {"overrides": {"resolution": 100000}}}, "training.resolution: 100000"),
+    ({"preprocess": {"crop_margin": float("nan")}}, "'preprocess.crop_margin': NaN"),
+    ({"evaluation": {"resolution": 100000}}, "'evaluation.resolution': 100000 is greater than the maximum"),
+    ({"fitting": {"subjects": {"nobody": {}}}}, "'fitting.subjects.nobody': not a configured subject"),
+    ({"tradeoff": {"variants": {"v": {"stage1": {"rays": -1}}}}}, "tradeoff.variants.v (subject 'tight')"),
+])  # fmt: skip
+def test_each_mistake_is_named(cfg, expected):
+    cfg = {"datasets": SYN, **cfg} if "datasets" not in cfg else cfg
+    assert expected in problems(cfg)
+
+
+@pytest.mark.parametrize("name", ["..", "../../etc", "my subject", "sujet-é", ".hidden", "a/b"])
+def test_unsafe_subject_and_dataset_names_are_refused(name):
+    assert f"subject name {name!r} is not allowed" in problems({"datasets": {"synthetic": {"subjects": {name: {}}}}})
+    msg = problems({"datasets": {name: {"kind": "video", "root": "v", "subjects": {"clip": {}}}}})
+    assert f"dataset name {name!r} is not allowed" in msg
+
+
+def test_frame_ranges_are_checked_against_the_video(tmp_path):
+    video(tmp_path / "videos" / "clip.mp4", 12)
+    ds = lambda subject: {"clips": {"kind": "video", "root": "videos", "subjects": {"clip": subject}}}  # noqa: E731
+    assert "no 'test' frame range" in problems({"datasets": ds({"train": [0, 8, 1]})}, tmp_path)
+    msg = problems({"datasets": ds({"train": [0, 8, 1], "test": [9, 30, 1]})}, tmp_path)
+    assert "clip.test': ends at frame 30, but" in msg and "has 12 frames (0 to 11)" in msg
+    assert "is not a valid range" in problems({"datasets": ds({"train": [5, 2, 1], "test": [9, 11, 1]})}, tmp_path)
+    assert "unknown key(s) ['tset']" in problems({"datasets": ds({"train": [0, 8, 1], "tset": [9, 11, 1]})}, tmp_path)
+    cfg = validate_workflow_config({"datasets": ds({"train": [0, 8, 1], "test": [9, 11, 1]})}, SCHEMA, base_dir=tmp_path)
+    assert cfg["datasets"]["clips"]["subjects"]["clip"]["test"] == [9, 11, 1]
+
+
+def test_a_standard_people_snapshot_split_is_checked_against_a_short_copy(tmp_path):
+    video(tmp_path / "ps" / "male-3-casual" / "male-3-casual.mp4", 100)
+    cfg = {"datasets": {"peoplesnapshot": {"kind": "peoplesnapshot", "root": "ps", "subjects": {"male-3-casual": {}}}}}
+    assert "ends at frame 455, but" in problems(cfg, tmp_path)
+
+
+def test_cuda_without_a_gpu_is_refused_before_any_job(monkeypatch):
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert "cuda is configured but torch sees no CUDA device" in problems({"datasets": SYN, "device": "cuda"})
+    validate_workflow_config({"datasets": SYN, "device": "cuda"}, SCHEMA, base_dir=REPO, device=False)  # cluster
+
+
+def test_validate_config_runs_outside_the_repository(tmp_path):
+    cfg = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    cfg["training"]["overrides"] = {"stage1": {"iteratons": 5}}
+    (tmp_path / "config").mkdir()
+    (tmp_path / "config" / "bad.yaml").write_text(yaml.safe_dump(cfg))
+    run = lambda path: subprocess.run([sys.executable, "-m", "delta.cli", "validate-config", str(path)],  # noqa: E731
+                                      cwd=tmp_path, capture_output=True, text=True, env={**os.environ})
+    good = run(REPO / "config" / "config.yaml")
+    assert good.returncode == 0 and "valid" in good.stdout, good.stderr
+    bad = run(tmp_path / "config" / "bad.yaml")
+    assert bad.returncode == 2 and "iteratons" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_load_config_and_the_workflow_agree_on_the_shipped_configs():
+    for path in (REPO / "config" / "config.yaml", REPO / ".test" / "config" / "config.yaml"):
+        assert load_config(path, SCHEMA)["preset"] in ("fast", "balanced", "paper")
+
+
+def test_every_preset_passes_its_own_ranges():
+    for preset in ("fast", "balanced", "paper"):
+        resolve(preset)
