@@ -32,6 +32,12 @@ localrules:
     tradeoff_table,
 
 
+onstart:
+    # jobs that run here need the configured device here (a cluster's GPU nodes are checked by their jobs)
+    if workflow.local_exec:
+        check_device(config["device"])
+
+
 rule all:
     input:
         all_targets(),

@@ -4,18 +4,18 @@ import shlex
 from pathlib import Path
 
 from delta.config import SYNTHETIC_PEOPLESNAPSHOT_ROOT, subject_training as _subject_training
-from delta.config import validate_workflow_config, variant_training as _variant_training
+from delta.config import check_device, validate_workflow_config, variant_training as _variant_training
 from delta.data.sources import PROVIDES
 from delta.synthetic.spec import parse_subject
 from delta.training.presets import resolve as resolve_training, stage_view
 
 # the one validation (delta validate-config runs the same): every problem before any job starts;
-# the device is checked where jobs run here (a cluster's GPU nodes check their own)
+# the device is checked in onstart (Snakefile), once it is known whether jobs run here
 config = validate_workflow_config(
     config,
     schema_path=Path(workflow.basedir) / "workflow" / "schemas" / "config.schema.yaml",
     base_dir=Path.cwd(),
-    device=workflow.local_exec and not workflow.dryrun,
+    device=False,
     generated_roots=(SYNTHETIC_PEOPLESNAPSHOT_ROOT,),
 )
 

@@ -135,6 +135,15 @@ def test_bad_config_stops_before_any_job(tmp_path):
 
 
 
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="this machine has a CUDA device")
+def test_cuda_without_a_gpu_stops_before_any_job(tmp_path):
+    work = workflow_copy(tmp_path)
+    (work / "cuda.yaml").write_text("device: cuda\n")
+    res = snakemake(work, "--configfile", ".test/config/config.yaml", "cuda.yaml")
+    assert res.returncode != 0 and "cuda is configured but torch sees no CUDA device" in res.stdout + res.stderr
+    assert not (work / "resources").exists() and not (work / "logs").exists()
+
+
 @pytest.mark.slow
 def test_model_steps_run_only_where_the_dataset_ships_nothing(tmp_path):
     """With the synthetic masks set aside, matting and parsing run (stand-in ONNX graphs with the real
@@ -221,14 +230,16 @@ def test_training_jobs_request_a_gpu_only_for_cuda(tmp_path, device, gpu_model, 
 
 @pytest.mark.slow
 def test_generic_video_runs_the_offline_default_steps(tmp_path, tiny_captures, mediapipe_pose_model):
-    """A dataset of plain videos: matting and keypoints come from the converted MediaPipe model."""
+    """A dataset of plain videos: matting and keypoints come from the converted MediaPipe model. Its folder's
+    name has a space and a shell substitution in it: every path reaches the commands quoted, none runs."""
     work = workflow_copy(tmp_path)
-    (work / "videos").mkdir()
-    shutil.copy(tiny_captures / "tight" / "tight.mp4", work / "videos" / "clip.mp4")
+    root = "my videos $(touch PWNED)"
+    (work / root).mkdir()
+    shutil.copy(tiny_captures / "tight" / "tight.mp4", work / root / "clip.mp4")
     cfg = {
         "body_model": {"anny": {"cache_dir": str(ANNY_CACHE), "num_shape": 8, "num_samples": 64}},
         "preprocess": {"resolution": 64, "models_dir": str(mediapipe_pose_model.parent.parent), "face_landmarks": True},
-        "datasets": {"clips": {"kind": "video", "root": "videos", "subjects": {"clip": {}}}},
+        "datasets": {"clips": {"kind": "video", "root": root, "subjects": {"clip": {"train": [0, 4, 1], "test": [5, 6, 1]}}}},
     }
     (work / "video.yaml").write_text(yaml.safe_dump(cfg))
     res = snakemake(work, "results/clips/clip/frames.json", "--configfile", "video.yaml")
@@ -243,6 +254,7 @@ def test_generic_video_runs_the_offline_default_steps(tmp_path, tiny_captures, m
     with h5py.File(work / "results/clips/clip/frames.h5") as rec:
         assert rec["face_landmarks"].shape == (7, 468, 3) and rec["keypoints"].shape == (7, 18, 3)
     assert "convert_mediapipe" not in res.stdout + res.stderr  # the converted model was reused
+    assert not (work / "PWNED").exists() and not (work / root / "PWNED").exists()
 
 
 @pytest.mark.parametrize(
