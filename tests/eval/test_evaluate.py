@@ -65,7 +65,7 @@ def test_face_pixels_lie_on_the_head(trained):
 
 def test_missing_or_foreign_model_files_are_named(tmp_path, trained):
     _, t = trained
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(DeltaError, match="none.pt: file not found"):
         load_trained(tmp_path / "none.pt", t["record"], t["body"])
     torch.save({"model": {}}, tmp_path / "bad.pt")
     with pytest.raises(DeltaError, match="bad.pt: missing 'stage'"):
