@@ -1,13 +1,22 @@
-"""The documentation: the configuration reference is generated from the schema."""
+"""The documentation: the configuration reference is generated from the schema, the README stays a
+short guide, and nothing tracked narrates the history of the work (that is what git log is for)."""
 
+import re
+import subprocess
 from pathlib import Path
 
+import pytest
 import yaml
 
 from delta.config_reference import COMMAND, INTRO, main, schema_markdown
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
+WORK_LOG = re.compile(
+    r"\bsessions? [0-9]|\bin session\b|\blast session\b|\bround [0-9]|\brounds? of work\b|\bsince last time\b"
+    r"|\bthese replace\b",
+    re.IGNORECASE,
+)
 
 
 def test_configuration_reference_is_current():
@@ -70,3 +79,35 @@ def test_schema_markdown_rows():
         "| `datasets.<dataset>` | object |  | requires `subjects` |  |",
         "| `datasets.<dataset>.subjects` | object |  | at least 1 entry |  |",
     ]
+
+
+def test_readme_is_short():
+    lines = (REPO / "README.md").read_text().splitlines()
+    assert len(lines) <= 300, f"README.md has {len(lines)} lines (at most 300): move detail into docs/"
+
+
+def _tracked_text_files() -> list[Path]:
+    try:
+        out = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, capture_output=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        pytest.skip("not a git checkout")
+    files = []
+    for name in filter(None, out.decode().split("\0")):
+        path = REPO / name
+        if name.endswith(".csv") or not path.is_file():
+            continue
+        data = path.read_bytes()
+        if b"\0" in data[:8192]:  # binary
+            continue
+        files.append(path)
+    return files
+
+
+def test_no_work_log_wording():
+    hits = []
+    for path in _tracked_text_files():
+        text = path.read_text(errors="replace")
+        for number, line in enumerate(text.splitlines(), 1):
+            if WORK_LOG.search(line):
+                hits.append(f"{path.relative_to(REPO)}:{number}: {line.strip()[:120]}")
+    assert not hits, "work-log wording (history belongs in git log):\n" + "\n".join(hits)
