@@ -4,7 +4,7 @@ Trains stage 1 of a saved configuration (a sweep's ``settings.json``) for a few 
 ``--variant`` (a JSON override on top of it), and writes the quantiles of the NeRF's raw density
 (before the activation) at uniform points of its box after each listed step. A raw density far
 below zero everywhere means σ = 0 everywhere: no NeRF, and with either activation no gradient back.
-(The cure, session 13: SCARF's NeRF-only start, ``stage1.nerf_warmup`` with its precrop, and the
+(The cure: SCARF's NeRF-only start, ``stage1.nerf_warmup`` with its precrop, and the
 hybrid at a NeRF rate of 1e-4 — the ``paper`` preset's; a variant ``'{"stage1": {"nerf_warmup": 0}}'``
 shows the collapse again.)
 

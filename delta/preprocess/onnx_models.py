@@ -74,12 +74,12 @@ def open_session(
     options.inter_op_num_threads = 1
     options.log_severity_level = 3
     try:
-        session = ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
+        model = ort.InferenceSession(str(path), sess_options=options, providers=["CPUExecutionProvider"])
     except Exception as exc:  # onnxruntime raises its own pybind exception types
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise DeltaError(f"{path}: not a readable ONNX model ({first}); re-download it or {where}") from exc
 
-    found = {i.name: list(i.shape) for i in session.get_inputs()}
+    found = {i.name: list(i.shape) for i in model.get_inputs()}
     named = {k: r for k, r in expected_inputs.items() if k != ANY_NAME}
     ok = all(name in found and len(found[name]) == rank for name, rank in named.items())
     extra = [n for n in found if n not in named]
@@ -91,11 +91,11 @@ def open_session(
         want = ", ".join(f"{n} (rank {r})" for n, r in expected_inputs.items())
         got = ", ".join(f"{n} {_shape_str(s)}" for n, s in found.items())
         raise DeltaError(f"{path}: unexpected ONNX inputs; expected {want}; found {got}. Is this the right model?")
-    outputs = session.get_outputs()
+    outputs = model.get_outputs()
     if expected_outputs is not None and len(outputs) < expected_outputs:
         got = ", ".join(f"{o.name} {_shape_str(o.shape)}" for o in outputs)
         raise DeltaError(f"{path}: expected at least {expected_outputs} ONNX output(s), found {got or 'none'}")
-    return session
+    return model
 
 
 def check_frame(frame: np.ndarray, model: str | Path) -> np.ndarray:

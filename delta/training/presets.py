@@ -59,7 +59,7 @@ PRESETS: dict[str, dict] = {
         # SCARF trains its NeRF alone on the whole person first (its stage 0 at 5e-4, 400 precrop
         # steps), then the hybrid at a NeRF rate of 1e-4: a fresh PE NeRF meeting the hybrid
         # objective's clothing mask collapses to σ = 0 in ~25 steps, and so does one carried into
-        # it at 5e-4 (session 13)
+        # it at 5e-4 (benchmarks/density_collapse.py, docs/tradeoff.md)
         "stage1": {"iterations": 50000, "rays": 4096, "lr": {"nerf": 1e-4, "nerf_warmup": 5e-4, "fields": 5e-4},
                    "nerf_warmup": 400},  # fmt: skip
         "stage2": {"iterations": 20000, "rays": 4096, "patch": 48, "lr": {"nerf": 1e-4, "fields": 5e-4}},
