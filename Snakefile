@@ -19,7 +19,12 @@ include: "rules/preprocess.smk"
 include: "rules/fitting.smk"
 include: "rules/training.smk"
 include: "rules/eval.smk"
-include: "rules/tradeoff.smk"
+
+
+# the speed/accuracy study, on request: --configfile config/tradeoff.yaml
+if "tradeoff" in config:
+
+    include: "rules/tradeoff.smk"
 
 
 # cheap bookkeeping runs on the submitting machine, never as a cluster job
@@ -29,7 +34,6 @@ localrules:
     fetch_perceptual,
     plot_losses,
     aggregate_metrics,
-    tradeoff_table,
 
 
 onstart:

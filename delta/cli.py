@@ -306,7 +306,7 @@ def cmd_validate_config(args: argparse.Namespace) -> None:
     from delta.config import DEFAULT_SCHEMA, load_config
 
     load_config(args.config, args.schema or DEFAULT_SCHEMA, device=not args.cluster)
-    print(f"{args.config}: valid")
+    print(f"{' + '.join(args.config)}: valid")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -499,8 +499,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_aggregate)
 
-    p = sub.add_parser("validate-config", help="check a config file against the workflow schema")
-    p.add_argument("config")
+    p = sub.add_parser("validate-config", help="check config files (merged in order) as the workflow does")
+    p.add_argument("config", nargs="+", help="config/config.yaml, then any --configfile additions")
     p.add_argument("--schema", default=None, help="the workflow's schema (default: the one beside the package)")
     p.add_argument("--cluster", action="store_true", help="jobs run elsewhere: do not ask for a CUDA device here")
     p.set_defaults(func=cmd_validate_config)

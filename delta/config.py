@@ -193,7 +193,7 @@ def _check_settings(config: dict) -> list[str]:
     for name, raw in config["datasets"].get("synthetic", {}).get("subjects", {}).items():
         attempt(parse_subject, name, raw)
     subjects = {s for spec in config["datasets"].values() for s in spec["subjects"]}
-    fit, train, trade = config["fitting"], config["training"], config["tradeoff"]
+    fit, train, trade = config["fitting"], config["training"], config.get("tradeoff", {"variants": {}, "subjects": []})
     for section, named in (("fitting", fit["subjects"]), ("training", train["subjects"])):
         for s in sorted(set(named) - subjects):
             out.append(f"config key '{section}.subjects.{s}': not a configured subject ({sorted(subjects)})")
@@ -260,18 +260,36 @@ def validate_workflow_config(config: dict, schema_path: str | os.PathLike = DEFA
     return config
 
 
-def load_config(path: str | os.PathLike, schema_path: str | os.PathLike = DEFAULT_SCHEMA, device: bool = True) -> dict:
-    """Read a YAML config file and validate it as the workflow does; errors name the file."""
-    path = Path(path)
+def _read(path: Path) -> dict:
     try:
         raw = yaml.safe_load(path.read_text()) or {}
     except (OSError, yaml.YAMLError) as exc:
-        raise DeltaError(f"{path}: cannot read configuration ({exc})") from exc
+        raise DeltaError(f"{path}: cannot read configuration ({exc})") from None
     if not isinstance(raw, dict):
         raise DeltaError(f"{path}: the configuration must be a mapping of keys")
-    base = path.resolve().parent.parent
+    return raw
+
+
+def _update(base: dict, over: dict) -> dict:
+    """Snakemake's merge of config files given in order: mappings merge, anything else is replaced."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _update(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def load_config(path: str | os.PathLike | list, schema_path: str | os.PathLike = DEFAULT_SCHEMA,
+                device: bool = True) -> dict:  # fmt: skip
+    """Read one YAML config file, or several merged in order as ``--configfile A B`` merges them, and
+    validate the result as the workflow does; errors name the file(s). Relative paths in it are taken
+    from the folder above the first file's (a config/ folder in a checkout)."""
+    paths = [Path(p) for p in (path if isinstance(path, (list, tuple)) else [path])]
+    raw: dict = {}
+    for p in paths:
+        raw = _update(raw, _read(p))
+    base = paths[0].resolve().parent.parent
     try:
         return validate_workflow_config(raw, schema_path, base_dir=base, device=device,
                                         generated_roots=(SYNTHETIC_PEOPLESNAPSHOT_ROOT,))  # fmt: skip
     except DeltaError as exc:
-        raise DeltaError(f"{path}: {exc}") from exc
+        raise DeltaError(f"{' + '.join(map(str, paths))}: {exc}") from None

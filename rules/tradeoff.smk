@@ -1,7 +1,128 @@
-# The speed/accuracy sweep: results/{dataset}/tradeoff.csv and tradeoff.png.
+# The speed/accuracy sweep, an opt-in study: included when the config has a 'tradeoff' section
+# (config/tradeoff.yaml): snakemake --cores 2 results/synthetic/tradeoff.csv --configfile config/tradeoff.yaml
 # Each (subject, variant) is trained and evaluated by the same rules as the main run
 # (`use rule ... with:`), under results/{dataset}/{subject}/tradeoff/{variant}/.
 
+TRADE = config["tradeoff"]
+
+
+localrules:
+    tradeoff_table,
+
+
+PATHS |= {
+    "variant_stage_dir": "results/{dataset}/{subject}/tradeoff/{variant}/stage{stage}",
+    "variant_model": "results/{dataset}/{subject}/tradeoff/{variant}/stage{stage}/model.pt",
+    "variant_losses": "results/{dataset}/{subject}/tradeoff/{variant}/stage{stage}/losses.csv",
+    "variant_metrics": "results/{dataset}/{subject}/tradeoff/{variant}/eval/metrics.csv",
+    "variant_summary": "results/{dataset}/{subject}/tradeoff/{variant}/eval/summary.json",
+    "variant_profile": "results/{dataset}/{subject}/tradeoff/{variant}/profile.json",
+    "matmul_peak": "results/benchmarks/matmul_peak.json",
+    "tradeoff_csv": "results/{dataset}/tradeoff.csv",
+    "tradeoff_png": "results/{dataset}/tradeoff.png",
+}
+
+
+
+def variant_spec(variant):
+    if variant not in TRADE["variants"]:
+        raise ValueError(f"trade-off variant '{variant}' is not configured; configured: {sorted(TRADE['variants'])}")
+    spec = dict(TRADE["variants"][variant])
+    spec.pop("subjects", None)
+    spec.pop("inherit_training", None)
+    return spec.pop("preset", None), int(spec.pop("stages", 2)), spec
+
+
+def variant_subjects(dataset, variant):
+    """The swept subjects a variant runs on (its own 'subjects' list narrows the sweep's)."""
+    own = TRADE["variants"][variant].get("subjects") or []
+    return [s for s in tradeoff_subjects(dataset) if not own or s in own]
+
+
+def variant_training(subject, variant):
+    """(preset, overrides) of a sweep variant on a subject."""
+    variant_spec(variant)
+    return _variant_training(config, subject, variant)
+
+
+def tradeoff_subjects(dataset):
+    return TRADE["subjects"] or list(DATASETS[dataset]["subjects"])
+
+
+def variant_stages(variant):
+    return variant_spec(variant)[1]
+
+
+def variant_is_main(subject, variant):
+    """True when a variant trains exactly what the main run trains: its stages are the main run's."""
+    preset, overrides = variant_training(subject, variant)
+    main = subject_training(subject)[0]
+    return preset == main and resolve_training(preset, *overrides).raw == TRAINING[subject].raw
+
+
+def variant_stage_file(kind, stage, **w):
+    """A variant's stage output (``model``, ``losses`` or ``bench``): the main run's when it is the main run."""
+    if variant_is_main(w["subject"], w["variant"]):
+        if kind == "bench":
+            return benchmark_path("train", f"{w['dataset']}_{w['subject']}_stage{stage}")
+        return PATHS[f"stage_{kind}"].format(stage=stage, **w)
+    if kind == "bench":
+        return benchmark_path("tradeoff_train", f"{w['dataset']}_{w['subject']}_{w['variant']}_stage{stage}")
+    return PATHS[f"variant_{kind}"].format(stage=stage, **w)
+
+
+def variant_model(wildcards):
+    """The model a variant is scored with: its last stage."""
+    return variant_stage_file("model", variant_stages(wildcards.variant), **wildcards)
+
+
+def variant_eval_inputs(wildcards):
+    configured(wildcards)
+    files = {
+        "model": variant_model(wildcards),
+        "record": PATHS["record"].format(**wildcards),
+        "body": body_model_file(),
+        "alex": PATHS["perceptual_alex"],
+    }
+    if dataset_kind(wildcards.dataset) == "synthetic":
+        files["gt"] = PATHS["syn_meshes"].format(subject=wildcards.subject)
+    return files
+
+
+def tradeoff_manifest(wildcards):
+    """{subject: {variant: {role: path}}} of every swept (subject, variant)."""
+    configured(wildcards)
+    out = {}
+    for s in tradeoff_subjects(wildcards.dataset):
+        for v in TRADE["variants"]:
+            if s not in variant_subjects(wildcards.dataset, v):
+                continue
+            w = {"dataset": wildcards.dataset, "subject": s, "variant": v}
+            last = variant_stages(v)
+            files = {
+                "summary": PATHS["variant_summary"].format(**w),
+                "profile": PATHS["variant_profile"].format(**w),
+            }
+            for k in range(1, last + 1):
+                files[f"losses{k}"] = variant_stage_file("losses", k, **w)
+                files[f"bench{k}"] = variant_stage_file("bench", k, **w)
+            out.setdefault(s, {})[v] = files
+    return out
+
+
+def variant_eval_args(wildcards, input):
+    """The evaluation's arguments with the sweep's own frames, refinement, splits and resolution
+    (a resolution equal to the variant's training resolution is left out: it is the default)."""
+    settings = {**EVAL, **TRADE["evaluation"]}
+    preset, overrides = variant_training(wildcards.subject, wildcards.variant)
+    if settings.get("resolution") == resolve_training(preset, *overrides).resolution:
+        settings["resolution"] = 0
+    return eval_args(wildcards, input, settings)
+
+
+def tradeoff_inputs(wildcards):
+    files = [p for variants in tradeoff_manifest(wildcards).values() for f in variants.values() for p in f.values()]
+    return files + [PATHS["matmul_peak"]]
 
 use rule train as tradeoff_train with:
     output:

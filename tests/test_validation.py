@@ -101,9 +101,13 @@ def test_validate_config_runs_outside_the_repository(tmp_path):
     assert bad.returncode == 2 and "iteratons" in bad.stderr and "Traceback" not in bad.stderr
 
 
-def test_load_config_and_the_workflow_agree_on_the_shipped_configs():
-    for path in (REPO / "config" / "config.yaml", REPO / ".test" / "config" / "config.yaml"):
-        assert load_config(path, SCHEMA)["preset"] in ("fast", "balanced", "paper")
+def test_the_shipped_configs_are_valid_as_the_workflow_merges_them():
+    main, tiny, study = REPO / "config" / "config.yaml", REPO / ".test" / "config" / "config.yaml", REPO / "config" / "tradeoff.yaml"
+    for paths in ([main], [main, tiny], [main, study], [main, tiny, study]):
+        cfg = load_config(paths, SCHEMA)
+        assert ("tradeoff" in cfg) == (study in paths)  # the study is opt-in
+    with pytest.raises(DeltaError, match=r"(?s)tradeoff.yaml: invalid configuration .*not configured subjects"):
+        load_config([study], SCHEMA)  # the study alone names subjects no dataset has
 
 
 def test_every_preset_passes_its_own_ranges():

@@ -268,7 +268,7 @@ def test_generic_video_runs_the_offline_default_steps(tmp_path, tiny_captures, m
 )
 def test_unconfigured_targets_fail_at_dag_construction(tmp_path, target, message):
     work = workflow_copy(tmp_path)
-    res = snakemake(work, target, "--configfile", ".test/config/config.yaml", "--dry-run")
+    res = snakemake(work, target, "--configfile", ".test/config/config.yaml", "config/tradeoff.yaml", "--dry-run")
     assert res.returncode != 0
     assert message in res.stdout + res.stderr
 
@@ -301,16 +301,17 @@ def test_tradeoff_variants_reuse_the_main_run_and_name_their_subjects(tmp_path):
     res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run", "--printshellcmds")
     out = res.stdout + res.stderr
     assert res.returncode == 0, out[-3000:]
-    overrides = {m.group(1): json.loads(m.group(2)) for m in re.finditer(
+    settings = {m.group(1): json.loads(m.group(2)) for m in re.finditer(
         rf"delta train --stage 1 [^\n]*--out results/synthetic/{subjects[0]}/tradeoff/(\w+)/stage1 [^\n]*--overrides '([^']*)'", out)}  # fmt: skip
-    assert overrides["ref"] == [{"stage1": {"rays": 32}}]
-    assert overrides["few_rays"][1]["render"]["samples"] == 7  # the subject's own, after training.overrides
+    assert settings["ref"]["stage1"]["rays"] == 32 and settings["ref"]["render"]["samples"] != 7
+    assert settings["ref"]["resolution"] != cfg["training"]["overrides"]["resolution"]  # nor training.overrides
+    assert settings["few_rays"]["render"]["samples"] == 7  # the subject's own, after training.overrides
     cfg["tradeoff"]["variants"]["ref"]["inherit_training"] = "no"
     (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
     res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run")
-    assert res.returncode != 0 and "tradeoff.variants.ref.inherit_training: 'no' is not true or false" in res.stdout + res.stderr
+    assert res.returncode != 0 and "tradeoff.variants.ref.inherit_training': 'no' is not true or false" in res.stdout + res.stderr
     del cfg["tradeoff"]["variants"]["ref"], cfg["training"]["subjects"]
     cfg["tradeoff"]["variants"]["few_rays"]["subjects"] = ["nobody"]
     (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
     res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run")
-    assert res.returncode != 0 and "tradeoff.variants.few_rays.subjects: ['nobody'] are not subjects" in res.stdout + res.stderr
+    assert res.returncode != 0 and "tradeoff.variants.few_rays.subjects': ['nobody'] are not configured subjects" in res.stdout + res.stderr
