@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from delta import DeltaError
+from delta import DeltaError, settings
 
 log = logging.getLogger("delta")
 
@@ -193,14 +193,8 @@ def cmd_export(args: argparse.Namespace) -> None:
     from delta.export.settings import ExportSettings
 
     _threads(args.threads)
-    try:
-        settings = ExportSettings(grid=args.grid, threshold=args.threshold, smooth=args.smooth,
-                                  decimate=args.decimate, turntable_frames=args.turntable_frames,
-                                  min_component_faces=args.min_component_faces, fps=args.fps,
-                                  sidebyside=args.sidebyside)  # fmt: skip
-    except ValueError as e:
-        raise DeltaError(str(e)) from None
-    export_avatar(args.model, args.record, args.body, args.out, settings, args.device)
+    st = settings.from_arguments(ExportSettings, args, "export")
+    export_avatar(args.model, args.record, args.body, args.out, st, args.device)
 
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
@@ -210,14 +204,9 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
     from delta.training.run import load_trained
 
     _threads(args.threads)
-    if args.lpips_alex and len(args.lpips_alex) != 2:
-        raise DeltaError("--lpips-alex takes two files: torchvision's AlexNet weights and lpips' alex.pth")
-    st = EvalSettings(splits=tuple(args.splits), max_frames=args.max_frames, refine_steps=args.refine_steps,
-                      supersample=args.supersample, report_unrefined=not args.refined_only,
-                      perceptual_dir=args.perceptual,
-                      lpips_alex=tuple(args.lpips_alex) if args.lpips_alex else None)  # fmt: skip
+    st = settings.from_arguments(EvalSettings, args, "evaluation", perceptual_dir=args.perceptual)
     t0 = time.perf_counter()
-    trained = load_trained(args.model, args.record, args.body, args.device, args.resolution)
+    trained = load_trained(args.model, args.record, args.body, args.device, st.resolution)
     df = evaluate(trained, args.record, st, args.gt_meshes, args.subject)
     summary = {"subject": args.subject, "model": args.model, "stage": trained.stage, "preset": trained.preset,
                "settings": {"splits": list(st.splits), "max_frames": st.max_frames, "refine_steps": st.refine_steps,
@@ -420,15 +409,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--record", required=True, help="the frame record it was trained on")
     p.add_argument("--body", required=True)
     p.add_argument("--out", required=True, help="folder for the meshes, videos, sidebyside/ and export.json")
-    d = ExportSettings()
-    p.add_argument("--grid", type=int, default=d.grid, help="marching-cubes cells along the longest side")
-    p.add_argument("--threshold", type=float, default=d.threshold, help="density of the clothing surface (1/m)")
-    p.add_argument("--smooth", type=int, default=d.smooth, help="Taubin smoothing steps (0: none)")
-    p.add_argument("--decimate", type=int, default=d.decimate, help="target clothing face count (0: none)")
-    p.add_argument("--min-component-faces", type=int, default=d.min_component_faces)
-    p.add_argument("--turntable-frames", type=int, default=d.turntable_frames)
-    p.add_argument("--fps", type=int, default=d.fps)
-    p.add_argument("--sidebyside", type=int, default=d.sidebyside, help="test frames shown as reference | render | error")
+    settings.add_arguments(p, ExportSettings)
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     p.add_argument("--threads", type=int, default=1)
     p.set_defaults(func=cmd_export)
@@ -442,19 +423,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--subject", default="")
     p.add_argument("--gt-meshes", help="synthetic ground truth gt/meshes.h5 (body vertex error)")
     p.add_argument("--export-dir", help="the subject's export/ (clothing Chamfer against the ground truth)")
-    p.add_argument("--splits", nargs="+", default=["test_view", "test_pose"])
-    p.add_argument("--max-frames", type=int, default=0, help="at most this many frames per split (0: all)")
-    p.add_argument("--refine-steps", type=int, default=30, help="test-time refinement steps (0: off)")
-    p.add_argument("--refined-only", action="store_true", help="with refinement, skip the unrefined rows")
+    p.add_argument("--perceptual", help="folder with alex_shift_tolerant.pth (ST-LPIPS column)")
     from delta.eval.evaluate import EvalSettings
 
-    p.add_argument("--resolution", type=int, default=0,
-                   help="score at this image size (0: the training resolution); a common size makes avatars "
-                        "trained at different resolutions comparable")
-    p.add_argument("--supersample", type=int, default=EvalSettings.supersample,
-                   help="rays a pixel along each axis, averaged (anti-aliased edges; 1: pixel centres)")
-    p.add_argument("--perceptual", help="folder with alex_shift_tolerant.pth (ST-LPIPS column)")
-    p.add_argument("--lpips-alex", nargs="+", metavar="FILE", help="torchvision AlexNet .pth and lpips alex.pth")
+    settings.add_arguments(p, EvalSettings)
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=2)
     p.set_defaults(func=cmd_evaluate)

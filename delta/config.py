@@ -49,13 +49,36 @@ def _describe(error: jsonschema.ValidationError) -> str:
     return f"config key '{key}': {error.message}"
 
 
+def _inject(node: Any) -> Any:
+    """Replace each ``{$settings: module.Class}`` of a schema by that dataclass's generated schema
+    (``defaults: false`` leaves the defaults out: a section that overrides another)."""
+    if isinstance(node, dict) and "$settings" in node:
+        import importlib
+
+        from delta.settings import section_schema
+
+        module, name = node["$settings"].rsplit(".", 1)
+        out = section_schema(getattr(importlib.import_module(module), name), defaults=node.get("defaults", True))
+        if "description" in node:
+            out["description"] = node["description"]
+        return out
+    if isinstance(node, dict):
+        return {k: _inject(v) for k, v in node.items()}
+    return node
+
+
+def load_schema(path: str | os.PathLike) -> dict:
+    """The workflow's config schema: the YAML file with its typed sections generated from their dataclasses."""
+    return _inject(yaml.safe_load(Path(path).read_text()))
+
+
 def validate_config(config: dict, schema_path: str | os.PathLike, base_dir: str | os.PathLike = ".") -> dict:
     """Return a validated copy of ``config`` with defaults filled in.
 
     Every schema violation is reported in one DeltaError naming the offending key;
     files the configuration requires (the SMPL-X model when selected) must exist.
     """
-    schema = yaml.safe_load(Path(schema_path).read_text())
+    schema = load_schema(schema_path)
     config = _fill_defaults(schema, copy.deepcopy(dict(config)))
     validator = jsonschema.Draft202012Validator(schema)
     errors = sorted(validator.iter_errors(config), key=lambda e: list(map(str, e.absolute_path)))

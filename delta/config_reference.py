@@ -17,7 +17,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import yaml
 
 SCHEMA = Path("workflow/schemas/config.schema.yaml")
 COMMAND = "python -m delta.config_reference > docs/configuration.md"
@@ -171,7 +170,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--schema", default=str(SCHEMA), help="the config schema (default: %(default)s)")
     parser.add_argument("--check", metavar="FILE", help="exit 1 if FILE differs from the generated reference")
     args = parser.parse_args(argv)
-    text = schema_markdown(yaml.safe_load(Path(args.schema).read_text()), source=args.schema, intro=INTRO)
+    from delta.config import load_schema
+
+    text = schema_markdown(load_schema(args.schema), source=args.schema, intro=INTRO)
     if args.check:
         path = Path(args.check)
         if not path.is_file() or path.read_text() != text:

@@ -356,29 +356,23 @@ def eval_inputs(wildcards):
     return files
 
 
-def eval_args(wildcards, input, settings=None):
-    """The evaluation's options as one shell-quoted string."""
-    settings = settings or EVAL
-    args = ["--max-frames", settings["max_frames"], "--refine-steps", settings["refine_steps"],
-            "--supersample", settings["supersample"], "--splits", *settings["splits"]]  # fmt: skip
-    if settings.get("resolution"):
-        args += ["--resolution", settings["resolution"]]
-    if not EVAL["report_unrefined"]:
-        args += ["--refined-only"]
-    if EVAL["lpips_alex"]:
-        args += ["--lpips-alex", *EVAL["lpips_alex"]]
+def eval_settings(wildcards, settings=None):
+    """The evaluation section a job scores with, as JSON: every knob of ``delta evaluate`` at once."""
+    return json.dumps(settings or EVAL, sort_keys=True)
+
+
+def eval_truth(wildcards, input):
+    """Where the synthetic ground truth is (the geometry columns): options of ``delta evaluate``."""
+    args = []
     if "gt" in input.keys():
         args += ["--gt-meshes", input.gt]
     if "export" in input.keys():
-        args += ["--export-dir", Path(input.export).parent]
-    return shlex.join(map(str, args))
+        args += ["--export-dir", str(Path(input.export).parent)]
+    return args
 
 
-def export_args(wildcards):
-    e = EXPORT
-    return (f"--grid {e['grid']} --threshold {e['threshold']} --smooth {e['smooth']} --decimate {e['decimate']}"
-            f" --min-component-faces {e['min_component_faces']} --turntable-frames {e['turntable_frames']}"
-            f" --fps {e['fps']} --sidebyside {e['sidebyside']}")  # fmt: skip
+def export_settings(wildcards):
+    return json.dumps(EXPORT, sort_keys=True)
 
 
 def dataset_subjects(wildcards):

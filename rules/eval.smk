@@ -55,7 +55,7 @@ rule export_avatar:
         ),
     params:
         out=lambda w: PATHS["export_dir"].format(**w),
-        args=export_args,
+        settings=export_settings,
         device=config["device"],
     conda:
         "../workflow/envs/delta.yaml"
@@ -69,7 +69,7 @@ rule export_avatar:
         runtime=lambda w, attempt: 20 * attempt,
     shell:
         "delta export --model {input.model:q} --record {input.record:q} --body {input.body:q} --out {params.out:q}"
-        " {params.args} --device {params.device:q} --threads {threads} > {log:q} 2>&1"
+        " --settings {params.settings:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"
 
 
 rule evaluate:
@@ -79,7 +79,8 @@ rule evaluate:
         metrics=PATHS["eval_metrics"],
         summary=PATHS["eval_summary"],
     params:
-        args=eval_args,
+        settings=eval_settings,
+        truth=eval_truth,
         perceptual=lambda w, input: str(Path(input.alex).parent),
         device=config["device"],
     conda:
@@ -94,7 +95,8 @@ rule evaluate:
         runtime=lambda w, attempt: 30 * attempt,
     shell:
         "delta evaluate --model {input.model:q} --record {input.record:q} --body {input.body:q} --subject {wildcards.subject:q}"
-        " --out {output.metrics:q} --summary {output.summary:q} --perceptual {params.perceptual:q} {params.args}"
+        " --out {output.metrics:q} --summary {output.summary:q} --perceptual {params.perceptual:q}"
+        " --settings {params.settings:q} {params.truth:q}"
         " --device {params.device:q} --threads {threads} > {log:q} 2>&1"
 
 

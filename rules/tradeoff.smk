@@ -110,14 +110,14 @@ def tradeoff_manifest(wildcards):
     return out
 
 
-def variant_eval_args(wildcards, input):
-    """The evaluation's arguments with the sweep's own frames, refinement, splits and resolution
-    (a resolution equal to the variant's training resolution is left out: it is the default)."""
+def variant_eval_settings(wildcards):
+    """The evaluation section with the study's own frames, refinement, splits and resolution
+    (a resolution equal to the variant's training resolution is left at 0: it is the default)."""
     settings = {**EVAL, **TRADE["evaluation"]}
     preset, overrides = variant_training(wildcards.subject, wildcards.variant)
     if settings.get("resolution") == resolve_training(preset, *overrides).resolution:
         settings["resolution"] = 0
-    return eval_args(wildcards, input, settings)
+    return eval_settings(wildcards, settings)
 
 
 def tradeoff_inputs(wildcards):
@@ -144,7 +144,8 @@ use rule evaluate as tradeoff_evaluate with:
     input:
         unpack(variant_eval_inputs),
     params:
-        args=variant_eval_args,
+        settings=variant_eval_settings,
+        truth=eval_truth,
         perceptual=lambda w, input: str(Path(input.alex).parent),
         device=config["device"],
     output:

@@ -6,8 +6,8 @@ import subprocess
 from pathlib import Path
 
 import pytest
-import yaml
 
+from delta.config import load_schema
 from delta.config_reference import COMMAND, INTRO, main, schema_markdown
 
 REPO = Path(__file__).resolve().parents[1]
@@ -20,7 +20,7 @@ WORK_LOG = re.compile(
 
 
 def test_configuration_reference_is_current():
-    generated = schema_markdown(yaml.safe_load(SCHEMA.read_text()), intro=INTRO)
+    generated = schema_markdown(load_schema(SCHEMA), intro=INTRO)
     path = REPO / "docs" / "configuration.md"
     assert path.is_file(), f"docs/configuration.md is missing: run `{COMMAND}`"
     assert path.read_text() == generated, f"docs/configuration.md is stale: run `{COMMAND}`"

@@ -288,7 +288,7 @@ def test_tradeoff_variants_reuse_the_main_run_and_name_their_subjects(tmp_path):
     assert res.returncode == 0, out[-3000:]
     # every variant is scored at 32²: the one trained at 16² says so, the others are trained at 32²
     scored = {m.group(1): m.group(0) for m in re.finditer(r"delta evaluate --model results/synthetic/\w+/(?:tradeoff/(\w+)/)?stage1/model\.pt[^\n]*", out)}  # fmt: skip
-    assert "--resolution 32" in scored["res_16"] and "--resolution" not in scored["few_rays"]
+    assert '"resolution": 32' in scored["res_16"] and '"resolution": 0' in scored["few_rays"]
     trained = set(re.findall(r"output: results/synthetic/(\w+)/tradeoff/(\w+)/stage1/model\.pt", out))
     assert {v for _, v in trained} >= {"few_rays"} and "fast" not in {v for _, v in trained}
     assert {s for s, v in trained if v == "few_rays"} == {subjects[0]}

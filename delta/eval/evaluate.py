@@ -39,26 +39,42 @@ SPLITS = {"train": 0, "test_view": 1, "test_pose": 2}
 FACE_REGIONS = (REGION["face"], REGION["eyes"], REGION["mouth"])
 
 
+_f = dataclasses.field
+
+
 @dataclasses.dataclass
 class EvalSettings:
-    splits: tuple[str, ...] = ("test_view", "test_pose")
+    """Scoring the trained avatars on their held-out frames (results/{dataset}/{subject}/eval/).
+
+    The config section ``evaluation`` and the options of ``delta evaluate`` are generated from these fields.
+    """
+
+    stage: int = _f(default=2, metadata={"minimum": 1, "maximum": 2})
+    """Which training stage's model the workflow evaluates and exports."""
+    splits: tuple[str, ...] = _f(default=("test_view", "test_pose"), metadata={"choices": ("train", "test_view", "test_pose")})
     """Which frames are scored (frames of these splits in the record)."""
-    max_frames: int = 0
+    max_frames: int = _f(default=0, metadata={"minimum": 0})
     """At most this many frames per split, evenly spaced (0: all)."""
-    refine_steps: int = 30
+    refine_steps: int = _f(default=30, metadata={"minimum": 0})
     """Test-time refinement of each test frame's pose and camera, model frozen (0: off)."""
     report_unrefined: bool = True
     """With refinement on, also score each frame before it (both rows are written)."""
-    refine_rays: int = 4096
-    refine_lr: float = 5e-4
-    supersample: int = 2
+    refine_rays: int = _f(default=4096, metadata={"minimum": 1})
+    """Rays a refinement step draws from the test frame."""
+    refine_lr: float = _f(default=5e-4, metadata={"exclusive_minimum": 0, "maximum": 1})
+    """Learning rate of the test-time refinement."""
+    supersample: int = _f(default=2, metadata={"minimum": 1, "maximum": 8})
     """Rays a pixel along each axis, averaged: the frames are area-downsampled photographs whose
     edge pixels mix person and background; one centre ray a pixel cannot (tight subject, four
     test views: 1 → 2 → 4 raised PSNR 25.4 → 26.8 → 27.1 dB)."""
-    perceptual_dir: Optional[str] = None
-    """Folder of alex_shift_tolerant.pth (ST-LPIPS); None: no perceptual column."""
+    resolution: int = _f(default=0, metadata={"minimum": 0, "maximum": 4096})
+    """Score at this image size (0: each avatar's training resolution); a common size makes avatars
+    trained at different resolutions comparable."""
     lpips_alex: Optional[tuple[str, str]] = None
-    """(torchvision AlexNet weights, lpips alex.pth): standard LPIPS-Alex when the user has them."""
+    """Standard LPIPS-Alex: [torchvision's alexnet-owt-7be5be79.pth, the lpips package's weights/v0.1/alex.pth]
+    (the user's files); not given: ST-LPIPS only."""
+    perceptual_dir: Optional[str] = _f(default=None, metadata={"config": False})
+    """Folder of alex_shift_tolerant.pth (ST-LPIPS); None: no perceptual column."""
 
 
 def pick_frames(split: np.ndarray, names: tuple[str, ...], max_frames: int) -> list[tuple[int, str]]:

@@ -4,37 +4,36 @@ from __future__ import annotations
 
 import dataclasses
 
+from delta.settings import check
+
+_f = dataclasses.field
+
 
 @dataclasses.dataclass
 class ExportSettings:
-    """Export options; the CLI flags and the config keys ``export: {...}`` fill them."""
+    """Mesh export and videos of the trained avatars (results/{dataset}/{subject}/export/).
 
-    grid: int = 192
+    The config section ``export`` and the options of ``delta export`` are generated from these fields.
+    """
+
+    grid: int = _f(default=192, metadata={"minimum": 8, "maximum": 1024})
     """Marching-cubes cells along the longest side of the NeRF's canonical box (~1 cm voxels for a 2 m box)."""
-    threshold: float = 10.0
+    threshold: float = _f(default=10.0, metadata={"exclusive_minimum": 0})
     """Density level of the clothing/hair surface (1/m): a 1 cm slab at σ = 10 is ~10 % opaque."""
-    smooth: int = 3
+    smooth: int = _f(default=3, metadata={"minimum": 0})
     """Taubin smoothing steps of the clothing mesh (0: none); Taubin does not shrink the surface."""
-    decimate: int = 60000
+    decimate: int = _f(default=60000, metadata={"minimum": 0})
     """Target face count of the clothing mesh after quadric decimation (0: keep every face)."""
-    min_component_faces: int = 200
+    min_component_faces: int = _f(default=200, metadata={"minimum": 0})
     """Connected components of the clothing mesh with fewer faces are removed (floaters)."""
-    turntable_frames: int = 36
+    turntable_frames: int = _f(default=36, metadata={"minimum": 2, "maximum": 720})
     """Frames of the turntable video (one full turn)."""
-    fps: int = 12
+    fps: int = _f(default=12, metadata={"minimum": 1, "maximum": 120})
     """Frame rate of the videos."""
-    sidebyside: int = 4
+    sidebyside: int = _f(default=4, metadata={"minimum": 0, "maximum": 50})
     """Test frames written as reference | render | error images."""
-    chunk: int = 65536
+    chunk: int = _f(default=65536, metadata={"minimum": 1})
     """NeRF queries per batch when sampling the density grid."""
 
     def __post_init__(self) -> None:
-        if self.grid < 8:
-            raise ValueError(f"export.grid: {self.grid} (expected at least 8 cells)")
-        if self.threshold <= 0:
-            raise ValueError(f"export.threshold: {self.threshold} (expected a positive density)")
-        for key in ("smooth", "decimate", "min_component_faces", "sidebyside"):
-            if getattr(self, key) < 0:
-                raise ValueError(f"export.{key}: {getattr(self, key)} (expected ≥ 0)")
-        if self.turntable_frames < 1 or self.fps < 1:
-            raise ValueError("export.turntable_frames and export.fps must be at least 1")
+        check(self, "export")

@@ -4,6 +4,8 @@ import math
 
 import numpy as np
 import pytest
+
+from delta import DeltaError
 import torch
 import trimesh
 
@@ -170,9 +172,9 @@ def test_mesh_part_colours_survive_the_trimesh_conversion():
 
 
 def test_settings_reject_bad_values():
-    with pytest.raises(ValueError, match="export.grid"):
+    with pytest.raises(DeltaError, match="export.grid"):
         ExportSettings(grid=2)
-    with pytest.raises(ValueError, match="export.threshold"):
+    with pytest.raises(DeltaError, match="export.threshold"):
         ExportSettings(threshold=0)
-    with pytest.raises(ValueError, match="export.decimate"):
+    with pytest.raises(DeltaError, match="export.decimate"):
         ExportSettings(decimate=-1)
