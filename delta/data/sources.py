@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from delta import DeltaError
-from delta.cameras.models import OrthographicCamera, PinholeCamera
+from delta.cameras.models import OrthographicCamera, PinholeCamera, check_camera
 from delta.data import peoplesnapshot as ps
 
 FrameArray = Callable[[int], np.ndarray]
@@ -76,6 +76,7 @@ def peoplesnapshot_source(root: str | Path, subject: str, cfg: dict) -> Source:
         raise DeltaError(f"People Snapshot subject '{subject}': missing {missing}. Download the dataset "
                          f"(licensed) and set datasets.peoplesnapshot.root to the folder holding '{subject}/'")  # fmt: skip
     camera = ps.read_camera(d / "camera.pkl").to_pinhole()
+    check_camera(camera, str(d / "camera.pkl"))
     key = f"datasets.peoplesnapshot.subjects.{subject}"
     cfg = {**ps.STANDARD_SPLITS.get(subject, {}), **cfg}
     if "train" not in cfg or "test" not in cfg:
@@ -119,6 +120,40 @@ def default_camera(width: int, height: int) -> PinholeCamera:
                          torch.zeros(5, dtype=torch.float64), width, height)  # fmt: skip
 
 
+def read_camera_json(path: Path, width: int, height: int) -> PinholeCamera:
+    """``{"K": 3x3 numbers, "dist": up to 5 numbers (k1, k2, p1, p2, k3)}``; errors name the file and key."""
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise DeltaError(f"{path}: not valid JSON ({err})") from None
+    if not isinstance(data, dict):
+        raise DeltaError(f"{path}: expected a JSON object with 'K' (3x3) and optionally 'dist', "
+                         f"found {type(data).__name__}")  # fmt: skip
+    unknown = sorted(set(data) - {"K", "dist"})
+    if unknown:
+        raise DeltaError(f"{path}: unknown key(s) {unknown} (known: 'K', 'dist')")
+    if "K" not in data:
+        raise DeltaError(f"{path}: expected a 'K' (3x3) entry")
+
+    def numbers(key: str, shape: str, ok) -> np.ndarray:
+        value = data[key]
+        try:
+            a = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            a = None
+        if a is None or isinstance(value, (str, bool)) or np.asarray(value).dtype.kind not in "iuf" or not ok(a.shape):
+            raise DeltaError(f"{path}: '{key}' must be {shape}, found {json.dumps(value)[:80]}")
+        return a
+
+    K = numbers("K", "a 3x3 array of numbers", lambda s: s == (3, 3))
+    dist = np.zeros(5)
+    if "dist" in data:
+        d = numbers("dist", "a list of at most 5 numbers (k1, k2, p1, p2, k3)", lambda s: len(s) == 1 and s[0] <= 5)
+        dist[: len(d)] = d
+    return PinholeCamera(torch.from_numpy(K), torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64),
+                         torch.from_numpy(dist), width, height)  # fmt: skip
+
+
 def video_source(root: str | Path, subject: str, cfg: dict) -> Source:
     """Any video ``{root}/{subject}.mp4``, with an optional ``{root}/{subject}.camera.json``
     (``{"K": 3x3, "dist": [k1, k2, p1, p2, k3]}``); annotations come from the model steps."""
@@ -133,12 +168,8 @@ def video_source(root: str | Path, subject: str, cfg: dict) -> Source:
     cam_file = Path(root) / f"{subject}.camera.json"
     camera = default_camera(W, H)
     if cam_file.is_file():
-        data = json.loads(cam_file.read_text())
-        if "K" not in data:
-            raise DeltaError(f"{cam_file}: expected a 'K' (3x3) entry")
-        dist = torch.zeros(5, dtype=torch.float64)
-        dist[: len(data.get("dist", []))] = torch.tensor(data.get("dist", []), dtype=torch.float64)
-        camera = PinholeCamera(torch.tensor(data["K"], dtype=torch.float64), camera.R, camera.t, dist, W, H)
+        camera = read_camera_json(cam_file, W, H)
+    check_camera(camera, str(cam_file) if cam_file.is_file() else f"{video} (default camera)")
     key = f"datasets.*.subjects.{subject}"
     frames = _range_frames(cfg.get("train", [0, n - 1, 1]), 0, f"{key}.train")
     if "test" in cfg:
@@ -158,6 +189,7 @@ def synthetic_source(capture: str | Path, subject: str) -> Source:
         else:
             camera = OrthographicCamera(torch.tensor(float(p["ortho_scale"][0])),
                                         torch.from_numpy(p["ortho_trans"][0]), int(p["width"]), int(p["height"]))  # fmt: skip
+    check_camera(camera, str(gt / "params.npz"))
     splits = json.loads((gt / "splits.json").read_text())
     frames = sorted((i, s) for s, name in enumerate(("train", "test_view", "test_pose")) for i in splits[name])
     h5 = h5py.File(gt / "frames.h5", "r")
