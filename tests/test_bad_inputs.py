@@ -1,5 +1,5 @@
 """Inputs that cannot give an avatar stop with one line that says why, and leave no output behind:
-a camera that cannot image, a malformed camera file.
+a camera that cannot image, a malformed camera file, masks of the wrong shape.
 
 Everything is generated here, tiny (64 x 48 videos of 6 frames); the steps run through ``delta.cli.main``.
 """
@@ -179,3 +179,50 @@ def test_a_bad_peoplesnapshot_camera_stops_prepare(tmp_path, capsys, change, pat
 def test_the_peoplesnapshot_layout_with_a_good_camera_prepares(tmp_path, capsys):
     config = peoplesnapshot(tmp_path, GOOD_PKL)
     assert main(prepare_args(tmp_path, tmp_path / "frames.h5", {}, "peoplesnapshot", config)) == 0
+
+
+# -------------------------------------------------------------------------------------------------- masks
+@pytest.mark.parametrize("shape, pattern", [
+    ((N, H, W, 3), r"matte\.h5: 'person' has shape \(6, 48, 64, 3\), expected \(N >= 6, 48, 64\): one 64x48 mask a "
+                   r"frame of clip\.mp4"),
+    ((N, H, W - 4), r"matte\.h5: 'person' has shape \(6, 48, 60\), expected \(N >= 6, 48, 64\)"),
+    ((N, W, H), r"matte\.h5: 'person' has shape \(6, 64, 48\), expected \(N >= 6, 48, 64\)"),
+    ((N - 2, H, W), r"matte\.h5: 'person' has shape \(4, 48, 64\), expected \(N >= 6, 48, 64\)"),
+], ids=["3 channels", "narrower", "transposed", "too few frames"])  # fmt: skip
+def test_masks_of_the_wrong_shape_stop_prepare(tmp_path, capsys, shape, pattern):
+    steps = capture(tmp_path / "in", "pppppp")
+    write_steps(tmp_path / "in", np.full(shape, 255, np.uint8), read(steps["keypoints"], "keypoints"))
+    out = tmp_path / "frames.h5"
+    fails(capsys, prepare_args(tmp_path / "in", out), pattern)
+    nothing_written(out)
+
+
+def test_peoplesnapshot_masks_with_channels_stop_prepare(tmp_path, capsys):
+    config = peoplesnapshot(tmp_path)
+    with h5py.File(tmp_path / "clip" / "masks.hdf5", "w") as f:
+        f["masks"] = np.ones((N, H, W, 3), np.uint8)
+    out = tmp_path / "frames.h5"
+    fails(capsys, prepare_args(tmp_path, out, {}, "peoplesnapshot", config),
+          r"clip/masks\.hdf5: 'masks' has shape \(6, 48, 64, 3\), expected \(N, 48, 64\)")
+    nothing_written(out)
+
+
+def test_keypoints_of_the_wrong_shape_stop_prepare(tmp_path, capsys):
+    steps = capture(tmp_path / "in", "pppppp")
+    write_steps(tmp_path / "in", read(steps["matte"], "person"), np.zeros((N, 17, 3), np.float32))
+    out = tmp_path / "frames.h5"
+    fails(capsys, prepare_args(tmp_path / "in", out),
+          r"keypoints\.h5: 'keypoints' has shape \(6, 17, 3\), expected \(N >= 6, 18, 3\)")
+    nothing_written(out)
+
+
+def test_masks_with_a_channel_axis_of_one_are_read_as_masks(tmp_path):
+    """(N, H, W, 1), as an image library writes a single-channel stack, is the same masks: read squeezed."""
+    steps = capture(tmp_path / "in", "pppppp")
+    masks, keypoints = read(steps["matte"], "person"), read(steps["keypoints"], "keypoints")
+    write_steps(tmp_path / "in", masks[..., None], keypoints)
+    assert main(prepare_args(tmp_path / "in", tmp_path / "frames.h5")) == 0
+    write_steps(tmp_path / "in", masks, keypoints)
+    assert main(prepare_args(tmp_path / "in", tmp_path / "plain.h5")) == 0
+    with h5py.File(tmp_path / "frames.h5") as a, h5py.File(tmp_path / "plain.h5") as b:
+        np.testing.assert_array_equal(a["person"][:], b["person"][:])

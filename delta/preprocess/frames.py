@@ -167,6 +167,9 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
         writer = RecordWriter(h5, len(frames), size, masks, face="face_landmarks" in source.provided)
         row = {i: r for r, (i, _) in enumerate(frames)}
         for i, rgb in iter_video(source.video, set(row)):
+            if rgb.shape[:2] != (source.camera.height, source.camera.width):
+                raise DeltaError(f"{source.video}: frame {i} is {rgb.shape[1]}x{rgb.shape[0]} but the camera is for "
+                                 f"{source.camera.width}x{source.camera.height} images")  # fmt: skip
             mask = person(i)
             if rgb.shape[:2] != mask.shape[:2]:
                 raise DeltaError(f"{source.video}: frame {i} is {rgb.shape[1]}x{rgb.shape[0]} but its mask is "
