@@ -1,5 +1,6 @@
 """Inputs that cannot give an avatar stop with one line that says why, and leave no output behind:
-a camera that cannot image, a malformed camera file, masks of the wrong shape.
+a capture without a person, a camera that cannot image, a malformed camera file, masks of the wrong
+shape. A capture that is only partly bad is prepared and fitted, its bad frames listed.
 
 Everything is generated here, tiny (64 x 48 videos of 6 frames); the steps run through ``delta.cli.main``.
 """
@@ -12,6 +13,7 @@ import cv2
 import h5py
 import numpy as np
 import pytest
+import torch
 
 from delta.cli import main
 
@@ -226,3 +228,100 @@ def test_masks_with_a_channel_axis_of_one_are_read_as_masks(tmp_path):
     assert main(prepare_args(tmp_path / "in", tmp_path / "plain.h5")) == 0
     with h5py.File(tmp_path / "frames.h5") as a, h5py.File(tmp_path / "plain.h5") as b:
         np.testing.assert_array_equal(a["person"][:], b["person"][:])
+
+
+# ---------------------------------------------------------------------------------------------- no person
+@pytest.mark.parametrize("video", ["gggggg", "nnnnnn"], ids=["grey", "noise"])
+def test_a_video_without_a_person_stops_prepare(tmp_path, capsys, video):
+    capture(tmp_path / "in", video)
+    out = tmp_path / "out" / "frames.h5"
+    fails(capsys, prepare_args(tmp_path / "in", out),
+          r"clip\.mp4: no person found: 0 of 6 frames have >= 4 keypoints with confidence >= 0\.3 and a plausible "
+          r"person mask \(0 have the keypoints, at most 0 in a frame; 6 have a plausible mask")  # fmt: skip
+    nothing_written(out)
+
+
+def test_speckled_masks_without_keypoints_are_no_person(tmp_path, capsys):
+    """Without keypoints the masks decide: scattered specks (a matting model on noise) are nobody."""
+    steps = capture(tmp_path / "in", "pppppp")
+    speckle = (np.random.default_rng(1).random((N, H, W)) < 0.2).astype(np.uint8) * 255
+    with h5py.File(steps["matte"], "r+") as f:
+        f["person"][...] = speckle
+    out = tmp_path / "frames.h5"
+    fails(capsys, prepare_args(tmp_path / "in", out, {"m": steps["matte"]}),
+          r"clip\.mp4: no person found: 0 of 6 frames have a plausible person mask: .* one connected region")
+    nothing_written(out)
+
+
+def record(path, keypoints, masks, K=None) -> None:
+    """A frame record as ``delta prepare`` writes it (32 px, pinhole)."""
+    n, size = len(keypoints), masks.shape[1]
+    with h5py.File(path, "w") as h5:
+        h5["images"] = np.zeros((n, size, size, 3), np.uint8)
+        h5["person"] = masks
+        h5["keypoints"] = keypoints.astype(np.float32)
+        h5["frame_ids"] = np.arange(10, 10 + n)
+        h5["split"] = np.zeros(n, np.uint8)
+        h5.attrs["camera_model"] = "pinhole"
+        h5["K"] = np.array([[40.0, 0, 16], [0, 40, 16], [0, 0, 1]]) if K is None else K
+        h5["R"], h5["t"] = np.eye(3), np.zeros(3)
+
+
+def test_a_record_without_a_usable_frame_stops_fit_init(tmp_path, capsys, anny_files):
+    """Every frame flagged (no confident keypoint; one with keypoints has an empty mask): no fit, no
+    ``residual_px_mean: nan``."""
+    keypoints = np.zeros((4, 18, 3))
+    keypoints[2, :, :2], keypoints[2, :, 2] = STICK[:, :2] / 2, 0.9
+    masks = np.zeros((4, 32, 32), np.uint8)
+    masks[[0, 1, 3], 8:24, 10:22] = 255
+    record(tmp_path / "frames.h5", keypoints, masks)
+    out = tmp_path / "init"
+    fails(capsys, fit_args(tmp_path / "frames.h5", anny_files["body"], out),
+          r"frames\.h5: no person found: 0 of 4 frames have >= 4 keypoints with confidence >= 0\.3 and a non-empty "
+          r"person mask \(1 have the keypoints, at most 18 in a frame; 3 have a non-empty mask\)")  # fmt: skip
+    assert not out.exists()
+
+
+def test_non_finite_fit_results_name_the_frames():
+    from delta import DeltaError
+    from delta.fitting.fit import FitResult
+    from delta.fitting.run import check_result
+
+    F, ids = 4, np.array([3, 5, 7, 9])
+    res = FitResult(torch.zeros(2), torch.zeros(F, 4, 3), torch.zeros(F, 3), None, torch.zeros(F, dtype=torch.bool),
+                    torch.zeros(F, dtype=torch.bool), torch.zeros(F, dtype=torch.bool), torch.ones(F))  # fmt: skip
+    check_result("r.h5", res, ids)
+    res.transl[1, 2] = float("nan")
+    res.residual_px[3] = float("nan")
+    with pytest.raises(DeltaError, match=r"r\.h5: the fit gave a non-finite translation, reprojection residual at "
+                                         r"2 of 4 frames \[5, 9\]"):  # fmt: skip
+        check_result("r.h5", res, ids)
+
+
+def test_a_record_with_a_singular_camera_stops_fit_init(tmp_path, capsys, anny_files):
+    """A record whose camera cannot image (written before the adapters checked cameras) is not fitted."""
+    keypoints = np.zeros((2, 18, 3))
+    keypoints[:, :, :2], keypoints[:, :, 2] = STICK[:, :2] / 2, 0.9
+    masks = np.full((2, 32, 32), 255, np.uint8)
+    record(tmp_path / "frames.h5", keypoints, masks, K=np.zeros((3, 3)))
+    out = tmp_path / "init"
+    fails(capsys, fit_args(tmp_path / "frames.h5", anny_files["body"], out),
+          r"frames\.h5: camera K has focal lengths fx = 0, fy = 0")
+    assert not out.exists()
+
+
+# ------------------------------------------------------------------------------------------- partly bad
+def test_a_partly_bad_capture_is_prepared_and_fitted_with_its_bad_frames_listed(tmp_path, anny_files):
+    capture(tmp_path / "in", "pgpnpg")
+    out = tmp_path / "frames.h5"
+    assert main(prepare_args(tmp_path / "in", out)) == 0
+    summary = json.loads(out.with_suffix(".json").read_text())
+    assert summary["frames"] == 6 and summary["few_keypoints"] == [1, 3, 5] and summary["skipped_empty"] == []
+    settings = json.dumps({"iterations": [5, 5, 5], "sil_size": 16, "facing_starts": 2})
+    assert main(["fit-init", "--record", str(out), "--body", anny_files["body"], "--out", str(tmp_path / "init"),
+                 "--settings", settings]) == 0  # fmt: skip
+    fitted = json.loads((tmp_path / "init" / "summary.json").read_text())
+    assert fitted["flagged"] == 3 and fitted["flagged_frames"] == [1, 3, 5]
+    assert np.isfinite(fitted["residual_px_mean"])
+    with np.load(tmp_path / "init" / "params.npz") as p:
+        assert p["flagged"].tolist() == [False, True] * 3 and np.isfinite(p["transl"]).all()
