@@ -15,7 +15,10 @@ from __future__ import annotations
 
 import dataclasses
 
+import numpy as np
 import torch
+
+from delta import DeltaError
 
 MIN_DEPTH = 1e-6
 """Smallest |camera depth| a pinhole projection divides by (world units)."""
@@ -118,6 +121,59 @@ class PinholeCamera:
         dirs = d_cam @ self.R.to(uv.dtype)  # R^T d for row vectors
         dirs = dirs / dirs.norm(dim=-1, keepdim=True)
         return self.center.to(uv.dtype).expand_as(dirs), dirs
+
+
+def _values(a) -> str:
+    """An array's values on one line, for an error message."""
+    return str(np.asarray(a).tolist())
+
+
+def check_camera(camera, where: str, frame_ids=None) -> None:
+    """Raise a DeltaError naming ``where`` and the bad value when ``camera`` cannot image anything.
+
+    Pinhole: K (3, 3) finite with focal lengths f_x, f_y > 0 and last row (0, 0, 1); distortion (5,),
+    R (3, 3) a rotation and t (3,) all finite. Orthographic: every scale finite and > 0 and every
+    translation finite; per-frame values name the frame (``frame_ids[row]`` when given, else the row).
+    Both: an image size > 0.
+    """
+    if not (int(camera.width) > 0 and int(camera.height) > 0):
+        raise DeltaError(f"{where}: camera image size {camera.width}x{camera.height} must be > 0")
+    if isinstance(camera, OrthographicCamera):
+        scale = np.asarray(torch.as_tensor(camera.scale).detach().cpu(), dtype=np.float64)
+        trans = np.asarray(torch.as_tensor(camera.trans).detach().cpu(), dtype=np.float64)
+        if trans.shape[-1:] != (2,):
+            raise DeltaError(f"{where}: orthographic camera translation has shape {trans.shape}, expected (..., 2)")
+        checks = (("scale", scale, "finite and > 0", ~(np.isfinite(scale) & (scale > 0))),
+                  ("translation", trans, "finite", ~np.isfinite(trans).all(-1)))  # fmt: skip
+        for name, values, must, bad in checks:
+            if bad.any():
+                if bad.ndim == 0:
+                    raise DeltaError(f"{where}: orthographic camera {name} must be {must}, found {_values(values)}")
+                rows = np.flatnonzero(bad)
+                ids = rows if frame_ids is None else np.asarray(frame_ids)[rows]
+                raise DeltaError(f"{where}: orthographic camera {name} must be {must}, found "
+                                 f"{_values(values[rows[:5]])} at frame(s) {ids[:10].tolist()}")  # fmt: skip
+        return
+    if not isinstance(camera, PinholeCamera):
+        raise DeltaError(f"{where}: unknown camera type {type(camera).__name__}")
+    arrays = {}
+    for name, shape in (("K", (3, 3)), ("R", (3, 3)), ("t", (3,)), ("distortion", (5,))):
+        a = np.asarray(torch.as_tensor(getattr(camera, "dist" if name == "distortion" else name)).detach().cpu(),
+                       dtype=np.float64)  # fmt: skip
+        if a.shape != shape:
+            raise DeltaError(f"{where}: camera {name} has shape {a.shape}, expected {shape}")
+        if not np.isfinite(a).all():
+            raise DeltaError(f"{where}: camera {name} is not finite: {_values(a)}")
+        arrays[name] = a
+    K = arrays["K"]
+    if not (K[0, 0] > 0 and K[1, 1] > 0):
+        raise DeltaError(f"{where}: camera K has focal lengths fx = {K[0, 0]:g}, fy = {K[1, 1]:g}; both must be > 0 "
+                         f"(K = {_values(K)})")  # fmt: skip
+    if not np.allclose(K[2], [0.0, 0.0, 1.0], rtol=0.0, atol=1e-6):
+        raise DeltaError(f"{where}: camera K's last row is {_values(K[2])}, expected [0, 0, 1] (K = {_values(K)})")
+    R = arrays["R"]
+    if not (np.allclose(R @ R.T, np.eye(3), rtol=0.0, atol=1e-4) and np.linalg.det(R) > 0):
+        raise DeltaError(f"{where}: camera R is not a rotation: {_values(R)}")
 
 
 def look_at(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -9,6 +9,7 @@ N x 54 = 18 OpenPose points x (x, y, confidence)).
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import pickle
 from pathlib import Path
@@ -32,6 +33,8 @@ STANDARD_SPLITS = {
 }
 
 CAMERA_KEYS = ("camera_f", "camera_c", "camera_k", "camera_rt", "camera_t", "width", "height")
+#: how many values each array of camera.pkl may hold
+CAMERA_SIZES = {"camera_f": (2,), "camera_c": (2,), "camera_k": (0, 1, 2, 3, 4, 5), "camera_rt": (3,), "camera_t": (3,)}
 
 
 @dataclasses.dataclass
@@ -60,9 +63,29 @@ def read_camera(path: str | os.PathLike) -> SnapshotCamera:
     missing = [k for k in CAMERA_KEYS if k not in data]
     if missing:
         raise DeltaError(f"{path}: missing camera keys {missing}")
-    arr = {k: np.asarray(data[k], dtype=np.float64).reshape(-1) for k in CAMERA_KEYS[:5]}
+    arr = {}
+    for key, sizes in CAMERA_SIZES.items():
+        try:
+            arr[key] = np.asarray(data[key], dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            raise DeltaError(f"{path}: camera key '{key}' must hold numbers, found {data[key]!r:.80}") from None
+        if arr[key].size not in sizes:
+            expected = sizes[0] if len(sizes) == 1 else f"at most {max(sizes)}"
+            raise DeltaError(f"{path}: camera key '{key}' holds {arr[key].size} values, expected {expected}")
+        if not np.isfinite(arr[key]).all():
+            raise DeltaError(f"{path}: camera key '{key}' is not finite: {arr[key].tolist()}")
+    pixels = {}
+    for key in ("width", "height"):
+        try:
+            value = float(np.asarray(data[key], dtype=np.float64).reshape(()))
+        except (TypeError, ValueError):
+            value = math.nan
+        if not (math.isfinite(value) and value == round(value) and value > 0):
+            raise DeltaError(f"{path}: camera key '{key}' must be a whole number of pixels > 0, "
+                             f"found {data[key]!r:.80}")  # fmt: skip
+        pixels[key] = int(value)
     return SnapshotCamera(arr["camera_f"], arr["camera_c"], arr["camera_k"], arr["camera_rt"], arr["camera_t"],
-                          int(data["width"]), int(data["height"]))  # fmt: skip
+                          pixels["width"], pixels["height"])  # fmt: skip
 
 
 def write_camera(path: str | os.PathLike, camera: PinholeCamera) -> None:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 from pathlib import Path
 from typing import Callable
 
@@ -17,9 +18,10 @@ import numpy as np
 import torch
 
 from delta import DeltaError
-from delta.cameras.models import OrthographicCamera, PinholeCamera
+from delta.cameras.models import OrthographicCamera, PinholeCamera, check_camera
 from delta.data import peoplesnapshot as ps
 
+log = logging.getLogger(__name__)
 FrameArray = Callable[[int], np.ndarray]
 
 
@@ -44,17 +46,49 @@ class Source:
     and per-subject ones ('betas'); copied into the record for the selected frames."""
 
 
-def _h5_frames(path: Path, key: str, scale: float = 1.0) -> tuple[FrameArray, Callable[[], None], int]:
+def frame_array(path, name: str, dset, per_frame: tuple[int, ...], what: str, needed: int = 0,
+                scale: float = 1.0) -> FrameArray:  # fmt: skip
+    """``i -> dset[i]`` once ``dset``'s shape is checked: (N, *per_frame) with N >= ``needed``.
+
+    Masks (``per_frame`` (H, W)) stored with a trailing channel axis of 1, (N, H, W, 1), are read
+    without it (logged); any other shape raises a DeltaError naming the file, the shape found and the
+    one expected (``what`` says what a frame's entry is). ``scale`` multiplies and casts to uint8.
+    """
+    shape = tuple(int(n) for n in dset.shape)
+    squeeze = len(per_frame) == 2 and len(shape) == 4 and shape[3] == 1
+    fits = len(shape) == 1 + len(per_frame) + squeeze and shape[1 : 1 + len(per_frame)] == tuple(per_frame)
+    if not fits or shape[0] < needed:
+        count = f"N >= {needed}" if needed else "N"
+        raise DeltaError(f"{path}: '{name}' has shape {shape}, expected ({count}, {', '.join(map(str, per_frame))}): "
+                         f"{what}")  # fmt: skip
+    if squeeze:
+        log.info("%s: '%s' has shape %s: read without its trailing channel axis of 1", path, name, shape)
+
+    def get(i: int) -> np.ndarray:
+        a = np.asarray(dset[i])
+        a = a[..., 0] if squeeze else a
+        return (a * scale).astype(np.uint8) if scale != 1.0 else a
+
+    return get
+
+
+def mask_what(width: int, height: int, video) -> str:
+    """What a mask file holds for each frame (for messages)."""
+    return f"one {width}x{height} mask a frame of {Path(video).name}"
+
+
+def _h5_frames(path: Path, key: str, width: int, height: int, video,
+               scale: float = 1.0) -> tuple[FrameArray, Callable[[], None], int]:  # fmt: skip
     f = h5py.File(path, "r")
     if key not in f:
         f.close()
         raise DeltaError(f"{path}: no dataset '{key}' (found {sorted(f)})")
     dset = f[key]
-
-    def get(i: int) -> np.ndarray:
-        a = np.asarray(dset[i])
-        return (a * scale).astype(np.uint8) if scale != 1.0 else a
-
+    try:
+        get = frame_array(path, key, dset, (height, width), mask_what(width, height, video), scale=scale)
+    except DeltaError:
+        f.close()
+        raise
     return get, f.close, int(dset.shape[0])
 
 
@@ -76,14 +110,15 @@ def peoplesnapshot_source(root: str | Path, subject: str, cfg: dict) -> Source:
         raise DeltaError(f"People Snapshot subject '{subject}': missing {missing}. Download the dataset "
                          f"(licensed) and set datasets.peoplesnapshot.root to the folder holding '{subject}/'")  # fmt: skip
     camera = ps.read_camera(d / "camera.pkl").to_pinhole()
+    check_camera(camera, str(d / "camera.pkl"))
     key = f"datasets.peoplesnapshot.subjects.{subject}"
     cfg = {**ps.STANDARD_SPLITS.get(subject, {}), **cfg}
     if "train" not in cfg or "test" not in cfg:
         raise DeltaError(f"{key}: give 'train' and 'test' frame ranges [start, end, step] (standard ones are "
                          f"known for {sorted(ps.STANDARD_SPLITS)})")  # fmt: skip
     frames = _range_frames(cfg.get("train"), 0, f"{key}.train") + _range_frames(cfg.get("test"), 1, f"{key}.test")
-    masks, close_m, n_masks = _h5_frames(d / "masks.hdf5", "masks", 255.0)
     kp_all = ps.read_keypoints(d / "keypoints.hdf5")
+    masks, close_m, n_masks = _h5_frames(d / "masks.hdf5", "masks", camera.width, camera.height, need[0], 255.0)
     closers = [close_m]
     body, origin = {}, {"person": "dataset:masks.hdf5", "keypoints": "dataset:keypoints.hdf5"}
     if (d / "reconstructed_poses.hdf5").is_file():  # optional: SMPL poses of every frame
@@ -94,7 +129,7 @@ def peoplesnapshot_source(root: str | Path, subject: str, cfg: dict) -> Source:
         video=need[0],
         camera=camera,
         frames=frames,
-        num_video_frames=n_masks,
+        num_video_frames=min(n_masks, len(kp_all)),
         provided={"person": masks, "keypoints": lambda i: kp_all[i]},
         origin=origin,
         close=lambda: [c() for c in closers],
@@ -119,6 +154,40 @@ def default_camera(width: int, height: int) -> PinholeCamera:
                          torch.zeros(5, dtype=torch.float64), width, height)  # fmt: skip
 
 
+def read_camera_json(path: Path, width: int, height: int) -> PinholeCamera:
+    """``{"K": 3x3 numbers, "dist": up to 5 numbers (k1, k2, p1, p2, k3)}``; errors name the file and key."""
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as err:
+        raise DeltaError(f"{path}: not valid JSON ({err})") from None
+    if not isinstance(data, dict):
+        raise DeltaError(f"{path}: expected a JSON object with 'K' (3x3) and optionally 'dist', "
+                         f"found {type(data).__name__}")  # fmt: skip
+    unknown = sorted(set(data) - {"K", "dist"})
+    if unknown:
+        raise DeltaError(f"{path}: unknown key(s) {unknown} (known: 'K', 'dist')")
+    if "K" not in data:
+        raise DeltaError(f"{path}: expected a 'K' (3x3) entry")
+
+    def numbers(key: str, shape: str, ok) -> np.ndarray:
+        value = data[key]
+        try:
+            a = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            a = None
+        if a is None or isinstance(value, (str, bool)) or np.asarray(value).dtype.kind not in "iuf" or not ok(a.shape):
+            raise DeltaError(f"{path}: '{key}' must be {shape}, found {json.dumps(value)[:80]}")
+        return a
+
+    K = numbers("K", "a 3x3 array of numbers", lambda s: s == (3, 3))
+    dist = np.zeros(5)
+    if "dist" in data:
+        d = numbers("dist", "a list of at most 5 numbers (k1, k2, p1, p2, k3)", lambda s: len(s) == 1 and s[0] <= 5)
+        dist[: len(d)] = d
+    return PinholeCamera(torch.from_numpy(K), torch.eye(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64),
+                         torch.from_numpy(dist), width, height)  # fmt: skip
+
+
 def video_source(root: str | Path, subject: str, cfg: dict) -> Source:
     """Any video ``{root}/{subject}.mp4``, with an optional ``{root}/{subject}.camera.json``
     (``{"K": 3x3, "dist": [k1, k2, p1, p2, k3]}``); annotations come from the model steps."""
@@ -133,12 +202,8 @@ def video_source(root: str | Path, subject: str, cfg: dict) -> Source:
     cam_file = Path(root) / f"{subject}.camera.json"
     camera = default_camera(W, H)
     if cam_file.is_file():
-        data = json.loads(cam_file.read_text())
-        if "K" not in data:
-            raise DeltaError(f"{cam_file}: expected a 'K' (3x3) entry")
-        dist = torch.zeros(5, dtype=torch.float64)
-        dist[: len(data.get("dist", []))] = torch.tensor(data.get("dist", []), dtype=torch.float64)
-        camera = PinholeCamera(torch.tensor(data["K"], dtype=torch.float64), camera.R, camera.t, dist, W, H)
+        camera = read_camera_json(cam_file, W, H)
+    check_camera(camera, str(cam_file) if cam_file.is_file() else f"{video} (default camera)")
     key = f"datasets.*.subjects.{subject}"
     frames = _range_frames(cfg.get("train", [0, n - 1, 1]), 0, f"{key}.train")
     if "test" in cfg:
@@ -158,18 +223,25 @@ def synthetic_source(capture: str | Path, subject: str) -> Source:
         else:
             camera = OrthographicCamera(torch.tensor(float(p["ortho_scale"][0])),
                                         torch.from_numpy(p["ortho_trans"][0]), int(p["width"]), int(p["height"]))  # fmt: skip
+    check_camera(camera, str(gt / "params.npz"))
     splits = json.loads((gt / "splits.json").read_text())
     frames = sorted((i, s) for s, name in enumerate(("train", "test_view", "test_pose")) for i in splits[name])
     h5 = h5py.File(gt / "frames.h5", "r")
-    get = lambda key, scale=1: (lambda i: (np.asarray(h5[key][i]) * scale).astype(np.uint8))  # noqa: E731
-    keypoints = np.asarray(h5["keypoints"])
+    video = capture / f"{subject}.mp4"
+    what = mask_what(camera.width, camera.height, video)
+    try:
+        masks = {name: frame_array(gt / "frames.h5", key, h5[key], (camera.height, camera.width), what)
+                 for name, key in (("person", "alpha"), ("clothing", "clothing"), ("skin", "skin"), ("hair", "hair"))}  # fmt: skip
+        keypoints = np.asarray(h5["keypoints"])
+    except DeltaError:
+        h5.close()
+        raise
     return Source(
-        video=capture / f"{subject}.mp4",
+        video=video,
         camera=camera,
         frames=frames,
         num_video_frames=int(h5["person"].shape[0]),
-        provided={"person": get("alpha"), "clothing": get("clothing"), "skin": get("skin"), "hair": get("hair"),
-                  "keypoints": lambda i: keypoints[i]},  # fmt: skip
+        provided={**masks, "keypoints": lambda i: keypoints[i]},
         origin={k: f"dataset:gt/frames.h5:{v}" for k, v in
                 (("person", "alpha"), ("clothing", "clothing"), ("skin", "skin"), ("hair", "hair"), ("keypoints", "keypoints"))},  # fmt: skip
         close=h5.close,

@@ -24,6 +24,7 @@ from delta.body.keypoints import KeypointMap
 from delta.body.lbs import batch_rodrigues, rigid_transforms, skin
 from delta.body.model import BodyModel
 from delta.cameras.models import OrthographicCamera, PinholeCamera
+from delta.data.person import CONF_THRESHOLD, MIN_KEYPOINTS
 from delta.fitting import silhouette as sil
 from delta.fitting import terms
 from delta.fitting.limits import joint_limits
@@ -54,8 +55,8 @@ class FitConfig:
     """Holds the body pose (every joint but the root) of the capture's own sequence near its mean
     (``terms.static_pose``): for a subject who keeps one pose while turning. A novel-pose sequence
     (``sequence`` label other than 0) is never held. 0: off (a capture with motion)."""
-    min_keypoints: int = 4
-    conf_threshold: float = 0.3
+    min_keypoints: int = MIN_KEYPOINTS
+    conf_threshold: float = CONF_THRESHOLD
     sil_weight: float = 300.0
     """Silhouette term (mean squared coverage error a frame); 0 turns it off."""
     sil_size: int = 64

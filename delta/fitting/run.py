@@ -13,7 +13,8 @@ import torch
 from delta.body.keypoints import openpose18_map
 from delta.body.lbs import lbs
 from delta.body.model import load_body_model
-from delta.cameras.models import OrthographicCamera
+from delta.cameras.models import OrthographicCamera, check_camera
+from delta.data.person import confident_keypoints, no_person_message
 from delta.data.record import FrameRecord
 from delta import DeltaError
 from delta.fitting.fit import FitConfig, FitStart, fit
@@ -60,14 +61,51 @@ def exterior_masks(rec: FrameRecord) -> np.ndarray | None:
     return np.maximum.reduce(present)
 
 
+def check_record(rec: FrameRecord, detected: np.ndarray, masks: np.ndarray, frame_ids: np.ndarray,
+                 cfg: FitConfig) -> None:  # fmt: skip
+    """Raise a DeltaError before fitting a record that cannot give a body: a camera that cannot image
+    (``check_camera``), or no frame the fit would use (every one with fewer than ``cfg.min_keypoints``
+    confident keypoints or an empty person mask)."""
+    if rec.h5.attrs["camera_model"] == "pinhole":
+        check_camera(rec.camera(0), str(rec.path))
+    elif "ortho_scale" in rec.h5:
+        check_camera(rec.camera(), str(rec.path), frame_ids)
+    counts = confident_keypoints(detected, cfg.conf_threshold)
+    shown = masks.reshape(len(masks), -1).max(-1) > 0 if len(masks) else np.zeros(0, dtype=bool)
+    if not ((counts >= cfg.min_keypoints) & shown).any():
+        raise DeltaError(no_person_message(rec.path, len(frame_ids), counts, shown, "non-empty",
+                                           min_keypoints=cfg.min_keypoints, threshold=cfg.conf_threshold))  # fmt: skip
+
+
+def check_result(where, res, frame_ids: np.ndarray) -> None:
+    """Raise a DeltaError naming the frames when the fit's parameters or a used frame's residual are not finite."""
+    F = len(frame_ids)
+    bad = {"shape": ~torch.isfinite(res.betas).all().expand(F),
+           "pose": ~torch.isfinite(res.pose.reshape(F, -1)).all(-1),
+           "translation": ~torch.isfinite(res.transl).all(-1),
+           "reprojection residual": ~res.flagged & ~torch.isfinite(res.residual_px)}  # fmt: skip
+    if isinstance(res.camera, OrthographicCamera):
+        bad["camera"] = ~(torch.isfinite(res.camera.scale) & (res.camera.scale > 0)).reshape(-1).expand(F)
+        bad["camera"] = bad["camera"] | ~torch.isfinite(res.camera.trans).reshape(-1, 2).all(-1).expand(F)
+    names = [name for name, b in bad.items() if b.any()]
+    if names:
+        rows = torch.stack([bad[n] for n in names]).any(0).numpy()
+        ids = frame_ids[rows].tolist()
+        raise DeltaError(f"{where}: the fit gave a non-finite {', '.join(names)} at {len(ids)} of {F} frames "
+                         f"{ids[:10]}{' ...' if len(ids) > 10 else ''}")  # fmt: skip
+
+
 def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, overlays: int = 4,
         cfg: FitConfig = FitConfig()) -> dict:  # fmt: skip
     """Fit and write ``params.npz``, ``report.csv`` (per-frame residuals and flags) and overlay PNGs."""
     out = Path(out_dir)
-    model = load_body_model(body_path, dtype=torch.float64)
-    kp_map = openpose18_map(model)
     with FrameRecord(record_path) as rec:
         detected = torch.from_numpy(rec.h5["keypoints"][:])
+        frame_ids = rec.h5["frame_ids"][:]
+        masks = rec.h5["person"][:]
+        check_record(rec, detected.numpy(), masks, frame_ids, cfg)
+        model = load_body_model(body_path, dtype=torch.float64)
+        kp_map = openpose18_map(model)
         start = dataset_start(rec, model)
         if rec.h5.attrs["camera_model"] == "pinhole":
             camera = rec.camera(0)
@@ -76,14 +114,13 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
         else:
             camera = OrthographicCamera(torch.tensor(1.0, dtype=torch.float64), torch.zeros(2, dtype=torch.float64),
                                         rec.size, rec.size)  # fmt: skip
-        frame_ids = rec.h5["frame_ids"][:]
         knees = [model.joint_names.index(n) for n in _KNEES if n in model.joint_names]
-        masks = rec.h5["person"][:]
         exterior = exterior_masks(rec)
         # a novel-pose sequence (split 2) is not the training sequence's continuation
         sequence = torch.from_numpy((rec.h5["split"][:] == 2).astype(np.int64))
         res = fit(model, kp_map, detected, camera, cfg, knees=knees, masks=masks, start=start, exterior=exterior,
                   sequence=sequence)  # fmt: skip
+        check_result(rec.path, res, frame_ids)
         cam = {"camera_model": np.array(rec.h5.attrs["camera_model"])}
         if isinstance(res.camera, OrthographicCamera):
             cam.update(ortho_scale=res.camera.scale.numpy(), ortho_trans=res.camera.trans.numpy())
@@ -91,16 +128,21 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
                  flagged=res.flagged.numpy(), few_keypoints=res.few_keypoints.numpy(),
                  empty_mask=res.empty_mask.numpy(), started_from=np.array("dataset" if start else "mean_pose"),
                  frame_ids=frame_ids, joint_names=np.array(model.joint_names), **cam)  # fmt: skip
+        confident = confident_keypoints(detected.numpy(), cfg.conf_threshold)
         report = pd.DataFrame({"frame": frame_ids, "flagged": res.flagged.numpy(),
                                "few_keypoints": res.few_keypoints.numpy(), "empty_mask": res.empty_mask.numpy(),
                                "residual_px": res.residual_px.numpy(),
-                               "confident_keypoints": (detected[..., 2] >= 0.3).sum(-1).numpy()})  # fmt: skip
+                               "confident_keypoints": confident})  # fmt: skip
         with atomic_path(out / "report.csv") as tmp:
             report.to_csv(tmp, index=False)
         picks = np.linspace(0, len(frame_ids) - 1, min(overlays, len(frame_ids))).round().astype(int)
         for k in picks:
             _overlay(rec, k, model, res, out / f"overlay_{int(frame_ids[k]):05d}.png")
-    summary = {"frames": int(len(frame_ids)), "flagged": int(res.flagged.sum()),
+    flagged = frame_ids[res.flagged.numpy()].tolist()
+    if flagged:
+        log.warning("%s: %d of %d frames flagged (too few keypoints or an empty mask; their parameters are "
+                    "interpolated): %s", record_path, len(flagged), len(frame_ids), flagged)  # fmt: skip
+    summary = {"frames": int(len(frame_ids)), "flagged": int(res.flagged.sum()), "flagged_frames": flagged,
                "started_from": "dataset" if start else "mean_pose",
                "residual_px_mean": float(np.nanmean(res.residual_px.numpy()))}  # fmt: skip
     log.info("init fit: %s", summary)

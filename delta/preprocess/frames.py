@@ -20,6 +20,8 @@ import torch
 from delta import DeltaError
 from delta.cameras.crop import CropBox, crop_camera
 from delta.cameras.models import PinholeCamera
+from delta.data.person import (CONF_THRESHOLD, MIN_KEYPOINTS, PLAUSIBLE, confident_keypoints, no_person_message,
+                               plausible_mask)
 from delta.data.record import MASKS, RecordWriter, write_camera_attrs
 from delta.data.sources import Source
 from delta.io import atomic_path
@@ -142,12 +144,17 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
                          "(set preprocess.matting.model and preprocess.matting.path)")  # fmt: skip
     und = Undistorter(source.camera)
     person = source.provided["person"]
-    # one streamed pass over the masks: which frames show nobody, and the box around everybody
+    keypoints = source.provided.get("keypoints")
+    # one streamed pass over the masks: which frames show nobody, which show a person, the box around everybody
     empty: list[int] = []
+    plausible, confident = [], []
 
     def shown():
         for i, _ in source.frames:
             m = und.image(person(i), mask=True)
+            plausible.append(plausible_mask(m))
+            if keypoints is not None:
+                confident.append(int(confident_keypoints(keypoints(i))))
             if (m > 127).any():
                 yield m
             else:
@@ -157,6 +164,19 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
         box = square_box(shown(), margin, size)
     except DeltaError as exc:
         raise DeltaError(f"{source.video}: no selected frame shows a person ({exc})") from exc
+    ids = np.array([i for i, _ in source.frames])
+    plausible = np.array(plausible, dtype=bool)
+    counts = np.array(confident) if keypoints is not None else None
+    enough = plausible & (counts >= MIN_KEYPOINTS) if counts is not None else plausible
+    if not enough.any():
+        raise DeltaError(no_person_message(source.video, len(ids), counts, plausible, "plausible", PLAUSIBLE))
+    kept = ~np.isin(ids, empty)
+    few = ids[kept & (counts < MIN_KEYPOINTS)].tolist() if counts is not None else []
+    odd = ids[kept & ~plausible].tolist()
+    if few or odd:
+        log.warning("%s: kept, but showing no person: %d frames with < %d keypoints of confidence >= %g %s, "
+                    "%d with an implausible person mask %s", source.video, len(few), MIN_KEYPOINTS, CONF_THRESHOLD,
+                    few, len(odd), odd)  # fmt: skip
     skipped = set(empty)
     frames = [(i, s) for i, s in source.frames if i not in skipped]
     camera = crop_camera(und.camera(source.camera), box)
@@ -167,6 +187,9 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
         writer = RecordWriter(h5, len(frames), size, masks, face="face_landmarks" in source.provided)
         row = {i: r for r, (i, _) in enumerate(frames)}
         for i, rgb in iter_video(source.video, set(row)):
+            if rgb.shape[:2] != (source.camera.height, source.camera.width):
+                raise DeltaError(f"{source.video}: frame {i} is {rgb.shape[1]}x{rgb.shape[0]} but the camera is for "
+                                 f"{source.camera.width}x{source.camera.height} images")  # fmt: skip
             mask = person(i)
             if rgb.shape[:2] != mask.shape[:2]:
                 raise DeltaError(f"{source.video}: frame {i} is {rgb.shape[1]}x{rgb.shape[0]} but its mask is "
@@ -193,7 +216,8 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
         h5.attrs["crop"] = np.array([box.u0, box.v0, box.size, box.out])
         h5.attrs["source_size"] = np.array([source.camera.width, source.camera.height])
         h5.attrs["skipped_empty"] = np.array(empty, dtype=np.int64)
-    summary = {"frames": len(frames), "skipped_empty": empty, "crop": [box.u0, box.v0, box.size, box.out],
+    summary = {"frames": len(frames), "skipped_empty": empty, "few_keypoints": few, "implausible_mask": odd,
+               "crop": [box.u0, box.v0, box.size, box.out],
                "sources": {k: v for k, v in source.origin.items() if k in source.provided or k in ("camera", "smpl")}}  # fmt: skip
     log.info("prepared %s", summary)
     return summary

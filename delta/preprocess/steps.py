@@ -141,14 +141,28 @@ def run_keypoints(video: Path, num_frames: int, kind: str, path: str, out: str |
 
 
 def attach(source, path: str | Path) -> None:
-    """Add the masks of a step's output file to a Source's provided arrays (not overriding the dataset's)."""
+    """Add the masks of a step's output file to a Source's provided arrays (not overriding the dataset's).
+
+    Each array's shape is checked against the source: (N, H, W) masks of the video's size,
+    (N, 18, 3) keypoints, (N, 468, 3) face landmarks, N covering every selected frame.
+    """
+    from delta.data.sources import frame_array, mask_what
+
     f = h5py.File(path, "r")
     model = str(f.attrs.get("model", "unknown"))
-    for name in f:
-        if name in source.provided:
-            continue
-        dset = f[name]
-        source.provided[name] = lambda i, d=dset: np.asarray(d[i])
-        source.origin[name] = f"model:{model}"
+    W, H = source.camera.width, source.camera.height
+    needed = max((i for i, _ in source.frames), default=-1) + 1
+    points = {"keypoints": ((18, 3), "18 OpenPose keypoints (u, v, confidence) a frame"),
+              "face_landmarks": ((468, 3), "468 face-mesh landmarks (u, v, confidence) a frame")}  # fmt: skip
+    try:
+        for name in f:
+            if name in source.provided:
+                continue
+            shape, what = points.get(name, ((H, W), mask_what(W, H, source.video)))
+            source.provided[name] = frame_array(path, name, f[name], shape, what, needed)
+            source.origin[name] = f"model:{model}"
+    except DeltaError:
+        f.close()
+        raise
     previous = source.close
     source.close = lambda: (previous(), f.close())
