@@ -183,9 +183,10 @@ def cmd_train(args: argparse.Namespace) -> None:
     from delta.training.run import run_stage
 
     _threads(args.threads)
-    over = json_or_file(args.overrides, "--overrides")
-    run_stage(args.stage, args.record, args.body, args.start, args.out, args.preset,
-              over if isinstance(over, list) else [over], args.device, args.perceptual)  # fmt: skip
+    over = json_or_file(args.settings, "--settings")
+    over = [dict(o) if isinstance(o, dict) else o for o in (over if isinstance(over, list) else [over])]
+    preset = over[0].pop("preset", args.preset) if over and isinstance(over[0], dict) else args.preset
+    run_stage(args.stage, args.record, args.body, args.start, args.out, preset, over, args.device, args.perceptual)
 
 
 def cmd_export(args: argparse.Namespace) -> None:
@@ -391,7 +392,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--start", required=True, help="init/params.npz (stage 1) or stage 1's model.pt (stage 2)")
     p.add_argument("--out", required=True)
     p.add_argument("--preset", default="fast")
-    p.add_argument("--overrides", default="{}", help="JSON object (or list of objects) deep-merged over the preset")
+    p.add_argument("--settings", default="{}", help="training settings (JSON object, or a list deep-merged in order) "
+                   "over the preset; the first may name its 'preset' (what the train rule passes: the stage's view)")
     p.add_argument("--perceptual", default=None, help="folder of the shift-tolerant VGG weights (stage 2)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     p.add_argument("--threads", type=int, default=1)

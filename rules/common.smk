@@ -246,10 +246,10 @@ def wildcard_training(wildcards):
 
 
 def stage_training(wildcards):
-    """(preset, JSON of the resolved settings the stage reads): a training job's whole configuration."""
+    """A training job's whole configuration, as JSON: the preset and the resolved settings the stage reads."""
     preset, overrides = wildcard_training(wildcards)
     raw = resolve_training(preset, *overrides).raw
-    return preset, json.dumps(stage_view(raw, int(wildcards.stage)), sort_keys=True)
+    return json.dumps({"preset": preset, **stage_view(raw, int(wildcards.stage))}, sort_keys=True)
 
 
 def train_inputs(wildcards):

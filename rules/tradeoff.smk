@@ -130,8 +130,7 @@ use rule train as tradeoff_train with:
         losses=PATHS["variant_losses"],
     params:
         out=lambda w: PATHS["variant_stage_dir"].format(**w),
-        preset=lambda w: stage_training(w)[0],
-        settings=lambda w: stage_training(w)[1],
+        settings=stage_training,
         device=config["device"],
         perceptual=lambda w: str(Path(PATHS["perceptual_vgg"]).parent),
     log:

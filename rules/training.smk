@@ -26,8 +26,7 @@ rule train:
         losses=PATHS["stage_losses"],
     params:
         out=lambda w: PATHS["stage_dir"].format(**w),
-        preset=lambda w: stage_training(w)[0],
-        settings=lambda w: stage_training(w)[1],
+        settings=stage_training,
         device=config["device"],
         perceptual=lambda w: str(Path(PATHS["perceptual_vgg"]).parent),
     conda:
@@ -43,5 +42,5 @@ rule train:
         **train_gpu_resources(),
     shell:
         "delta train --stage {wildcards.stage:q} --record {input.record:q} --body {input.body:q} --start {input.start:q}"
-        " --out {params.out:q} --preset {params.preset:q} --overrides {params.settings:q}"
+        " --out {params.out:q} --settings {params.settings:q}"
         " --perceptual {params.perceptual:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"

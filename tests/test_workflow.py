@@ -302,7 +302,7 @@ def test_tradeoff_variants_reuse_the_main_run_and_name_their_subjects(tmp_path):
     out = res.stdout + res.stderr
     assert res.returncode == 0, out[-3000:]
     settings = {m.group(1): json.loads(m.group(2)) for m in re.finditer(
-        rf"delta train --stage 1 [^\n]*--out results/synthetic/{subjects[0]}/tradeoff/(\w+)/stage1 [^\n]*--overrides '([^']*)'", out)}  # fmt: skip
+        rf"delta train --stage 1 [^\n]*--out results/synthetic/{subjects[0]}/tradeoff/(\w+)/stage1 [^\n]*--settings '([^']*)'", out)}  # fmt: skip
     assert settings["ref"]["stage1"]["rays"] == 32 and settings["ref"]["render"]["samples"] != 7
     assert settings["ref"]["resolution"] != cfg["training"]["overrides"]["resolution"]  # nor training.overrides
     assert settings["few_rays"]["render"]["samples"] == 7  # the subject's own, after training.overrides

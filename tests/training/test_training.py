@@ -218,7 +218,7 @@ def test_a_killed_training_process_resumes_to_the_same_result(tiny_training, tmp
 
     def cmd(out):
         return [sys.executable, "-m", "delta.cli", "train", "--stage", "1", "--record", inputs["record"],
-                "--body", inputs["body"], "--start", inputs["init"], "--out", str(out), "--overrides", over,
+                "--body", inputs["body"], "--start", inputs["init"], "--out", str(out), "--settings", over,
                 "--threads", "1"]  # fmt: skip
 
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
