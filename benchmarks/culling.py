@@ -58,7 +58,7 @@ def per_sample_cost(model, data, n: int = 20000) -> dict:
 
 def one(subject: str, occupancy: bool, a, work: Path) -> dict:
     from delta.body.model import load_body_model
-    from delta.training.data import load_frames
+    from delta.data.frames import load_frames
     from delta.training.presets import resolve
     from delta.training.run import build_avatar, load_init
     from delta.training.trainer import train_stage

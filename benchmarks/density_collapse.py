@@ -34,7 +34,7 @@ import torch
 from delta import losses as L
 import delta.training.trainer as T
 from delta.body.model import load_body_model
-from delta.training.data import load_frames
+from delta.data.frames import load_frames
 from delta.training.presets import deep_merge, resolve
 from delta.training.run import build_avatar, load_init
 from delta.training.trainer import train_stage

@@ -27,10 +27,10 @@ import pandas as pd
 import torch
 
 from delta.body.model import load_body_model
+from delta.data.frames import load_frames
 from delta.eval.evaluate import EvalSettings, evaluate, summarize
 from delta.eval.plots import smooth
 from delta.eval.tradeoff import PSNR_WINDOW
-from delta.training.data import load_frames
 from delta.training.presets import resolve
 from delta.training.run import build_avatar, load_init, load_trained, pick_device, save_model
 from delta.training.trainer import train_stage

@@ -44,9 +44,9 @@ import pandas as pd
 import torch
 
 from delta.body.model import load_body_model
+from delta.data.frames import load_frames
 from delta.eval.plots import smooth
 from delta.eval.tradeoff import MIN_GAIN_DB, PSNR_WINDOW, hybrid_rows, psnr_gain, time_to_psnr
-from delta.training.data import load_frames
 from delta.training.presets import deep_merge, resolve
 from delta.training.run import build_avatar, load_init, pick_device, save_model
 from delta.training.trainer import train_stage

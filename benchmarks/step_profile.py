@@ -52,9 +52,9 @@ def timed(owners: list[tuple[object, str, str]], totals: dict):
 
 def profile(model, data, st, steps: int, seed: int = 0) -> tuple[pd.DataFrame, float]:
     from delta import losses as L
+    from delta.data.frames import sample_rays
     from delta.deformers import knn as deformer
     from delta.render import hybrid
-    from delta.training.data import sample_rays
     from delta.training.trainer import _to, loss_terms
 
     totals: dict[str, float] = defaultdict(float)

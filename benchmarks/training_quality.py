@@ -58,7 +58,7 @@ def config_overrides(subject: str) -> list[dict]:
 
 def one(subject: str, preset: str, out: Path, extra: dict, refine: int) -> dict:
     from delta.training.run import build_avatar, load_init_from_state, run_stage
-    from delta.training.data import load_frames
+    from delta.data.frames import load_frames
     from delta.training.presets import resolve
     from delta.body.model import load_body_model
     from delta.eval.heldout import score_frames

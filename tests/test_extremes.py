@@ -21,6 +21,7 @@ from delta import losses as L
 from delta.body.lbs import batch_rodrigues, lbs
 from delta.body.model import BodyModel
 from delta.cameras.models import MIN_DEPTH, OrthographicCamera, PinholeCamera, look_at
+from delta.data.frames import RayBatch
 from delta.deformers import knn as deformer
 from delta.fields.networks import FieldSpec, NeRFField
 from delta.geometry import distance_grid
@@ -29,7 +30,6 @@ from delta.models.avatar import AvatarSpec, HybridAvatar, InitParams
 from delta.render.hybrid import PosedMesh, RenderSettings, render_rays
 from delta.render.silhouette import soft_silhouette
 from delta.render.volume import composite, nerf_weights, ray_box, stratified_samples
-from delta.training.data import RayBatch
 from delta.training.presets import resolve
 from delta.training.trainer import loss_terms
 from tests.conftest import soft_tree_model

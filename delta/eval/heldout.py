@@ -12,9 +12,9 @@ import dataclasses
 import torch
 
 from delta import losses as L
+from delta.data.frames import FrameData, sample_rays
 from delta.eval.metrics import iou, psnr
 from delta.models.avatar import HybridAvatar
-from delta.training.data import FrameData, sample_rays
 from delta.training.trainer import render_image
 
 

@@ -1,1 +1,1 @@
-"""Training stages: data, presets, trainer, checkpoints."""
+"""Training stages: presets, trainer, checkpoints (the frames and rays they read: ``delta.data.frames``)."""

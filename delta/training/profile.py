@@ -18,8 +18,8 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from delta import losses as L
+from delta.data.frames import FrameData, sample_rays
 from delta.models.avatar import HybridAvatar
-from delta.training.data import FrameData, sample_rays
 from delta.training.presets import TrainSettings
 from delta.training.trainer import _to, loss_terms
 

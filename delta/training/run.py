@@ -19,10 +19,10 @@ import torch
 from delta import DeltaError
 from delta.body.model import load_body_model
 from delta.cameras.models import OrthographicCamera
+from delta.data.frames import FrameData, frame_times, load_frames
 from delta.io import atomic_path, load_state, save_json
 from delta.models.avatar import HybridAvatar, InitParams
 from delta.render.occupancy import OccupancySettings
-from delta.training.data import FrameData, frame_times, load_frames
 from delta.training.presets import TrainSettings, deep_merge, resolve
 from delta.training.scope import detect_capture, frozen_joints
 from delta.training.trainer import file_digest, train_stage

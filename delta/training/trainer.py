@@ -25,9 +25,9 @@ import torch
 
 from delta import DeltaError
 from delta import losses as L
+from delta.data.frames import FrameData, RayBatch, sample_rays
 from delta.io import atomic_path, load_state
 from delta.models.avatar import HybridAvatar
-from delta.training.data import FrameData, RayBatch, sample_rays
 from delta.training.presets import StageSettings, TrainSettings, stage_view
 
 log = logging.getLogger(__name__)

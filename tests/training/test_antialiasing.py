@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from delta.training.data import sample_rays
+from delta.data.frames import sample_rays
 from delta.training.trainer import pixel_grid, render_image
 
 

@@ -12,8 +12,8 @@ import torch
 
 from delta import losses as L
 from delta.body.model import load_body_model
+from delta.data.frames import load_frames, sample_rays
 from delta.render.volume import stratified_samples
-from delta.training.data import load_frames, sample_rays
 from delta.training.presets import resolve
 from delta.training.run import build_avatar, load_init
 from delta.training.trainer import _to, loss_terms

@@ -6,7 +6,7 @@ import torch
 
 from delta import DeltaError
 from delta.body.model import load_body_model
-from delta.training.data import frame_times, load_frames, sample_rays
+from delta.data.frames import frame_times, load_frames, sample_rays
 from delta.training.presets import resolve
 from delta.training.run import build_avatar, load_init
 from delta.training.trainer import loss_terms

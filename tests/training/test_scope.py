@@ -8,7 +8,7 @@ import torch
 
 from delta import DeltaError
 from delta.body.model import load_body_model
-from delta.training.data import load_frames
+from delta.data.frames import load_frames
 from delta.training.presets import resolve
 from delta.training.run import build_avatar, load_init, resolve_scope
 from delta.training.scope import detect_capture, frozen_joints, lower_body_joints, lower_body_vertices

@@ -9,8 +9,8 @@ import torch
 
 from delta import DeltaError
 from delta.body.model import load_body_model
+from delta.data.frames import load_frames, sample_rays
 from delta.io import load_state
-from delta.training.data import load_frames, sample_rays
 from delta.training.presets import resolve
 from delta.training.run import build_avatar, load_init, run_stage
 from delta.training.trainer import CHECKPOINT, loss_terms, nerf_only_terms, reproducible, train_stage

@@ -1,4 +1,5 @@
-"""Training data: a frame record resized to the preset's resolution, and ray sampling.
+"""Frame data: a frame record resized to the preset's resolution, and ray sampling (read by training,
+evaluation and export alike).
 
 Targets follow the evaluation convention of the anchors: the image composited on the
 background colour with the person alpha (white by default).
