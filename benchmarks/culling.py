@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def image_psnr(model, data, frames) -> float:
-    from delta.training.trainer import render_image
+    from delta.models.image import render_image
 
     vals = []
     for k in frames:

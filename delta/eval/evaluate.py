@@ -31,8 +31,8 @@ from delta.eval.geometry import mesh_distance, vertex_error
 from delta.eval.heldout import refine_frame
 from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import atomic_path
+from delta.models.image import pixel_grid, render_image
 from delta.training.run import Trained
-from delta.training.trainer import pixel_grid, render_image
 
 log = logging.getLogger(__name__)
 SPLITS = {"train": 0, "test_view": 1, "test_pose": 2}

@@ -15,7 +15,7 @@ from delta import losses as L
 from delta.data.frames import FrameData, sample_rays
 from delta.eval.metrics import iou, psnr
 from delta.models.avatar import HybridAvatar
-from delta.training.trainer import render_image
+from delta.models.image import render_image
 
 
 @dataclasses.dataclass

@@ -19,8 +19,8 @@ from delta.export.video import render_frames, side_by_side, turntable, write_vid
 from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import atomic_path, save_json
 from delta.models.avatar import HybridAvatar
+from delta.models.image import pixel_grid, render_image
 from delta.training.run import Trained, load_trained
-from delta.training.trainer import pixel_grid, render_image
 
 log = logging.getLogger(__name__)
 #: Rendered masks are thresholded here (soft silhouette, NeRF opacity).

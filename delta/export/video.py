@@ -14,7 +14,7 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_
 
 from delta.io import atomic_path
 from delta.models.avatar import HybridAvatar
-from delta.training.trainer import render_image
+from delta.models.image import render_image
 
 #: Absolute error (mean over RGB) shown at the top of the heat map's colour scale.
 ERROR_SCALE = 0.25

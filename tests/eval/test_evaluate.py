@@ -89,7 +89,7 @@ def test_a_common_resolution_renders_the_same_rays(tiny_trained, subject):
     """Loaded at twice its training resolution, an avatar renders the sub-pixel rays of its own
     resolution's 2×2 supersampling: the 2× render area-downsampled is that supersampled render
     (pinhole intrinsics rescaled; an orthographic camera is resolution-free)."""
-    from delta.training.trainer import render_image
+    from delta.models.image import render_image
 
     t = tiny_trained[subject]
     own = load_trained(t["model"], t["record"], t["body"])

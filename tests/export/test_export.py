@@ -15,8 +15,8 @@ from delta.cli import main
 from delta.export import lineup
 from delta.export.meshes import MeshPart, body_mesh, pose_clothing
 from delta.export.run import export_trained, novel_pose_frames, rendered_hits, report_frames, silhouette
+from delta.models.image import render_image
 from delta.training.run import load_trained
-from delta.training.trainer import render_image
 from tests.export.conftest import SETTINGS
 
 pytestmark = pytest.mark.slow

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from delta.data.frames import sample_rays
-from delta.training.trainer import pixel_grid, render_image
+from delta.models.image import pixel_grid, render_image
 
 
 def test_pixel_grid_centres_and_subpixels():
