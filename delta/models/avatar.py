@@ -16,6 +16,7 @@ from torch import nn
 
 from delta.body.lbs import batch_rodrigues, lbs
 from delta.body.model import BodyModel
+from delta.body.parts import lower_body_vertices
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.deformers import knn as deformer
 from delta.fields.networks import DeformationField, FieldSpec, NeRFField, VertexField, time_features
@@ -24,7 +25,6 @@ from delta.losses import mesh_edges
 from delta.render.hybrid import PosedMesh, RayRender, RenderSettings, render_rays
 from delta.models.trajectory import Trajectory
 from delta.render.occupancy import OccupancyGrid
-from delta.training.scope import lower_body_vertices
 
 
 @dataclasses.dataclass

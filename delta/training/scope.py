@@ -20,6 +20,7 @@ import torch
 from delta import DeltaError
 from delta.body.lbs import lbs
 from delta.body.model import BodyModel
+from delta.body.parts import lower_body_vertices
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 
 log = logging.getLogger(__name__)
@@ -31,8 +32,6 @@ JOINT_GROUPS: dict[str, tuple[str, ...]] = {
     "eyes": ("eye",),
     "jaw": ("jaw",),
 }
-#: Joints that start the lower body (with all their descendants): hips/thighs in Anny and SMPL-X.
-LOWER_BODY_ROOTS = ("upperleg01", "left_hip", "right_hip")
 #: An ``auto`` capture is ``upper`` when at most this share of lower-body vertices is ever in view.
 #: A full-body capture shows nearly all of them (they are counted inside the image, seen or not);
 #: a head-and-shoulders one the top of the pelvis at its bottom edge: 1.0–1.1% on the synthetic
@@ -57,25 +56,6 @@ def frozen_joints(body: BodyModel, freeze: list, rest_eps: float, poses: torch.T
         out |= set(torch.nonzero(poses.abs().amax(dim=(0, 2)) <= rest_eps).squeeze(1).tolist())
     out.discard(0)
     return sorted(out)
-
-
-def lower_body_joints(body: BodyModel) -> list[int]:
-    """The hips/legs and every joint below them."""
-    names = body.joint_names
-    lower = set()
-    for j in range(body.num_joints):
-        p = int(body.parents[j])
-        if any(names[j].startswith(r) for r in LOWER_BODY_ROOTS) or (p >= 0 and p in lower):
-            lower.add(j)
-    return sorted(lower)
-
-
-def lower_body_vertices(body: BodyModel) -> torch.Tensor:
-    """(V,) bool: vertices skinned mostly (> 1/2) to lower-body joints."""
-    ids = lower_body_joints(body)
-    if not ids:
-        return torch.zeros(body.num_vertices, dtype=torch.bool, device=body.weights.device)
-    return body.weights[:, ids].sum(1) > 0.5
 
 
 def _camera(camera, frame: int, n: int):

@@ -1,0 +1,32 @@
+"""Parts of the body by its skeleton: the lower body (the hips or thighs and every joint below them).
+
+The avatar leaves it out of an ``upper`` capture; training's scope detects such a capture from it.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from delta.body.model import BodyModel
+
+#: Joints that start the lower body (with all their descendants): hips/thighs in Anny and SMPL-X.
+LOWER_BODY_ROOTS = ("upperleg01", "left_hip", "right_hip")
+
+
+def lower_body_joints(body: BodyModel) -> list[int]:
+    """The hips/legs and every joint below them."""
+    names = body.joint_names
+    lower = set()
+    for j in range(body.num_joints):
+        p = int(body.parents[j])
+        if any(names[j].startswith(r) for r in LOWER_BODY_ROOTS) or (p >= 0 and p in lower):
+            lower.add(j)
+    return sorted(lower)
+
+
+def lower_body_vertices(body: BodyModel) -> torch.Tensor:
+    """(V,) bool: vertices skinned mostly (> 1/2) to lower-body joints."""
+    ids = lower_body_joints(body)
+    if not ids:
+        return torch.zeros(body.num_vertices, dtype=torch.bool, device=body.weights.device)
+    return body.weights[:, ids].sum(1) > 0.5
