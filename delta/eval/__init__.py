@@ -1,1 +1,1 @@
-"""Evaluation: image metrics, held-out renders, geometry against ground truth, mesh export."""
+"""Evaluation: held-out renders scored with ``delta.metrics``, geometry against ground truth, mesh export."""

@@ -24,9 +24,9 @@ import torch
 import trimesh
 
 from delta import DeltaError
+from delta import metrics as M
 from delta.body.model import REGION
 from delta.data.record import FrameRecord
-from delta.eval import metrics as M
 from delta.eval.geometry import mesh_distance, vertex_error
 from delta.eval.heldout import refine_frame
 from delta.geometry.raymesh import ray_mesh_hits

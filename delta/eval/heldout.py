@@ -13,7 +13,7 @@ import torch
 
 from delta import losses as L
 from delta.data.frames import FrameData, sample_rays
-from delta.eval.metrics import iou, psnr
+from delta.metrics import iou, psnr
 from delta.models.avatar import HybridAvatar
 from delta.models.image import render_image
 

@@ -14,10 +14,10 @@ from delta import DeltaError
 from delta.export import lineup
 from delta.export.meshes import MeshPart, body_mesh, clothing_nerf_space, pose_clothing, write_glb, write_mesh
 from delta.export.settings import ExportSettings
-from delta.eval.metrics import psnr
 from delta.export.video import render_frames, side_by_side, turntable, write_video
 from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import atomic_path, save_json
+from delta.metrics import psnr
 from delta.models.avatar import HybridAvatar
 from delta.models.image import pixel_grid, render_image
 from delta.training.run import Trained, load_trained

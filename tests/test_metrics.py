@@ -7,7 +7,7 @@ import pytest
 import torch
 from skimage.metrics import structural_similarity
 
-from delta.eval import metrics as M
+from delta import metrics as M
 
 
 def const(value, h=16, w=16):
