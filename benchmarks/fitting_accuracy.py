@@ -134,7 +134,9 @@ def main() -> None:
                            torch.from_numpy(gt["transl"][sel]), camera, *[None] * 4)  # fmt: skip
         for stage, res in (("truth", gt_res), ("before", before), ("after", after)):
             cam = res.camera if isinstance(res.camera, OrthographicCamera) else camera
-            row = dict(config=args.label, subject=capture.name, stage=stage, frames=len(sel), camera=str(gt["camera_model"]))
+            row = dict(
+                config=args.label, subject=capture.name, stage=stage, frames=len(sel), camera=str(gt["camera_model"])
+            )
             row.update(scores(model, kp_map, cam, detected, truth, out.vertices, res.betas, res.pose, res.transl, masks, coarse,
                               args.iou_size))  # fmt: skip
             row["seconds_per_frame"] = seconds / len(sel) if stage == "after" else 0.0

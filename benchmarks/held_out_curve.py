@@ -75,10 +75,14 @@ def main() -> None:
         save_model(snapshot, model, 1, saved["preset"], st, step)
         scores = summarize(evaluate(load_trained(snapshot, args.record, args.body, args.device), args.record, scoring,
                                     args.gt_meshes, args.subject))["test_view"]["unrefined"]  # fmt: skip
-        row = {"subject": args.subject, "preset": saved["preset"], "step": step,
-               "seconds": float(losses["seconds"].iloc[-1]),
-               "train_psnr": float(smooth(losses["psnr"].to_numpy(), PSNR_WINDOW)[-1]),
-               **{f"held_out_{k}": scores.get(k, float("nan")) for k in ("psnr", "ssim", "stlpips_alex", "nerf_iou")}}
+        row = {
+            "subject": args.subject,
+            "preset": saved["preset"],
+            "step": step,
+            "seconds": float(losses["seconds"].iloc[-1]),
+            "train_psnr": float(smooth(losses["psnr"].to_numpy(), PSNR_WINDOW)[-1]),
+            **{f"held_out_{k}": scores.get(k, float("nan")) for k in ("psnr", "ssim", "stlpips_alex", "nerf_iou")},
+        }
         if run is not None:  # the finished run's clock at this step, and how closely the rerun follows it
             ran = run.head(step)
             row["run_seconds"] = float(ran["seconds"].iloc[-1])

@@ -22,7 +22,6 @@ import h5py
 import numpy as np
 import pandas as pd
 
-from delta.body.keypoints import OPENPOSE18
 from delta.preprocess.onnx_models import ClothSegmentation, clothing_mask
 from delta.preprocess.parsing_default import VideoParser
 from delta.data.sources import synthetic_source

@@ -60,8 +60,12 @@ def train(args: argparse.Namespace) -> None:
     else:  # a preset's name: its own settings, --override on top
         saved = {"preset": args.settings, "settings": {}}
     raw = deep_merge(saved["settings"], json.loads(args.override))
-    raw["stage1"] = {**raw.get("stage1", {}), "iterations": args.max_steps, "checkpoint_every": args.chunk,
-                     "preview_every": 0}
+    raw["stage1"] = {
+        **raw.get("stage1", {}),
+        "iterations": args.max_steps,
+        "checkpoint_every": args.chunk,
+        "preview_every": 0,
+    }
     st = resolve(saved["preset"], raw)
     if st.stage1.lr_final != 1.0:
         raise SystemExit("the curve is a prefix of a longer run only without learning-rate decay (lr_final 1)")
@@ -164,8 +168,11 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("train")
-    t.add_argument("--settings", required=True,
-                   help="the sweep's reference stage1/settings.json, or a preset's name (e.g. paper) with --override")
+    t.add_argument(
+        "--settings",
+        required=True,
+        help="the sweep's reference stage1/settings.json, or a preset's name (e.g. paper) with --override",
+    )
     t.add_argument("--record", required=True)
     t.add_argument("--body", required=True)
     t.add_argument("--init", required=True)
@@ -183,8 +190,12 @@ def main() -> None:
     pr.add_argument("--subject", required=True)
     pr.add_argument("--curve-device", default="")
     pr.add_argument("--measured", action="store_true", help="the curve was taken on 2 CPU cores: keep its seconds")
-    pr.add_argument("--warmup", type=int, default=0,
-                    help="its first steps are a NeRF-only warm-up (for curves written before losses.csv marked them)")
+    pr.add_argument(
+        "--warmup",
+        type=int,
+        default=0,
+        help="its first steps are a NeRF-only warm-up (for curves written before losses.csv marked them)",
+    )
     pr.add_argument("--out", required=True)
     pr.add_argument("--append", action="store_true")
     rb = sub.add_parser("rebound", help="lower bounds of a new variant run against a stored projection")

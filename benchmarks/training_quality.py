@@ -31,7 +31,6 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def body_error_mm(model, data, meshes_h5: Path) -> float:
     """Mean vertex distance (mm) of the trained body to the GT body, centroids aligned, over training frames."""
-    from delta.body.lbs import lbs
 
     errs = []
     with h5py.File(meshes_h5) as f, torch.no_grad():
@@ -91,7 +90,9 @@ def one(subject: str, preset: str, out: Path, extra: dict, refine: int) -> dict:
             row[f"s{stage}_l1{tag}"] = round(float(np.mean([s.l1 for s in scores])), 4)
             row[f"s{stage}_nerf_iou{tag}"] = round(float(np.nanmean([s.nerf_iou for s in scores])), 3)
             row[f"s{stage}_mesh_iou{tag}"] = round(float(np.mean([s.mesh_iou for s in scores])), 3)
-        row[f"s{stage}_body_err_mm"] = round(body_error_mm(model, data, ROOT / f"data/synthetic/{subject}/gt/meshes.h5"), 1)
+        row[f"s{stage}_body_err_mm"] = round(
+            body_error_mm(model, data, ROOT / f"data/synthetic/{subject}/gt/meshes.h5"), 1
+        )
     return row
 
 

@@ -169,7 +169,6 @@ def cmd_fit_init(args: argparse.Namespace) -> None:
     from delta.fitting.run import run
     from delta.io import save_json
 
-
     from delta.fitting.fit import fit_config
 
     _threads(args.threads)
@@ -199,8 +198,7 @@ def cmd_export(args: argparse.Namespace) -> None:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
-    from delta.eval.evaluate import (EvalSettings, clothing_distance, evaluate, summarize, train_body_error_mm,
-                                     write_csv)
+    from delta.eval.evaluate import EvalSettings, clothing_distance, evaluate, summarize, train_body_error_mm, write_csv
     from delta.io import save_json
     from delta.training.run import load_trained
 
@@ -380,8 +378,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--record", required=True)
     p.add_argument("--body", required=True)
     p.add_argument("--out", required=True)
-    p.add_argument("--settings", default="{}",
-                   help="JSON object (or list of objects) of FitConfig fields (delta/fitting/fit.py), applied in order")
+    p.add_argument(
+        "--settings",
+        default="{}",
+        help="JSON object (or list of objects) of FitConfig fields (delta/fitting/fit.py), applied in order",
+    )
     p.add_argument("--threads", type=int, default=1)
     p.set_defaults(func=cmd_fit_init)
 
@@ -392,8 +393,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--start", required=True, help="init/params.npz (stage 1) or stage 1's model.pt (stage 2)")
     p.add_argument("--out", required=True)
     p.add_argument("--preset", default="fast")
-    p.add_argument("--settings", default="{}", help="training settings (JSON object, or a list deep-merged in order) "
-                   "over the preset; the first may name its 'preset' (what the train rule passes: the stage's view)")
+    p.add_argument(
+        "--settings",
+        default="{}",
+        help="training settings (JSON object, or a list deep-merged in order) "
+        "over the preset; the first may name its 'preset' (what the train rule passes: the stage's view)",
+    )
     p.add_argument("--perceptual", default=None, help="folder of the shift-tolerant VGG weights (stage 2)")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     p.add_argument("--threads", type=int, default=1)
@@ -402,7 +407,9 @@ def build_parser() -> argparse.ArgumentParser:
     from delta.perceptual.weights import add_fetch_perceptual_arguments, cmd_fetch_perceptual
     from delta.export.settings import ExportSettings
 
-    p = sub.add_parser("fetch-perceptual", help="fetch the shift-tolerant VGG16/AlexNet weights (stlpips-pytorch 0.0.2)")
+    p = sub.add_parser(
+        "fetch-perceptual", help="fetch the shift-tolerant VGG16/AlexNet weights (stlpips-pytorch 0.0.2)"
+    )
     add_fetch_perceptual_arguments(p)
     p.set_defaults(func=cmd_fetch_perceptual)
 

@@ -190,12 +190,18 @@ def _check_frame_ranges(config: dict, base: Path, generated: set[str]) -> list[s
             n = None if spec["root"] in generated else _video_frames(video)
             for split in ("train", "test"):
                 r = ranges[split]
-                if not (isinstance(r, list) and len(r) == 3 and all(isinstance(v, int) and not isinstance(v, bool) for v in r)):
+                if not (
+                    isinstance(r, list)
+                    and len(r) == 3
+                    and all(isinstance(v, int) and not isinstance(v, bool) for v in r)
+                ):
                     out.append(f"config key '{key}.{split}': expected [start, end, step] (whole numbers), got {r!r}")
                 elif r[0] < 0 or r[1] < r[0] or r[2] < 1:
                     out.append(f"config key '{key}.{split}': [start, end, step] = {r} is not a valid range")
                 elif n is not None and r[1] >= n:
-                    out.append(f"config key '{key}.{split}': ends at frame {r[1]}, but {video} has {n} frames (0 to {n - 1})")
+                    out.append(
+                        f"config key '{key}.{split}': ends at frame {r[1]}, but {video} has {n} frames (0 to {n - 1})"
+                    )
     return out
 
 
@@ -226,7 +232,9 @@ def _check_settings(config: dict) -> list[str]:
         attempt(resolve, preset, *overrides, where=f"training (subject '{s}')")
     for v, spec in trade["variants"].items():
         if not isinstance(spec.get("inherit_training", True), bool):
-            out.append(f"config key 'tradeoff.variants.{v}.inherit_training': {spec['inherit_training']!r} is not true or false")
+            out.append(
+                f"config key 'tradeoff.variants.{v}.inherit_training': {spec['inherit_training']!r} is not true or false"
+            )
         unknown = sorted(set(spec.get("subjects") or []) - subjects)
         if unknown:
             out.append(f"config key 'tradeoff.variants.{v}.subjects': {unknown} are not configured subjects")

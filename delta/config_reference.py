@@ -21,11 +21,13 @@ from typing import Any
 SCHEMA = Path("workflow/schemas/config.schema.yaml")
 COMMAND = "python -m delta.config_reference > docs/configuration.md"
 HEADER = ("key", "type", "default", "allowed", "description")
-INTRO = ("Free-form keys are documented where they are read: a dataset subject's keys in "
-         "[preprocessing](preprocessing.md) (synthetic subjects: `SubjectSpec` in `delta/synthetic/spec.py`), "
-         "`fitting.settings` and `fitting.subjects.<subject>` are `FitConfig`'s fields (`delta/fitting/fit.py`, "
-         "[fitting](fitting.md)), `training.overrides`, `training.subjects.<subject>` and "
-         "`tradeoff.variants.<variant>` are the presets' keys (`delta/training/presets.py`).")
+INTRO = (
+    "Free-form keys are documented where they are read: a dataset subject's keys in "
+    "[preprocessing](preprocessing.md) (synthetic subjects: `SubjectSpec` in `delta/synthetic/spec.py`), "
+    "`fitting.settings` and `fitting.subjects.<subject>` are `FitConfig`'s fields (`delta/fitting/fit.py`, "
+    "[fitting](fitting.md)), `training.overrides`, `training.subjects.<subject>` and "
+    "`tradeoff.variants.<variant>` are the presets' keys (`delta/training/presets.py`)."
+)
 
 
 def _scalar(value: Any) -> str:
@@ -118,7 +120,13 @@ def _placeholder(key: str) -> str:
 
 def _row(path: str, node: dict) -> str:
     default = _code(_flow(node["default"])) if "default" in node else ""
-    cells = (_cell(_code(path)), _type(node), _cell(default), _cell(_allowed(node)), _prose(node.get("description", "")))
+    cells = (
+        _cell(_code(path)),
+        _type(node),
+        _cell(default),
+        _cell(_allowed(node)),
+        _prose(node.get("description", "")),
+    )
     return "| " + " | ".join(cells) + " |"
 
 

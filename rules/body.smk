@@ -6,22 +6,22 @@ rule convert_anny:
         model=PATHS["body_base"].format(model="anny"),
         report=PATHS["body_base_report"].format(model="anny"),
         shape_space=PATHS["anny_shape_space"],
+    log:
+        log_path("convert_anny"),
+    benchmark:
+        benchmark_path("convert_anny")
+    conda:
+        "../workflow/envs/delta.yaml"
+    threads: 2
+    resources:
+        mem_mb=lambda w, attempt: 6000 * attempt,
+        runtime=30,
     params:
         num_shape=BODY["anny"]["num_shape"],
         num_samples=BODY["anny"]["num_samples"],
         seed=BODY["anny"]["seed"],
         merge=BODY["anny"]["merge_bones"],
         cache=PATHS["anny_cache"],
-    conda:
-        "../workflow/envs/delta.yaml"
-    log:
-        log_path("convert_anny"),
-    benchmark:
-        benchmark_path("convert_anny")
-    threads: 2
-    resources:
-        mem_mb=lambda w, attempt: 6000 * attempt,
-        runtime=30,
     shell:
         "delta convert-anny --out {output.model:q} --report {output.report:q} --shape-space {output.shape_space:q}"
         " --num-shape {params.num_shape:q} --num-samples {params.num_samples:q} --seed {params.seed:q}"
@@ -33,15 +33,15 @@ rule load_smplx:
         BODY["smplx_path"],
     output:
         PATHS["body_base"].format(model="smplx"),
+    log:
+        log_path("load_smplx"),
+    conda:
+        "../workflow/envs/delta.yaml"
+    resources:
+        mem_mb=2000,
     params:
         num_shape=BODY["smplx"]["num_shape"],
         num_expression=BODY["smplx"]["num_expression"],
-    conda:
-        "../workflow/envs/delta.yaml"
-    log:
-        log_path("load_smplx"),
-    resources:
-        mem_mb=2000,
     shell:
         "delta load-smplx --src {input:q} --out {output:q}"
         " --num-shape {params.num_shape:q} --num-expression {params.num_expression:q} > {log:q} 2>&1"
@@ -53,12 +53,12 @@ rule upsample_body:
     output:
         model=PATHS["body"],
         summary=PATHS["body_summary"],
-    conda:
-        "../workflow/envs/delta.yaml"
     log:
         log_path("upsample_body", "{model}_sub{level}"),
     benchmark:
         benchmark_path("upsample_body", "{model}_sub{level}")
+    conda:
+        "../workflow/envs/delta.yaml"
     resources:
         mem_mb=4000,
     shell:

@@ -3,8 +3,15 @@ import json
 import shlex
 from pathlib import Path
 
-from delta.config import SYNTHETIC_PEOPLESNAPSHOT_ROOT, subject_training as _subject_training
-from delta.config import check_device, validate_workflow_config, variant_training as _variant_training
+from delta.config import (
+    SYNTHETIC_PEOPLESNAPSHOT_ROOT,
+    subject_training as _subject_training,
+)
+from delta.config import (
+    check_device,
+    validate_workflow_config,
+    variant_training as _variant_training,
+)
 from delta.data.sources import PROVIDES
 from delta.synthetic.spec import parse_subject
 from delta.training.presets import resolve as resolve_training, stage_view
@@ -23,7 +30,8 @@ BODY = config["body_model"]
 PRE = config["preprocess"]
 DATASETS = config["datasets"]
 SYNTHETIC = {
-    name: parse_subject(name, raw) for name, raw in DATASETS.get("synthetic", {}).get("subjects", {}).items()
+    name: parse_subject(name, raw)
+    for name, raw in DATASETS.get("synthetic", {}).get("subjects", {}).items()
 }
 
 
@@ -101,18 +109,28 @@ def anny_model_file():
 
 
 def synthetic_spec_json(wildcards):
-    return json.dumps(DATASETS["synthetic"]["subjects"][wildcards.subject], sort_keys=True)
+    return json.dumps(
+        DATASETS["synthetic"]["subjects"][wildcards.subject], sort_keys=True
+    )
 
 
 def peoplesnapshot_files(subject):
     d = PATHS["syn_ps_dir"].format(subject=subject)
-    return [f"{d}/{subject}.mp4", f"{d}/masks.hdf5", f"{d}/camera.pkl", f"{d}/keypoints.hdf5"]
+    return [
+        f"{d}/{subject}.mp4",
+        f"{d}/masks.hdf5",
+        f"{d}/camera.pkl",
+        f"{d}/keypoints.hdf5",
+    ]
 
 
 def synthetic_targets():
     out = []
     for name, spec in SYNTHETIC.items():
-        out += [PATHS[k].format(subject=name) for k in ("syn_video", "syn_params", "syn_frames", "syn_splits")]
+        out += [
+            PATHS[k].format(subject=name)
+            for k in ("syn_video", "syn_params", "syn_frames", "syn_splits")
+        ]
         if spec.camera == "pinhole":
             out += peoplesnapshot_files(name)
     return out
@@ -147,9 +165,11 @@ def used_provided(dataset):
 
 
 def needs_parsing(dataset):
-    wanted = {"default": {"clothing"}, "u2net_cloth": {"clothing"}, "bisenet_face": {"hair", "skin"}}.get(
-        PRE["parsing"]["model"], set()
-    )
+    wanted = {
+        "default": {"clothing"},
+        "u2net_cloth": {"clothing"},
+        "bisenet_face": {"hair", "skin"},
+    }.get(PRE["parsing"]["model"], set())
     return bool(wanted - set(used_provided(dataset)))
 
 
@@ -185,7 +205,10 @@ def video_input(wildcards):
     if kind == "synthetic":
         return PATHS["syn_video"].format(subject=wildcards.subject)
     root = Path(DATASETS[wildcards.dataset]["root"])
-    return str((root / wildcards.subject if kind == "peoplesnapshot" else root) / f"{wildcards.subject}.mp4")
+    return str(
+        (root / wildcards.subject if kind == "peoplesnapshot" else root)
+        / f"{wildcards.subject}.mp4"
+    )
 
 
 def prepare_root(wildcards):
@@ -196,7 +219,9 @@ def prepare_root(wildcards):
 
 
 def subject_config_json(wildcards):
-    return json.dumps(DATASETS[wildcards.dataset]["subjects"][wildcards.subject], sort_keys=True)
+    return json.dumps(
+        DATASETS[wildcards.dataset]["subjects"][wildcards.subject], sort_keys=True
+    )
 
 
 def record_targets():
@@ -235,7 +260,9 @@ def subject_settings(subject):
     return resolve_training(preset, *overrides)
 
 
-TRAINING = {s: subject_settings(s) for spec in DATASETS.values() for s in spec["subjects"]}
+TRAINING = {
+    s: subject_settings(s) for spec in DATASETS.values() for s in spec["subjects"]
+}
 
 
 def wildcard_training(wildcards):
@@ -249,7 +276,9 @@ def stage_training(wildcards):
     """A training job's whole configuration, as JSON: the preset and the resolved settings the stage reads."""
     preset, overrides = wildcard_training(wildcards)
     raw = resolve_training(preset, *overrides).raw
-    return json.dumps({"preset": preset, **stage_view(raw, int(wildcards.stage))}, sort_keys=True)
+    return json.dumps(
+        {"preset": preset, **stage_view(raw, int(wildcards.stage))}, sort_keys=True
+    )
 
 
 def train_inputs(wildcards):
@@ -261,7 +290,9 @@ def train_inputs(wildcards):
         return files
     model = "variant_model" if "variant" in wildcards.keys() else "stage_model"
     files["start"] = PATHS[model].format(**{**w, "stage": 1})
-    st = resolve_training(*[wildcard_training(wildcards)[0]] + wildcard_training(wildcards)[1])
+    st = resolve_training(
+        *[wildcard_training(wildcards)[0]] + wildcard_training(wildcards)[1]
+    )
     if st.semantic != "none" and st.weights.semantic > 0:
         files["vgg"] = PATHS["perceptual_vgg"]
     return files
@@ -283,7 +314,12 @@ def train_runtime(wildcards, attempt):
 
 def all_targets():
     return (
-        [body_model_file(), PATHS["body_summary"].format(model=BODY["name"], level=BODY["upsample_level"])]
+        [
+            body_model_file(),
+            PATHS["body_summary"].format(
+                model=BODY["name"], level=BODY["upsample_level"]
+            ),
+        ]
         + synthetic_targets()
         + record_targets()
         + dataset_metrics_targets()
@@ -305,7 +341,9 @@ def synth_mem_mb(wildcards, attempt):
 def synth_runtime(wildcards, attempt):
     """Minutes: ~0.8 s a 512² frame on 2 cores, times 3 for slower nodes."""
     spec = SYNTHETIC[wildcards.subject]
-    return int(5 + attempt * 3 * spec.num_frames * 0.8 * (spec.resolution / 512) ** 2 / 60)
+    return int(
+        5 + attempt * 3 * spec.num_frames * 0.8 * (spec.resolution / 512) ** 2 / 60
+    )
 
 
 def prepare_mem_mb(wildcards, attempt):
@@ -329,7 +367,9 @@ EXPORT = config["export"]
 def configured(wildcards):
     """Fail at DAG construction, naming what is configured, when a target names anything else."""
     if wildcards.dataset not in DATASETS:
-        raise ValueError(f"dataset '{wildcards.dataset}' is not configured; configured datasets: {sorted(DATASETS)}")
+        raise ValueError(
+            f"dataset '{wildcards.dataset}' is not configured; configured datasets: {sorted(DATASETS)}"
+        )
     subjects = DATASETS[wildcards.dataset]["subjects"]
     if "subject" in wildcards.keys() and wildcards.subject not in subjects:
         raise ValueError(f"subject '{wildcards.subject}' is not configured for dataset '{wildcards.dataset}'; "
@@ -350,7 +390,9 @@ def eval_inputs(wildcards):
         "body": body_model_file(),
         "alex": PATHS["perceptual_alex"],
     }
-    if dataset_kind(wildcards.dataset) == "synthetic":  # ground truth for the geometry columns
+    if (
+        dataset_kind(wildcards.dataset) == "synthetic"
+    ):  # ground truth for the geometry columns
         files["gt"] = PATHS["syn_meshes"].format(subject=wildcards.subject)
         files["export"] = PATHS["export_json"].format(**wildcards)
     return files
@@ -382,13 +424,19 @@ def dataset_subjects(wildcards):
 
 def aggregate_inputs(wildcards):
     subjects = dataset_subjects(wildcards)
-    fmt = lambda key, **kw: [PATHS[key].format(dataset=wildcards.dataset, subject=s, **kw) for s in subjects]  # noqa: E731
+    fmt = lambda key, **kw: [
+        PATHS[key].format(dataset=wildcards.dataset, subject=s, **kw) for s in subjects
+    ]  # noqa: E731
     return {
         "summaries": fmt("eval_summary"),
         "exports": fmt("export_json"),
         "plots": fmt("loss_plot", stage=1) + fmt("loss_plot", stage=2),
-        "bench1": [benchmark_path("train", f"{wildcards.dataset}_{s}_stage1") for s in subjects],
-        "bench2": [benchmark_path("train", f"{wildcards.dataset}_{s}_stage2") for s in subjects],
+        "bench1": [
+            benchmark_path("train", f"{wildcards.dataset}_{s}_stage1") for s in subjects
+        ],
+        "bench2": [
+            benchmark_path("train", f"{wildcards.dataset}_{s}_stage2") for s in subjects
+        ],
     }
 
 

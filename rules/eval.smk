@@ -13,12 +13,12 @@ rule plot_losses:
             subcategory="{dataset} {subject}",
             labels={"subject": "{subject}", "stage": "{stage}", "figure": "losses"},
         ),
-    params:
-        title=lambda w: f"{w.subject}, stage {w.stage}",
-    conda:
-        "../workflow/envs/delta.yaml"
     log:
         log_path("plot_losses", "{dataset}_{subject}_{stage}"),
+    conda:
+        "../workflow/envs/delta.yaml"
+    params:
+        title=lambda w: f"{w.subject}, stage {w.stage}",
     shell:
         "delta plot-losses --losses {input:q} --out {output:q} --title {params.title:q} > {log:q} 2>&1"
 
@@ -53,20 +53,20 @@ rule export_avatar:
             subcategory="{dataset} {subject}",
             labels={"subject": "{subject}", "frame": "{name}"},
         ),
-    params:
-        out=lambda w: PATHS["export_dir"].format(**w),
-        settings=export_settings,
-        device=config["device"],
-    conda:
-        "../workflow/envs/delta.yaml"
     log:
         log_path("export_avatar", "{dataset}_{subject}"),
     benchmark:
         benchmark_path("export_avatar", "{dataset}_{subject}")
+    conda:
+        "../workflow/envs/delta.yaml"
     threads: 2
     resources:
         mem_mb=lambda w, attempt: _grow(3000, attempt),
         runtime=lambda w, attempt: 20 * attempt,
+    params:
+        out=lambda w: PATHS["export_dir"].format(**w),
+        settings=export_settings,
+        device=config["device"],
     shell:
         "delta export --model {input.model:q} --record {input.record:q} --body {input.body:q} --out {params.out:q}"
         " --settings {params.settings:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"
@@ -78,21 +78,21 @@ rule evaluate:
     output:
         metrics=PATHS["eval_metrics"],
         summary=PATHS["eval_summary"],
+    log:
+        log_path("evaluate", "{dataset}_{subject}"),
+    benchmark:
+        benchmark_path("evaluate", "{dataset}_{subject}")
+    conda:
+        "../workflow/envs/delta.yaml"
+    threads: 2
+    resources:
+        mem_mb=lambda w, attempt: _grow(2500, attempt),
+        runtime=lambda w, attempt: 30 * attempt,
     params:
         settings=eval_settings,
         truth=eval_truth,
         perceptual=lambda w, input: str(Path(input.alex).parent),
         device=config["device"],
-    conda:
-        "../workflow/envs/delta.yaml"
-    log:
-        log_path("evaluate", "{dataset}_{subject}"),
-    benchmark:
-        benchmark_path("evaluate", "{dataset}_{subject}")
-    threads: 2
-    resources:
-        mem_mb=lambda w, attempt: _grow(2500, attempt),
-        runtime=lambda w, attempt: 30 * attempt,
     shell:
         "delta evaluate --model {input.model:q} --record {input.record:q} --body {input.body:q} --subject {wildcards.subject:q}"
         " --out {output.metrics:q} --summary {output.summary:q} --perceptual {params.perceptual:q}"
@@ -110,13 +110,13 @@ rule aggregate_metrics:
             category="Metrics",
             labels={"dataset": "{dataset}", "table": "metrics"},
         ),
+    log:
+        log_path("aggregate_metrics", "{dataset}"),
+    conda:
+        "../workflow/envs/delta.yaml"
     params:
         subjects=dataset_subjects,
         benchmarks=aggregate_benchmarks,
-    conda:
-        "../workflow/envs/delta.yaml"
-    log:
-        log_path("aggregate_metrics", "{dataset}"),
     shell:
         "delta aggregate --dataset {wildcards.dataset:q} --subjects {params.subjects:q} --summaries {input.summaries:q}"
         " --exports {input.exports:q} --benchmarks {params.benchmarks:q} --out {output:q} > {log:q} 2>&1"

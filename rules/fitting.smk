@@ -8,19 +8,19 @@ rule fit_init:
     output:
         params=PATHS["init_params"],
         report=PATHS["init_report"],
-    params:
-        out=lambda w: str(Path(PATHS["init_params"].format(**w)).parent),
-        settings=fit_settings_json,
-    conda:
-        "../workflow/envs/delta.yaml"
     log:
         log_path("fit_init", "{dataset}_{subject}"),
     benchmark:
         benchmark_path("fit_init", "{dataset}_{subject}")
+    conda:
+        "../workflow/envs/delta.yaml"
     threads: 2
     resources:
         mem_mb=3000,
         runtime=60,
+    params:
+        out=lambda w: str(Path(PATHS["init_params"].format(**w)).parent),
+        settings=fit_settings_json,
     shell:
         "delta fit-init --record {input.record:q} --body {input.body:q} --out {params.out:q}"
         " --settings {params.settings:q} --threads {threads} > {log:q} 2>&1"

@@ -7,6 +7,15 @@ rule prepare_frames:
     output:
         record=PATHS["record"],
         summary=PATHS["record_summary"],
+    log:
+        log_path("prepare_frames", "{dataset}_{subject}"),
+    benchmark:
+        benchmark_path("prepare_frames", "{dataset}_{subject}")
+    conda:
+        "../workflow/envs/delta.yaml"
+    resources:
+        mem_mb=prepare_mem_mb,
+        runtime=30,
     params:
         kind=lambda w: dataset_kind(w.dataset),
         root=prepare_root,
@@ -15,15 +24,6 @@ rule prepare_frames:
         margin=PRE["crop_margin"],
         use=lambda w: used_provided(w.dataset),
         steps=lambda w: list(step_files(w).values()),
-    conda:
-        "../workflow/envs/delta.yaml"
-    log:
-        log_path("prepare_frames", "{dataset}_{subject}"),
-    benchmark:
-        benchmark_path("prepare_frames", "{dataset}_{subject}")
-    resources:
-        mem_mb=prepare_mem_mb,
-        runtime=30,
     shell:
         "delta prepare --kind {params.kind:q} --root {params.root:q} --subject {wildcards.subject:q}"
         " --subject-config {params.cfg:q} --size {params.size:q} --margin {params.margin:q}"
@@ -37,17 +37,17 @@ rule matte:
         model=matting_model(),
     output:
         PATHS["matting"],
-    params:
-        model=PRE["matting"]["model"],
-    conda:
-        "../workflow/envs/delta.yaml"
     log:
         log_path("matte", "{dataset}_{subject}"),
     benchmark:
         benchmark_path("matte", "{dataset}_{subject}")
+    conda:
+        "../workflow/envs/delta.yaml"
     threads: 2
     resources:
         mem_mb=4000,
+    params:
+        model=PRE["matting"]["model"],
     shell:
         "delta matte --video {input.video:q} --model {params.model:q} --path {input.model:q} --out {output:q}"
         " --threads {threads} > {log:q} 2>&1"
@@ -59,17 +59,17 @@ rule parse:
         model=parsing_model(),
     output:
         PATHS["parsing"],
-    params:
-        model=PRE["parsing"]["model"],
-    conda:
-        "../workflow/envs/delta.yaml"
     log:
         log_path("parse", "{dataset}_{subject}"),
     benchmark:
         benchmark_path("parse", "{dataset}_{subject}")
+    conda:
+        "../workflow/envs/delta.yaml"
     threads: 2
     resources:
         mem_mb=4000,
+    params:
+        model=PRE["parsing"]["model"],
     shell:
         "delta parse --video {input.video:q} --model {params.model:q} --path {input.model:q} --out {output:q}"
         " --threads {threads} > {log:q} 2>&1"
@@ -82,17 +82,19 @@ rule keypoints:
         face=PATHS["mediapipe_face"] if PRE["face_landmarks"] else [],
     output:
         PATHS["keypoints"],
-    params:
-        model=PRE["keypoints"]["model"],
-        face=lambda w, input: ["--face-path", input.face] if PRE["face_landmarks"] else [],
-    conda:
-        "../workflow/envs/delta.yaml"
     log:
         log_path("keypoints", "{dataset}_{subject}"),
     benchmark:
         benchmark_path("keypoints", "{dataset}_{subject}")
+    conda:
+        "../workflow/envs/delta.yaml"
     resources:
         mem_mb=2000,
+    params:
+        model=PRE["keypoints"]["model"],
+        face=lambda w, input: (
+            ["--face-path", input.face] if PRE["face_landmarks"] else []
+        ),
     shell:
         "delta keypoints --video {input.video:q} --model {params.model:q} --path {input.model:q} {params.face:q}"
         " --out {output:q} > {log:q} 2>&1"
@@ -102,17 +104,17 @@ rule convert_mediapipe:
     output:
         pose=PATHS["mediapipe_pose"],
         face=PATHS["mediapipe_face"],
-    params:
-        out=lambda w: str(Path(PATHS["mediapipe_pose"]).parent),
-        env=f"{PRE['envs_dir']}/mediapipe-convert",
-    conda:
-        "../workflow/envs/delta.yaml"
     log:
         log_path("convert_mediapipe"),
     benchmark:
         benchmark_path("convert_mediapipe")
+    conda:
+        "../workflow/envs/delta.yaml"
     resources:
         mem_mb=4000,
         runtime=30,
+    params:
+        out=lambda w: str(Path(PATHS["mediapipe_pose"]).parent),
+        env=f"{PRE['envs_dir']}/mediapipe-convert",
     shell:
         "delta convert-mediapipe --out {params.out:q} --env {params.env:q} > {log:q} 2>&1"

@@ -11,20 +11,20 @@ rule synthesize:
         frames=PATHS["syn_frames"],
         meshes=PATHS["syn_meshes"],
         splits=PATHS["syn_splits"],
-    params:
-        spec=synthetic_spec_json,
-        cache=PATHS["anny_cache"],
-        out=lambda w: str(Path(PATHS["syn_video"].format(subject=w.subject)).parent),
-    conda:
-        "../workflow/envs/delta.yaml"
     log:
         log_path("synthesize", "{subject}"),
     benchmark:
         benchmark_path("synthesize", "{subject}")
+    conda:
+        "../workflow/envs/delta.yaml"
     threads: 2
     resources:
         mem_mb=synth_mem_mb,
         runtime=synth_runtime,
+    params:
+        spec=synthetic_spec_json,
+        cache=PATHS["anny_cache"],
+        out=lambda w: str(Path(PATHS["syn_video"].format(subject=w.subject)).parent),
     shell:
         "delta synthesize --subject {wildcards.subject:q} --spec {params.spec:q} --body {input.body:q}"
         " --shape-space {input.shape_space:q} --anny-cache {params.cache:q} --out {params.out:q}"
@@ -38,15 +38,15 @@ rule synthetic_peoplesnapshot:
         frames=PATHS["syn_frames"],
     output:
         peoplesnapshot_files("{subject}"),
+    log:
+        log_path("synthetic_peoplesnapshot", "{subject}"),
+    conda:
+        "../workflow/envs/delta.yaml"
+    resources:
+        mem_mb=2000,
     params:
         capture=lambda w: str(Path(PATHS["syn_video"].format(subject=w.subject)).parent),
         out=lambda w: PATHS["syn_ps_dir"].format(subject=w.subject),
-    conda:
-        "../workflow/envs/delta.yaml"
-    log:
-        log_path("synthetic_peoplesnapshot", "{subject}"),
-    resources:
-        mem_mb=2000,
     shell:
         "delta to-peoplesnapshot --capture {params.capture:q} --subject {wildcards.subject:q}"
         " --out {params.out:q} > {log:q} 2>&1"

@@ -23,10 +23,11 @@ PATHS |= {
 }
 
 
-
 def variant_spec(variant):
     if variant not in TRADE["variants"]:
-        raise ValueError(f"trade-off variant '{variant}' is not configured; configured: {sorted(TRADE['variants'])}")
+        raise ValueError(
+            f"trade-off variant '{variant}' is not configured; configured: {sorted(TRADE['variants'])}"
+        )
     spec = dict(TRADE["variants"][variant])
     spec.pop("subjects", None)
     spec.pop("inherit_training", None)
@@ -57,17 +58,25 @@ def variant_is_main(subject, variant):
     """True when a variant trains exactly what the main run trains: its stages are the main run's."""
     preset, overrides = variant_training(subject, variant)
     main = subject_training(subject)[0]
-    return preset == main and resolve_training(preset, *overrides).raw == TRAINING[subject].raw
+    return (
+        preset == main
+        and resolve_training(preset, *overrides).raw == TRAINING[subject].raw
+    )
 
 
 def variant_stage_file(kind, stage, **w):
     """A variant's stage output (``model``, ``losses`` or ``bench``): the main run's when it is the main run."""
     if variant_is_main(w["subject"], w["variant"]):
         if kind == "bench":
-            return benchmark_path("train", f"{w['dataset']}_{w['subject']}_stage{stage}")
+            return benchmark_path(
+                "train", f"{w['dataset']}_{w['subject']}_stage{stage}"
+            )
         return PATHS[f"stage_{kind}"].format(stage=stage, **w)
     if kind == "bench":
-        return benchmark_path("tradeoff_train", f"{w['dataset']}_{w['subject']}_{w['variant']}_stage{stage}")
+        return benchmark_path(
+            "tradeoff_train",
+            f"{w['dataset']}_{w['subject']}_{w['variant']}_stage{stage}",
+        )
     return PATHS[f"variant_{kind}"].format(stage=stage, **w)
 
 
@@ -112,7 +121,8 @@ def tradeoff_manifest(wildcards):
 
 def variant_eval_settings(wildcards):
     """The evaluation section with the study's own frames, refinement, splits and resolution
-    (a resolution equal to the variant's training resolution is left at 0: it is the default)."""
+    (a resolution equal to the variant's training resolution is left at 0: it is the default).
+    """
     settings = {**EVAL, **TRADE["evaluation"]}
     preset, overrides = variant_training(wildcards.subject, wildcards.variant)
     if settings.get("resolution") == resolve_training(preset, *overrides).resolution:
@@ -121,32 +131,33 @@ def variant_eval_settings(wildcards):
 
 
 def tradeoff_inputs(wildcards):
-    files = [p for variants in tradeoff_manifest(wildcards).values() for f in variants.values() for p in f.values()]
+    files = [
+        p
+        for variants in tradeoff_manifest(wildcards).values()
+        for f in variants.values()
+        for p in f.values()
+    ]
     return files + [PATHS["matmul_peak"]]
+
 
 use rule train as tradeoff_train with:
     output:
         model=PATHS["variant_model"],
         losses=PATHS["variant_losses"],
+    log:
+        log_path("tradeoff_train", "{dataset}_{subject}_{variant}_stage{stage}"),
+    benchmark:
+        benchmark_path("tradeoff_train", "{dataset}_{subject}_{variant}_stage{stage}")
     params:
         out=lambda w: PATHS["variant_stage_dir"].format(**w),
         settings=stage_training,
         device=config["device"],
         perceptual=lambda w: str(Path(PATHS["perceptual_vgg"]).parent),
-    log:
-        log_path("tradeoff_train", "{dataset}_{subject}_{variant}_stage{stage}"),
-    benchmark:
-        benchmark_path("tradeoff_train", "{dataset}_{subject}_{variant}_stage{stage}")
 
 
 use rule evaluate as tradeoff_evaluate with:
     input:
         unpack(variant_eval_inputs),
-    params:
-        settings=variant_eval_settings,
-        truth=eval_truth,
-        perceptual=lambda w, input: str(Path(input.alex).parent),
-        device=config["device"],
     output:
         metrics=PATHS["variant_metrics"],
         summary=PATHS["variant_summary"],
@@ -154,18 +165,23 @@ use rule evaluate as tradeoff_evaluate with:
         log_path("tradeoff_evaluate", "{dataset}_{subject}_{variant}"),
     benchmark:
         benchmark_path("tradeoff_evaluate", "{dataset}_{subject}_{variant}")
+    params:
+        settings=variant_eval_settings,
+        truth=eval_truth,
+        perceptual=lambda w, input: str(Path(input.alex).parent),
+        device=config["device"],
 
 
 rule matmul_peak:
     output:
         PATHS["matmul_peak"],
-    params:
-        device=config["device"],
-    conda:
-        "../workflow/envs/delta.yaml"
     log:
         log_path("matmul_peak"),
+    conda:
+        "../workflow/envs/delta.yaml"
     threads: 2
+    params:
+        device=config["device"],
     shell:
         "delta matmul-peak --out {output:q} --threads {threads} --device {params.device:q} > {log:q} 2>&1"
 
@@ -177,16 +193,16 @@ rule profile_step:
         body=body_model_file(),
     output:
         PATHS["variant_profile"],
-    params:
-        steps=TRADE["profile_steps"],
-        device=config["device"],
-    conda:
-        "../workflow/envs/delta.yaml"
     log:
         log_path("profile_step", "{dataset}_{subject}_{variant}"),
+    conda:
+        "../workflow/envs/delta.yaml"
     threads: 2
     resources:
         mem_mb=lambda w, attempt: _grow(3000, attempt),
+    params:
+        steps=TRADE["profile_steps"],
+        device=config["device"],
     shell:
         "delta profile-step --model {input.model:q} --record {input.record:q} --body {input.body:q} --out {output:q}"
         " --steps {params.steps:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"
@@ -203,14 +219,14 @@ rule tradeoff_table:
             category="Trade-off",
             labels={"dataset": "{dataset}", "figure": "trade-off"},
         ),
+    log:
+        log_path("tradeoff_table", "{dataset}"),
+    conda:
+        "../workflow/envs/delta.yaml"
     params:
         manifest=lambda w: json.dumps(tradeoff_manifest(w)),
         peak=PATHS["matmul_peak"],
         reference=TRADE["reference"],
-    conda:
-        "../workflow/envs/delta.yaml"
-    log:
-        log_path("tradeoff_table", "{dataset}"),
     shell:
         "delta tradeoff --manifest {params.manifest:q} --peak {params.peak:q} --reference {params.reference:q}"
         " --out {output.csv:q} --plot {output.png:q} > {log:q} 2>&1"

@@ -8,12 +8,12 @@ rule fetch_perceptual:
     output:
         vgg=PATHS["perceptual_vgg"],
         alex=PATHS["perceptual_alex"],
-    params:
-        out=lambda w, output: str(Path(output.vgg).parent),
-    conda:
-        "../workflow/envs/delta.yaml"
     log:
         log_path("fetch_perceptual"),
+    conda:
+        "../workflow/envs/delta.yaml"
+    params:
+        out=lambda w, output: str(Path(output.vgg).parent),
     shell:
         "delta fetch-perceptual --out {params.out:q} > {log:q} 2>&1"
 
@@ -24,22 +24,22 @@ rule train:
     output:
         model=PATHS["stage_model"],
         losses=PATHS["stage_losses"],
+    log:
+        log_path("train", "{dataset}_{subject}_stage{stage}"),
+    benchmark:
+        benchmark_path("train", "{dataset}_{subject}_stage{stage}")
+    conda:
+        "../workflow/envs/delta.yaml"
+    threads: 2
+    resources:
+        **train_gpu_resources(),
+        mem_mb=train_mem_mb,
+        runtime=train_runtime,
     params:
         out=lambda w: PATHS["stage_dir"].format(**w),
         settings=stage_training,
         device=config["device"],
         perceptual=lambda w: str(Path(PATHS["perceptual_vgg"]).parent),
-    conda:
-        "../workflow/envs/delta.yaml"
-    log:
-        log_path("train", "{dataset}_{subject}_stage{stage}"),
-    benchmark:
-        benchmark_path("train", "{dataset}_{subject}_stage{stage}")
-    threads: 2
-    resources:
-        mem_mb=train_mem_mb,
-        runtime=train_runtime,
-        **train_gpu_resources(),
     shell:
         "delta train --stage {wildcards.stage:q} --record {input.record:q} --body {input.body:q} --start {input.start:q}"
         " --out {params.out:q} --settings {params.settings:q}"

@@ -204,8 +204,11 @@ def test_peoplesnapshot_masks_with_channels_stop_prepare(tmp_path, capsys):
     with h5py.File(tmp_path / "clip" / "masks.hdf5", "w") as f:
         f["masks"] = np.ones((N, H, W, 3), np.uint8)
     out = tmp_path / "frames.h5"
-    fails(capsys, prepare_args(tmp_path, out, {}, "peoplesnapshot", config),
-          r"clip/masks\.hdf5: 'masks' has shape \(6, 48, 64, 3\), expected \(N, 48, 64\)")
+    fails(
+        capsys,
+        prepare_args(tmp_path, out, {}, "peoplesnapshot", config),
+        r"clip/masks\.hdf5: 'masks' has shape \(6, 48, 64, 3\), expected \(N, 48, 64\)",
+    )
     nothing_written(out)
 
 
@@ -213,8 +216,11 @@ def test_keypoints_of_the_wrong_shape_stop_prepare(tmp_path, capsys):
     steps = capture(tmp_path / "in", "pppppp")
     write_steps(tmp_path / "in", read(steps["matte"], "person"), np.zeros((N, 17, 3), np.float32))
     out = tmp_path / "frames.h5"
-    fails(capsys, prepare_args(tmp_path / "in", out),
-          r"keypoints\.h5: 'keypoints' has shape \(6, 17, 3\), expected \(N >= 6, 18, 3\)")
+    fails(
+        capsys,
+        prepare_args(tmp_path / "in", out),
+        r"keypoints\.h5: 'keypoints' has shape \(6, 17, 3\), expected \(N >= 6, 18, 3\)",
+    )
     nothing_written(out)
 
 
@@ -248,8 +254,11 @@ def test_speckled_masks_without_keypoints_are_no_person(tmp_path, capsys):
     with h5py.File(steps["matte"], "r+") as f:
         f["person"][...] = speckle
     out = tmp_path / "frames.h5"
-    fails(capsys, prepare_args(tmp_path / "in", out, {"m": steps["matte"]}),
-          r"clip\.mp4: no person found: 0 of 6 frames have a plausible person mask: .* one connected region")
+    fails(
+        capsys,
+        prepare_args(tmp_path / "in", out, {"m": steps["matte"]}),
+        r"clip\.mp4: no person found: 0 of 6 frames have a plausible person mask: .* one connected region",
+    )
     nothing_written(out)
 
 
@@ -305,8 +314,11 @@ def test_a_record_with_a_singular_camera_stops_fit_init(tmp_path, capsys, anny_f
     masks = np.full((2, 32, 32), 255, np.uint8)
     record(tmp_path / "frames.h5", keypoints, masks, K=np.zeros((3, 3)))
     out = tmp_path / "init"
-    fails(capsys, fit_args(tmp_path / "frames.h5", anny_files["body"], out),
-          r"frames\.h5: camera K has focal lengths fx = 0, fy = 0")
+    fails(
+        capsys,
+        fit_args(tmp_path / "frames.h5", anny_files["body"], out),
+        r"frames\.h5: camera K has focal lengths fx = 0, fy = 0",
+    )
     assert not out.exists()
 
 

@@ -30,7 +30,7 @@ def test_atomic_path_keeps_old_file_on_failure(tmp_path):
 
 def test_save_json_round_trip(tmp_path):
     save_json(tmp_path / "x.json", {"b": 1, "a": [1.5]})
-    assert (tmp_path / "x.json").read_text().startswith("{\n  \"a\"")
+    assert (tmp_path / "x.json").read_text().startswith('{\n  "a"')
 
 
 def test_save_npz_is_byte_identical_and_loadable(tmp_path):

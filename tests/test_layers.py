@@ -140,37 +140,42 @@ def _tree(root: Path, files: dict[str, str]) -> Path:
 
 def test_the_checker_catches_imports_that_point_up(tmp_path):
     layers = (("delta",), ("delta.low", "delta.side"), ("delta.high",))
-    root = _tree(tmp_path, {
-        "delta/__init__.py": "class DeltaError(Exception):\n    pass\n",
-        "delta/low/__init__.py": "",
-        "delta/low/a.py": (
-            "from delta import DeltaError\n"  # down: fine
-            "from delta.low import b\n"  # its own unit: fine
-            "\n\ndef f():\n"
-            "    from delta.high.c import g\n"  # line 6, function-local: up
-            "    return g\n"
-        ),
-        "delta/low/b.py": (
-            "import delta.high.c as c\n"  # line 1: up
-            "from ..high import c\n"  # line 2: relative, up
-            "from delta import side\n"  # line 3: a peer
-            "import importlib\n"
-            "m = importlib.import_module('delta.high')\n"  # line 5: up
-        ),
-        "delta/side.py": "",
-        "delta/high/__init__.py": "from . import c\n",  # its own unit
-        "delta/high/c.py": "from delta.low.a import f\nfrom delta.low import b\n\n\ndef g():\n    return f\n",  # down
-        "delta/stray.py": "",
-    })
+    root = _tree(
+        tmp_path,
+        {
+            "delta/__init__.py": "class DeltaError(Exception):\n    pass\n",
+            "delta/low/__init__.py": "",
+            "delta/low/a.py": (
+                "from delta import DeltaError\n"  # down: fine
+                "from delta.low import b\n"  # its own unit: fine
+                "\n\ndef f():\n"
+                "    from delta.high.c import g\n"  # line 6, function-local: up
+                "    return g\n"
+            ),
+            "delta/low/b.py": (
+                "import delta.high.c as c\n"  # line 1: up
+                "from ..high import c\n"  # line 2: relative, up
+                "from delta import side\n"  # line 3: a peer
+                "import importlib\n"
+                "m = importlib.import_module('delta.high')\n"  # line 5: up
+            ),
+            "delta/side.py": "",
+            "delta/high/__init__.py": "from . import c\n",  # its own unit
+            "delta/high/c.py": "from delta.low.a import f\nfrom delta.low import b\n\n\ndef g():\n    return f\n",  # down
+            "delta/stray.py": "",
+        },
+    )
     problems = layer_violations(root, layers)
-    assert sorted(problems) == sorted([
-        "delta/low/a.py:6 imports delta.high.c (layer 1 delta.low -> layer 2 delta.high: a higher layer)",
-        "delta/low/b.py:1 imports delta.high.c (layer 1 delta.low -> layer 2 delta.high: a higher layer)",
-        "delta/low/b.py:2 imports delta.high.c (layer 1 delta.low -> layer 2 delta.high: a higher layer)",
-        "delta/low/b.py:3 imports delta.side (layer 1 delta.low -> layer 1 delta.side: a peer in the same layer)",
-        "delta/low/b.py:5 imports delta.high (layer 1 delta.low -> layer 2 delta.high: a higher layer)",
-        "delta/stray.py: delta.stray is in no layer (add it to LAYERS in tests/test_layers.py)",
-    ]), "\n".join(problems)
+    assert sorted(problems) == sorted(
+        [
+            "delta/low/a.py:6 imports delta.high.c (layer 1 delta.low -> layer 2 delta.high: a higher layer)",
+            "delta/low/b.py:1 imports delta.high.c (layer 1 delta.low -> layer 2 delta.high: a higher layer)",
+            "delta/low/b.py:2 imports delta.high.c (layer 1 delta.low -> layer 2 delta.high: a higher layer)",
+            "delta/low/b.py:3 imports delta.side (layer 1 delta.low -> layer 1 delta.side: a peer in the same layer)",
+            "delta/low/b.py:5 imports delta.high (layer 1 delta.low -> layer 2 delta.high: a higher layer)",
+            "delta/stray.py: delta.stray is in no layer (add it to LAYERS in tests/test_layers.py)",
+        ]
+    ), "\n".join(problems)
 
 
 def test_the_checker_reads_the_packages_own_imports():

@@ -63,7 +63,10 @@ def test_ssim_equals_scikit_image(seed):
 def test_ssim_drops_with_noise_and_blur():
     g = torch.Generator().manual_seed(3)
     a = torch.rand(32, 32, 3, generator=g, dtype=torch.float64)
-    s = [M.ssim(a, (a + k * torch.randn(a.shape, generator=g, dtype=torch.float64)).clamp(0, 1)) for k in (0.02, 0.1, 0.3)]
+    s = [
+        M.ssim(a, (a + k * torch.randn(a.shape, generator=g, dtype=torch.float64)).clamp(0, 1))
+        for k in (0.02, 0.1, 0.3)
+    ]
     assert 1 > s[0] > s[1] > s[2] > 0
 
 

@@ -70,7 +70,9 @@ def test_frame_ranges_are_checked_against_the_video(tmp_path):
     assert "clip.test': ends at frame 30, but" in msg and "has 12 frames (0 to 11)" in msg
     assert "is not a valid range" in problems({"datasets": ds({"train": [5, 2, 1], "test": [9, 11, 1]})}, tmp_path)
     assert "unknown key(s) ['tset']" in problems({"datasets": ds({"train": [0, 8, 1], "tset": [9, 11, 1]})}, tmp_path)
-    cfg = validate_workflow_config({"datasets": ds({"train": [0, 8, 1], "test": [9, 11, 1]})}, SCHEMA, base_dir=tmp_path)
+    cfg = validate_workflow_config(
+        {"datasets": ds({"train": [0, 8, 1], "test": [9, 11, 1]})}, SCHEMA, base_dir=tmp_path
+    )
     assert cfg["datasets"]["clips"]["subjects"]["clip"]["test"] == [9, 11, 1]
 
 
@@ -93,8 +95,13 @@ def test_validate_config_runs_outside_the_repository(tmp_path):
     cfg["training"]["overrides"] = {"stage1": {"iteratons": 5}}
     (tmp_path / "config").mkdir()
     (tmp_path / "config" / "bad.yaml").write_text(yaml.safe_dump(cfg))
-    run = lambda path: subprocess.run([sys.executable, "-m", "delta.cli", "validate-config", str(path)],  # noqa: E731
-                                      cwd=tmp_path, capture_output=True, text=True, env={**os.environ})
+    run = lambda path: subprocess.run(
+        [sys.executable, "-m", "delta.cli", "validate-config", str(path)],  # noqa: E731
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        env={**os.environ},
+    )
     good = run(REPO / "config" / "config.yaml")
     assert good.returncode == 0 and "valid" in good.stdout, good.stderr
     bad = run(tmp_path / "config" / "bad.yaml")
@@ -102,7 +109,11 @@ def test_validate_config_runs_outside_the_repository(tmp_path):
 
 
 def test_the_shipped_configs_are_valid_as_the_workflow_merges_them():
-    main, tiny, study = REPO / "config" / "config.yaml", REPO / ".test" / "config" / "config.yaml", REPO / "config" / "tradeoff.yaml"
+    main, tiny, study = (
+        REPO / "config" / "config.yaml",
+        REPO / ".test" / "config" / "config.yaml",
+        REPO / "config" / "tradeoff.yaml",
+    )
     for paths in ([main], [main, tiny], [main, study], [main, tiny, study]):
         cfg = load_config(paths, SCHEMA)
         assert ("tradeoff" in cfg) == (study in paths)  # the study is opt-in

@@ -133,8 +133,6 @@ def test_bad_config_stops_before_any_job(tmp_path):
     assert not (work / "resources").exists() and not (work / "logs").exists()
 
 
-
-
 @pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="this machine has a CUDA device")
 def test_cuda_without_a_gpu_stops_before_any_job(tmp_path):
     work = workflow_copy(tmp_path)
@@ -239,7 +237,9 @@ def test_generic_video_runs_the_offline_default_steps(tmp_path, tiny_captures, m
     cfg = {
         "body_model": {"anny": {"cache_dir": str(ANNY_CACHE), "num_shape": 8, "num_samples": 64}},
         "preprocess": {"resolution": 64, "models_dir": str(mediapipe_pose_model.parent.parent), "face_landmarks": True},
-        "datasets": {"clips": {"kind": "video", "root": root, "subjects": {"clip": {"train": [0, 4, 1], "test": [5, 6, 1]}}}},
+        "datasets": {
+            "clips": {"kind": "video", "root": root, "subjects": {"clip": {"train": [0, 4, 1], "test": [5, 6, 1]}}}
+        },
     }
     (work / "video.yaml").write_text(yaml.safe_dump(cfg))
     res = snakemake(work, "results/clips/clip/frames.json", "--configfile", "video.yaml")
@@ -260,9 +260,14 @@ def test_generic_video_runs_the_offline_default_steps(tmp_path, tiny_captures, m
 @pytest.mark.parametrize(
     "target, message",
     [
-        ("results/nowhere/metrics.csv", "dataset 'nowhere' is not configured; configured datasets: ['peoplesnapshot', 'synthetic']"),
-        ("results/synthetic/bob/eval/metrics.csv", "subject 'bob' is not configured for dataset 'synthetic'; "
-                                                   "configured subjects: ['loose', 'tight', 'upper']"),
+        (
+            "results/nowhere/metrics.csv",
+            "dataset 'nowhere' is not configured; configured datasets: ['peoplesnapshot', 'synthetic']",
+        ),
+        (
+            "results/synthetic/bob/eval/metrics.csv",
+            "subject 'bob' is not configured for dataset 'synthetic'; configured subjects: ['loose', 'tight', 'upper']",
+        ),
         ("results/synthetic/tight/tradeoff/turbo/eval/summary.json", "trade-off variant 'turbo' is not configured"),
     ],
 )
@@ -283,7 +288,9 @@ def test_tradeoff_variants_reuse_the_main_run_and_name_their_subjects(tmp_path):
                                     "res_16": {"stages": 1, "subjects": [subjects[0]], "resolution": 16}},
                        "evaluation": {"resolution": 32}}  # fmt: skip
     (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
-    res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run", "--printshellcmds")
+    res = snakemake(
+        work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run", "--printshellcmds"
+    )
     out = res.stdout + res.stderr
     assert res.returncode == 0, out[-3000:]
     # every variant is scored at 32²: the one trained at 16² says so, the others are trained at 32²
@@ -298,7 +305,9 @@ def test_tradeoff_variants_reuse_the_main_run_and_name_their_subjects(tmp_path):
     cfg.setdefault("training", {})["subjects"] = {subjects[0]: {"render": {"samples": 7}}}
     cfg["tradeoff"]["variants"]["ref"] = {"stages": 1, "inherit_training": False, "stage1": {"rays": 32}}
     (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
-    res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run", "--printshellcmds")
+    res = snakemake(
+        work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run", "--printshellcmds"
+    )
     out = res.stdout + res.stderr
     assert res.returncode == 0, out[-3000:]
     settings = {m.group(1): json.loads(m.group(2)) for m in re.finditer(
@@ -309,9 +318,15 @@ def test_tradeoff_variants_reuse_the_main_run_and_name_their_subjects(tmp_path):
     cfg["tradeoff"]["variants"]["ref"]["inherit_training"] = "no"
     (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
     res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run")
-    assert res.returncode != 0 and "tradeoff.variants.ref.inherit_training': 'no' is not true or false" in res.stdout + res.stderr
+    assert (
+        res.returncode != 0
+        and "tradeoff.variants.ref.inherit_training': 'no' is not true or false" in res.stdout + res.stderr
+    )
     del cfg["tradeoff"]["variants"]["ref"], cfg["training"]["subjects"]
     cfg["tradeoff"]["variants"]["few_rays"]["subjects"] = ["nobody"]
     (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
     res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run")
-    assert res.returncode != 0 and "tradeoff.variants.few_rays.subjects': ['nobody'] are not configured subjects" in res.stdout + res.stderr
+    assert (
+        res.returncode != 0
+        and "tradeoff.variants.few_rays.subjects': ['nobody'] are not configured subjects" in res.stdout + res.stderr
+    )

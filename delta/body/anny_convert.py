@@ -226,7 +226,9 @@ def convert_anny(
     )
 
 
-def project_shape(space: "ShapeSpace | AnnyConversion", rest_vertices: torch.Tensor, rest_heads: torch.Tensor) -> torch.Tensor:
+def project_shape(
+    space: "ShapeSpace | AnnyConversion", rest_vertices: torch.Tensor, rest_heads: torch.Tensor
+) -> torch.Tensor:
     """β of Anny rest shapes (B, V, 3), (B, J_full, 3) (Anny axes) in the converted model."""
     space = space.space if isinstance(space, AnnyConversion) else space
     X = torch.cat([rest_vertices, rest_heads], dim=1).reshape(rest_vertices.shape[0], -1)

@@ -158,7 +158,9 @@ def load_body_model(path: str | os.PathLike, dtype: torch.dtype = torch.float32)
     fields = {f.name for f in dataclasses.fields(BodyModel)}
     missing = sorted(fields - set(arrays) - set(_OPTIONAL))
     if missing:
-        raise DeltaError(f"{path}: missing keys {missing}; was it written by 'delta convert-anny' or 'delta load-smplx'?")
+        raise DeltaError(
+            f"{path}: missing keys {missing}; was it written by 'delta convert-anny' or 'delta load-smplx'?"
+        )
     kwargs = {}
     for key in fields & set(arrays):
         value = arrays[key]

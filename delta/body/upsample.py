@@ -76,7 +76,9 @@ def interpolation_matrix(vertex_ids: torch.Tensor, bary: torch.Tensor, num_base:
     """Sparse (V', V) matrix M with M @ base_values = upsampled values."""
     rows = torch.arange(vertex_ids.shape[0]).repeat_interleave(3)
     idx = torch.stack([rows, vertex_ids.reshape(-1)])
-    return torch.sparse_coo_tensor(idx, bary.reshape(-1), (vertex_ids.shape[0], num_base), check_invariants=True).coalesce()
+    return torch.sparse_coo_tensor(
+        idx, bary.reshape(-1), (vertex_ids.shape[0], num_base), check_invariants=True
+    ).coalesce()
 
 
 def upsample_body_model(model: BodyModel, level: int) -> BodyModel:

@@ -38,8 +38,9 @@ def plausible_mask(mask: np.ndarray) -> bool:
     return bool(stats[1:, cv2.CC_STAT_AREA].max() >= MASK_DOMINANT * area)
 
 
-PLAUSIBLE = (f"{MASK_AREA[0]:.1%}-{MASK_AREA[1]:.0%} of the image, "
-             f"{MASK_DOMINANT:.0%} or more of it in one connected region")
+PLAUSIBLE = (
+    f"{MASK_AREA[0]:.1%}-{MASK_AREA[1]:.0%} of the image, {MASK_DOMINANT:.0%} or more of it in one connected region"
+)
 """What a plausible mask is, for messages."""
 
 

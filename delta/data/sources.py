@@ -242,8 +242,15 @@ def synthetic_source(capture: str | Path, subject: str) -> Source:
         frames=frames,
         num_video_frames=int(h5["person"].shape[0]),
         provided={**masks, "keypoints": lambda i: keypoints[i]},
-        origin={k: f"dataset:gt/frames.h5:{v}" for k, v in
-                (("person", "alpha"), ("clothing", "clothing"), ("skin", "skin"), ("hair", "hair"), ("keypoints", "keypoints"))},  # fmt: skip
+        origin={
+            k: f"dataset:gt/frames.h5:{v}"
+            for k, v in (
+                ("person", "alpha"),
+                ("clothing", "clothing"),
+                ("skin", "skin"),
+                ("hair", "hair"),
+                ("keypoints", "keypoints"),
+            )
+        },  # fmt: skip
         close=h5.close,
     )
-

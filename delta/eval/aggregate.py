@@ -81,7 +81,9 @@ def aggregate(dataset: str, subjects: list[str], summaries: list[str], exports: 
               out: str | Path) -> pd.DataFrame:  # fmt: skip
     """Write ``out``; ``benchmarks`` are ``SUBJECT/RULE=PATH``."""
     if len(summaries) != len(subjects) or (exports and len(exports) != len(subjects)):
-        raise DeltaError(f"aggregate: {len(subjects)} subjects but {len(summaries)} summaries and {len(exports)} exports")
+        raise DeltaError(
+            f"aggregate: {len(subjects)} subjects but {len(summaries)} summaries and {len(exports)} exports"
+        )
     bench: dict[str, dict[str, str]] = {s: {} for s in subjects}
     for item in benchmarks:
         key, _, path = item.partition("=")

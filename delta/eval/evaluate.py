@@ -51,7 +51,9 @@ class EvalSettings:
 
     stage: int = _f(default=2, metadata={"minimum": 1, "maximum": 2})
     """Which training stage's model the workflow evaluates and exports."""
-    splits: tuple[str, ...] = _f(default=("test_view", "test_pose"), metadata={"choices": ("train", "test_view", "test_pose")})
+    splits: tuple[str, ...] = _f(
+        default=("test_view", "test_pose"), metadata={"choices": ("train", "test_view", "test_pose")}
+    )
     """Which frames are scored (frames of these splits in the record)."""
     max_frames: int = _f(default=0, metadata={"minimum": 0})
     """At most this many frames per split, evenly spaced (0: all)."""
@@ -173,14 +175,19 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
             with torch.no_grad():
                 mesh, offsets, out = model.posed_mesh(f)
             img = render_image(model, f, supersample=st.supersample)
-            masks = {"body": data.interior[f] > 0.5, "face": face_pixels(model, f, mesh.vertices) & (data.interior[f] > 0.5)}
+            masks = {
+                "body": data.interior[f] > 0.5,
+                "face": face_pixels(model, f, mesh.vertices) & (data.interior[f] > 0.5),
+            }
             masks |= {name: m[k] for name, m in regions.items()}
             row = {"subject": subject, "frame": f, "frame_id": int(data.frame_ids[f]), "split": split,
                    "refined": refined, "refine_steps": st.refine_steps if refined else 0, "stage": trained.stage,
                    "preset": trained.preset, "background": bg, "image": "full", "resolution": data.resolution,
                    "train_resolution": trained.settings.resolution}  # fmt: skip
             row |= score_image(img, data.images[f], masks, perceptual)
-            row["nerf_iou"] = M.iou(img["nerf_mask"] > 0.5, data.exterior[f] > 0.5) if model.nerf is not None else np.nan
+            row["nerf_iou"] = (
+                M.iou(img["nerf_mask"] > 0.5, data.exterior[f] > 0.5) if model.nerf is not None else np.nan
+            )
             row["mesh_iou"] = M.iou(img["silhouette"] > 0.5, data.person[f] > 0.5)
             if gt:
                 ref = gt[int(data.frame_ids[f])]

@@ -156,7 +156,9 @@ def held_out_psnr(row: dict) -> float:
     return math.nan
 
 
-def tradeoff(manifest: dict, peak_json: str | Path, reference: str, out_csv: str | Path, out_png: str | Path) -> pd.DataFrame:
+def tradeoff(
+    manifest: dict, peak_json: str | Path, reference: str, out_csv: str | Path, out_png: str | Path
+) -> pd.DataFrame:
     """``manifest``: {subject: {variant: files}} (see :func:`variant_row`)."""
     peak = float(_read_json(peak_json)["flop_per_s"])
     rows = [variant_row(s, v, files, peak) for s, variants in manifest.items() for v, files in variants.items()]
@@ -239,7 +241,9 @@ def plot(df: pd.DataFrame, out_png: str | Path) -> None:
         points, labels = [], []
         for (minutes, psnr), same in g.groupby([g["train_s"] / 60, "held_out_psnr"], sort=False):
             names = list(same["variant"])
-            labels.append(" = ".join(names) if len(names) <= 3 else " = ".join(names[:2]) + f" (+{len(names) - 2} more)")
+            labels.append(
+                " = ".join(names) if len(names) <= 3 else " = ".join(names[:2]) + f" (+{len(names) - 2} more)"
+            )
             points.append((minutes, psnr))
         fig.canvas.draw()  # the axes' limits are final: data -> points
         anchors = ax.transData.transform(np.asarray(points, dtype=float)) * 72.0 / fig.dpi

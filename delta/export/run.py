@@ -157,8 +157,12 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
 
     t = time.perf_counter()
     turn_frame = int(data.train[0])
-    summary["turntable"] = {"frame": turn_frame, "frames": write_video(
-        out / "turntable.mp4", turntable(model, turn_frame, settings.turntable_frames), settings.fps)}
+    summary["turntable"] = {
+        "frame": turn_frame,
+        "frames": write_video(
+            out / "turntable.mp4", turntable(model, turn_frame, settings.turntable_frames), settings.fps
+        ),
+    }
     times["turntable"] = time.perf_counter() - t
     t = time.perf_counter()
     novel = novel_pose_frames(data.split)

@@ -302,8 +302,17 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     return _result(points, betas, pose, transl, camera, cam_params, detected, few, empty)
 
 
-def _best_heading(kp_model: KeypointModel, camera, pinhole: bool, detected: torch.Tensor, betas: torch.Tensor,
-                  pose: torch.Tensor, transl: torch.Tensor, cam_params: list[torch.Tensor], cfg: FitConfig) -> None:
+def _best_heading(
+    kp_model: KeypointModel,
+    camera,
+    pinhole: bool,
+    detected: torch.Tensor,
+    betas: torch.Tensor,
+    pose: torch.Tensor,
+    transl: torch.Tensor,
+    cam_params: list[torch.Tensor],
+    cfg: FitConfig,
+) -> None:
     """Stage 1, in place: the global orientation and camera (or translation) fitted to the torso keypoints
     from ``cfg.facing_starts`` headings a frame at once (F x H problems in one batch); each frame keeps
     the heading whose torso and face keypoints (the face tells front from back and left from right

@@ -137,9 +137,7 @@ def _search_embree(vertices, faces, origins, dirs) -> torch.Tensor:
     R = origins.shape[0]
     face = np.full(R, -1, dtype=np.int64)
     if R and faces.shape[0]:
-        mesh = trimesh.Trimesh(
-            vertices.detach().cpu().double().numpy(), faces.detach().cpu().numpy(), process=False
-        )
+        mesh = trimesh.Trimesh(vertices.detach().cpu().double().numpy(), faces.detach().cpu().numpy(), process=False)
         # No locations: they are recomputed in torch, and trimesh's location step drops near-parallel rays.
         tri, ray = RayMeshIntersector(mesh).intersects_id(
             origins.detach().cpu().double().numpy(),

@@ -187,8 +187,15 @@ class HybridAvatar(nn.Module):
             # a distance grid pays only for culling near the body; with max_dist beyond GRID_REACH (no
             # culling, the paper's setting) it would cover metres of empty space: the KD-tree answers
             cell = rs.probe_cell if rs.max_dist <= GRID_REACH else 0.0
-            skinning = deformer.prepare(verts[ids], out.vertex_transforms_3x4[0, ids], disp, self.canonical_T[ids],
-                                        self.body.weights[ids], cell, rs.max_dist + 2 * rs.probe_cell)
+            skinning = deformer.prepare(
+                verts[ids],
+                out.vertex_transforms_3x4[0, ids],
+                disp,
+                self.canonical_T[ids],
+                self.body.weights[ids],
+                cell,
+                rs.max_dist + 2 * rs.probe_cell,
+            )
         mesh = PosedMesh(verts, self.body.faces, self.albedo(), uv, skinning)
         return mesh, offsets, out
 
@@ -231,8 +238,11 @@ class HybridAvatar(nn.Module):
         """Optimiser groups, each ``name``d: networks, shape, per-frame pose, per-frame camera (lr keys: fields,
         nerf, pose, camera, shape, trajectory)."""
         groups = [
-            {"params": list(self.offset_field.parameters()) + list(self.albedo_field.parameters()), "lr": lr["fields"],
-             "name": "fields"},
+            {
+                "params": list(self.offset_field.parameters()) + list(self.albedo_field.parameters()),
+                "lr": lr["fields"],
+                "name": "fields",
+            },
             {"params": [self.betas], "lr": lr["shape"], "name": "shape"},
             {"params": [self.poses, self.transl], "lr": lr["pose"], "name": "pose"},
         ]

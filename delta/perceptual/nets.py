@@ -229,11 +229,11 @@ def split_state_dict(state: dict[str, torch.Tensor]) -> tuple[dict, dict, dict]:
     net, heads, scaling = {}, {}, {}
     for key, value in state.items():
         if key.startswith("net."):
-            net[key[len("net."):]] = value
+            net[key[len("net.") :]] = value
         elif key.startswith("lin") and key.endswith(".model.1.weight"):
-            heads[f"{int(key[3:key.index('.')])}.weight"] = value
+            heads[f"{int(key[3 : key.index('.')])}.weight"] = value
         elif key.startswith("scaling_layer."):
-            scaling[key[len("scaling_layer."):]] = value
+            scaling[key[len("scaling_layer.") :]] = value
         else:
             raise KeyError(f"unexpected key {key!r} in an ST-LPIPS state dict")
     return net, heads, scaling

@@ -20,8 +20,14 @@ import torch
 from delta import DeltaError
 from delta.cameras.crop import CropBox, crop_camera
 from delta.cameras.models import PinholeCamera
-from delta.data.person import (CONF_THRESHOLD, MIN_KEYPOINTS, PLAUSIBLE, confident_keypoints, no_person_message,
-                               plausible_mask)
+from delta.data.person import (
+    CONF_THRESHOLD,
+    MIN_KEYPOINTS,
+    PLAUSIBLE,
+    confident_keypoints,
+    no_person_message,
+    plausible_mask,
+)
 from delta.data.record import MASKS, RecordWriter, write_camera_attrs
 from delta.data.sources import Source
 from delta.io import atomic_path

@@ -142,8 +142,9 @@ class RobustVideoMatting:
 
     STATES = ("r1i", "r2i", "r3i", "r4i")
 
-    def __init__(self, path: str | Path, downsample_ratio: float | None = None, threads: int = 1,
-                 config_key: str | None = None) -> None:
+    def __init__(
+        self, path: str | Path, downsample_ratio: float | None = None, threads: int = 1, config_key: str | None = None
+    ) -> None:
         self.path = Path(path)
         if downsample_ratio is not None and not 0.0 < float(downsample_ratio) <= 1.0:
             raise DeltaError(f"{self.path}: downsample_ratio must lie in (0, 1], got {downsample_ratio}")
@@ -210,8 +211,7 @@ class MODNet:
     resized back to ``(H, W)``.
     """
 
-    def __init__(self, path: str | Path, ref_size: int = 512, threads: int = 1,
-                 config_key: str | None = None) -> None:
+    def __init__(self, path: str | Path, ref_size: int = 512, threads: int = 1, config_key: str | None = None) -> None:
         self.path = Path(path)
         self.ref_size = int(ref_size)
         self.session = open_session(self.path, {"input": 4}, 1, threads, config_key)
@@ -234,8 +234,15 @@ class _Parser:
     num_classes: int
     default_size: int
 
-    def __init__(self, path: str | Path, size: int | None, mean: Sequence[float], std: Sequence[float],
-                 threads: int, config_key: str | None) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        size: int | None,
+        mean: Sequence[float],
+        std: Sequence[float],
+        threads: int,
+        config_key: str | None,
+    ) -> None:
         self.path = Path(path)
         self.session = open_session(self.path, {ANY_NAME: 4}, 1, threads, config_key)
         inp = self.session.get_inputs()[0]
@@ -244,8 +251,10 @@ class _Parser:
         self.size = int(size if size is not None else static[0] if static else self.default_size)
         channels = inp.shape[1]
         if any(d != self.size for d in static) or (isinstance(channels, int) and channels != 3):
-            raise DeltaError(f"{self.path}: input {inp.name} has shape {_shape_str(inp.shape)}, "
-                             f"expected (1, 3, {self.size}, {self.size})")
+            raise DeltaError(
+                f"{self.path}: input {inp.name} has shape {_shape_str(inp.shape)}, "
+                f"expected (1, 3, {self.size}, {self.size})"
+            )
         self.mean, self.std = tuple(mean), tuple(std)
 
     def __call__(self, frame_rgb_uint8: np.ndarray) -> np.ndarray:
@@ -255,8 +264,9 @@ class _Parser:
         x = to_nchw(_resize(frame, self.size, self.size), self.mean, self.std)
         logits = self.session.run(None, {self.input_name: x})[0]
         if logits.ndim != 4 or logits.shape[:2] != (1, self.num_classes):
-            raise DeltaError(f"{self.path}: first output has shape {logits.shape}, "
-                             f"expected (1, {self.num_classes}, h, w)")
+            raise DeltaError(
+                f"{self.path}: first output has shape {logits.shape}, expected (1, {self.num_classes}, h, w)"
+            )
         labels = np.argmax(logits[0], axis=0).astype(np.uint8)
         return _resize(labels, w, h, nearest=True)
 
@@ -273,9 +283,15 @@ class ClothSegmentation(_Parser):
     num_classes = len(CLOTH_CLASSES)
     default_size = 768
 
-    def __init__(self, path: str | Path, size: int | None = None, threads: int = 1,
-                 mean: Sequence[float] = IMAGENET_MEAN, std: Sequence[float] = IMAGENET_STD,
-                 config_key: str | None = None) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        size: int | None = None,
+        threads: int = 1,
+        mean: Sequence[float] = IMAGENET_MEAN,
+        std: Sequence[float] = IMAGENET_STD,
+        config_key: str | None = None,
+    ) -> None:
         super().__init__(path, size, mean, std, threads, config_key)
 
 
@@ -295,8 +311,9 @@ class FaceParsing(_Parser):
     num_classes = len(FACE_PARSING_CLASSES)
     default_size = 512
 
-    def __init__(self, path: str | Path, size: int | None = None, threads: int = 1,
-                 config_key: str | None = None) -> None:
+    def __init__(
+        self, path: str | Path, size: int | None = None, threads: int = 1, config_key: str | None = None
+    ) -> None:
         super().__init__(path, size, IMAGENET_MEAN, IMAGENET_STD, threads, config_key)
 
 

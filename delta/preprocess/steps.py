@@ -20,6 +20,7 @@ from delta.preprocess.frames import iter_video
 
 log = logging.getLogger(__name__)
 
+
 def _mediapipe(path, threads=1, config_key=None):
     from delta.preprocess.pose_landmarks import PoseLandmarker
 
@@ -28,6 +29,8 @@ def _mediapipe(path, threads=1, config_key=None):
 
 
 MATTING = {"rvm": om.RobustVideoMatting, "modnet": om.MODNet, "mediapipe": _mediapipe}
+
+
 def _default_parser(path, threads=1, config_key=None):
     """MediaPipe pose landmarks + the skin-colour parser (:mod:`delta.preprocess.parsing_default`)."""
     from delta.preprocess.parsing_default import VideoParser

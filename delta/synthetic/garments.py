@@ -171,7 +171,6 @@ def build_layers(
 
 def _hair(model, v, normals, rest_joints, hair) -> Layer:
     face = model.regions.numpy() == REGION["face"]
-    head = _joint(model, rest_joints, "head")
     fv = v[face]
     top_y = fv[:, 1].max()
     centre = np.array([0.0, top_y - 0.11, fv[:, 2].mean()])

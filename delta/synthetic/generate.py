@@ -197,7 +197,9 @@ def generate(
         transl=transl,
         joint_names=np.array(model.joint_names),
         phenotype_labels=np.array(sorted(spec.phenotype)) if spec.phenotype else np.array([""]),
-        phenotype_values=np.array([spec.phenotype[k] for k in sorted(spec.phenotype)]) if spec.phenotype else np.zeros(1),
+        phenotype_values=np.array([spec.phenotype[k] for k in sorted(spec.phenotype)])
+        if spec.phenotype
+        else np.zeros(1),
         fps=spec.fps,
         **_camera_arrays(camera, F),
     )

@@ -50,8 +50,16 @@ PRESETS: dict[str, dict] = {
     "paper": {
         "resolution": 512,
         # SCARF's density: ReLU of raw plus noise (std 1 decaying to 0 over 5000 steps) while training
-        "nerf": {"encoding": "pe", "num_freqs": 10, "depth": 8, "width": 256, "skip": 4,
-                 "density_activation": "relu", "density_noise": 1.0, "density_noise_steps": 5000},
+        "nerf": {
+            "encoding": "pe",
+            "num_freqs": 10,
+            "depth": 8,
+            "width": 256,
+            "skip": 4,
+            "density_activation": "relu",
+            "density_noise": 1.0,
+            "density_noise_steps": 5000,
+        },
         "offsets": {"encoding": "pe", "num_freqs": 6, "depth": 4, "width": 128},
         "albedo": {"encoding": "pe", "num_freqs": 10, "depth": 6, "width": 256, "skip": 3},
         "deformation": {"encoding": "pe", "num_freqs": 6, "depth": 6, "width": 128},
@@ -60,8 +68,12 @@ PRESETS: dict[str, dict] = {
         # steps), then the hybrid at a NeRF rate of 1e-4: a fresh PE NeRF meeting the hybrid
         # objective's clothing mask collapses to σ = 0 in ~25 steps, and so does one carried into
         # it at 5e-4 (benchmarks/density_collapse.py, docs/tradeoff.md)
-        "stage1": {"iterations": 50000, "rays": 4096, "lr": {"nerf": 1e-4, "nerf_warmup": 5e-4, "fields": 5e-4},
-                   "nerf_warmup": 400},  # fmt: skip
+        "stage1": {
+            "iterations": 50000,
+            "rays": 4096,
+            "lr": {"nerf": 1e-4, "nerf_warmup": 5e-4, "fields": 5e-4},
+            "nerf_warmup": 400,
+        },  # fmt: skip
         "stage2": {"iterations": 20000, "rays": 4096, "patch": 48, "lr": {"nerf": 1e-4, "fields": 5e-4}},
     },
 }
@@ -188,7 +200,9 @@ RANGES = {
 
 def _match(pattern: str, key: str) -> bool:
     a, b = pattern.split("."), key.split(".")
-    return len(a) == len(b) and all(p == "*" or p == k or (p.endswith("*") and k.startswith(p[:-1])) for p, k in zip(a, b))
+    return len(a) == len(b) and all(
+        p == "*" or p == k or (p.endswith("*") and k.startswith(p[:-1])) for p, k in zip(a, b)
+    )
 
 
 def _flat(d: dict, prefix: str = "") -> dict:
@@ -248,7 +262,9 @@ def _resolve(preset: str, *overrides: dict) -> TrainSettings:
             if not 0 < cfg.lr_final <= 1:
                 raise DeltaError(f"training.{name}.lr_final: {cfg.lr_final} (expected a fraction in (0, 1])")
             if not 0 < cfg.nerf_warmup_crop <= 1:
-                raise DeltaError(f"training.{name}.nerf_warmup_crop: {cfg.nerf_warmup_crop} (expected a fraction in (0, 1])")
+                raise DeltaError(
+                    f"training.{name}.nerf_warmup_crop: {cfg.nerf_warmup_crop} (expected a fraction in (0, 1])"
+                )
             if cfg.nerf_warmup < 0 or (name == "stage2" and cfg.nerf_warmup):
                 raise DeltaError(f"training.{name}.nerf_warmup: {cfg.nerf_warmup} (steps >= 0, stage 1 only: "
                                  "stage 2 starts from stage 1's NeRF)")  # fmt: skip

@@ -167,7 +167,9 @@ def migrate_model(state: dict, path: str | Path) -> dict:
     if version == 1:
         state = dict(state, format=MODEL_FORMAT)
         written = state["settings"].get("dynamics", {})
-        settings = deep_merge(state["settings"], {"dynamics": {k: 0 for k in ("time_freqs", "pose_knots") if k not in written}})
+        settings = deep_merge(
+            state["settings"], {"dynamics": {k: 0 for k in ("time_freqs", "pose_knots") if k not in written}}
+        )
         if not any(k.startswith("occupancy.") for k in state["model"]):
             settings = deep_merge(settings, {"render": {"occupancy": dataclasses.asdict(OccupancySettings())}})
         state["settings"] = settings

@@ -81,7 +81,10 @@ def nerf_only_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, gen
     objective carves the body out of it.
     """
     r = model.render(batch.frame, batch.pixels, generator, through_mesh=True)
-    terms = {"pixel": L.pixel(r.rgb, batch.rgb, st.weights.huber_delta), "exterior": L.exterior(r.nerf_mask, batch.person)}
+    terms = {
+        "pixel": L.pixel(r.rgb, batch.rgb, st.weights.huber_delta),
+        "exterior": L.exterior(r.nerf_mask, batch.person),
+    }
     return terms, r
 
 

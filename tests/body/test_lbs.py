@@ -71,7 +71,7 @@ def test_transforms_reproduce_vertices_and_invert():
     T = out.vertex_transforms
     homo = torch.cat([out.rest_vertices, torch.ones_like(out.rest_vertices[..., :1])], -1)
     torch.testing.assert_close((T @ homo.unsqueeze(-1)).squeeze(-1)[..., :3], out.vertices)
-    back = (torch.linalg.inv(T) @ torch.cat([out.vertices, torch.ones_like(out.vertices[..., :1])], -1).unsqueeze(-1))
+    back = torch.linalg.inv(T) @ torch.cat([out.vertices, torch.ones_like(out.vertices[..., :1])], -1).unsqueeze(-1)
     torch.testing.assert_close(back.squeeze(-1)[..., :3], out.rest_vertices)
 
 
@@ -147,9 +147,7 @@ def test_gradcheck_translation_and_joints():
 
 
 # ------------------------------------------------------------------ extremes
-@pytest.mark.parametrize(
-    "angle", [0.0, 1e-12, 1e-6, math.pi - 1e-6, math.pi, math.pi + 1e-6, 2 * math.pi, 7.5, -13.0]
-)
+@pytest.mark.parametrize("angle", [0.0, 1e-12, 1e-6, math.pi - 1e-6, math.pi, math.pi + 1e-6, 2 * math.pi, 7.5, -13.0])
 def test_extreme_angles_finite_values_and_gradients(angle):
     model = soft_tree_model()
     for axis in ([1.0, 0, 0], [0.3, -0.5, 0.8]):

@@ -1,6 +1,5 @@
 """SMPL-X loading from generated fixtures with the official key names and shapes."""
 
-import io
 import os
 import pickle
 

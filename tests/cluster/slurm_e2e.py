@@ -85,7 +85,9 @@ def differences(a, b, path: str = "") -> list[str]:
     if isinstance(a, (torch.Tensor, np.ndarray)):
         kind = torch.Tensor if isinstance(a, torch.Tensor) else np.ndarray
         if not isinstance(b, kind) or a.dtype != b.dtype or tuple(a.shape) != tuple(b.shape):
-            return [f"{path}: {a.dtype}{tuple(a.shape)} vs {getattr(b, 'dtype', type(b).__name__)}{tuple(getattr(b, 'shape', ()))}"]
+            return [
+                f"{path}: {a.dtype}{tuple(a.shape)} vs {getattr(b, 'dtype', type(b).__name__)}{tuple(getattr(b, 'shape', ()))}"
+            ]
         x, y = (a.detach().cpu().numpy(), b.detach().cpu().numpy()) if kind is torch.Tensor else (a, b)
         if x.dtype.kind not in "fc":
             same = x == y
@@ -96,7 +98,9 @@ def differences(a, b, path: str = "") -> list[str]:
         if x.dtype.kind in "fc":
             d = np.abs(x.astype(np.float64) - y.astype(np.float64))[~same]
             rel = d / np.maximum(np.abs(x.astype(np.float64))[~same], 1e-300)
-            return [f"{path}: {int((~same).sum())}/{x.size} values differ, max abs {np.nanmax(d):.3g}, max rel {np.nanmax(rel):.3g}"]
+            return [
+                f"{path}: {int((~same).sum())}/{x.size} values differ, max abs {np.nanmax(d):.3g}, max rel {np.nanmax(rel):.3g}"
+            ]
         return [f"{path}: {int((~np.asarray(same)).sum())}/{x.size} values differ"]
     if isinstance(a, dict):
         if not isinstance(b, dict):
@@ -107,7 +111,9 @@ def differences(a, b, path: str = "") -> list[str]:
         return out + [p for k in ka & kb for p in differences(a[k], b[k], f"{path}/{k}")]
     if isinstance(a, (list, tuple)):
         if type(a) is not type(b) or len(a) != len(b):
-            return [f"{path}: {type(a).__name__} of {len(a)} vs {type(b).__name__} of {len(b) if hasattr(b, '__len__') else '?'}"]
+            return [
+                f"{path}: {type(a).__name__} of {len(a)} vs {type(b).__name__} of {len(b) if hasattr(b, '__len__') else '?'}"
+            ]
         return [p for i, (x, y) in enumerate(zip(a, b)) for p in differences(x, y, f"{path}[{i}]")]
     if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
         return []
@@ -149,6 +155,7 @@ def file_differences(a: Path, b: Path) -> list[str]:
 
 def compare_trees(a: Path, b: Path) -> list[str]:
     """Problems between two runs' outputs; [] when every file exists in both with equal content."""
+
     def files(root):
         return {str(p.relative_to(root)) for t in TREES for p in (root / t).rglob("*")
                 if p.is_file() and not str(p.relative_to(root)).startswith(SKIPPED)}  # fmt: skip
@@ -217,7 +224,9 @@ def scancel_test(repo: Path, finished: Path, scratch: Path) -> dict:
     problems = [f"differs: {n}{d}" for n in ("model.pt", "losses.csv", "checkpoint.pt")
                 for d in file_differences(stage1_dir(whole) / n, stage1_dir(killed) / n)]  # fmt: skip
     assert not problems, problems
-    print(f"killed at step {killed_at}, resumed at step {resumed.group(1)}: model.pt, losses.csv equal a run never killed")
+    print(
+        f"killed at step {killed_at}, resumed at step {resumed.group(1)}: model.pt, losses.csv equal a run never killed"
+    )
     return {"never_killed_s": round(t_whole, 1), "killed_and_resumed_s": round(time.time() - t0, 1),
             "killed_at_step": killed_at, "resumed_at_step": int(resumed.group(1))}  # fmt: skip
 
@@ -227,7 +236,9 @@ def src_id(src: Path) -> str:
     import hashlib
 
     h = hashlib.sha256((src / "Snakefile").read_bytes())
-    for p in sorted(q for d in ("delta", "rules", "workflow", "config", ".test") for q in (src / d).rglob("*") if q.is_file()):
+    for p in sorted(
+        q for d in ("delta", "rules", "workflow", "config", ".test") for q in (src / d).rglob("*") if q.is_file()
+    ):
         if "__pycache__" not in p.parts:
             h.update(str(p.relative_to(src)).encode() + p.read_bytes())
     return h.hexdigest()[:16]
@@ -250,7 +261,9 @@ def main():
         done = local / "finished.json"  # a local run of the same code is kept: DELTA_TEST_REV pins it
         previous = json.loads(done.read_text()) if done.is_file() else {}
         if args.retrain:
-            assert previous.get("src") == run_id["src"] and (cluster / "results").is_dir(), "no runs of this code to reuse"
+            assert previous.get("src") == run_id["src"] and (cluster / "results").is_dir(), (
+                "no runs of this code to reuse"
+            )
             for work in (local, cluster):
                 for stage in work.glob("results/*/*/stage[12]"):
                     shutil.rmtree(stage)

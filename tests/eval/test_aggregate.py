@@ -13,11 +13,24 @@ from delta.eval.plots import plot_losses, smooth
 
 
 def write_summary(path, psnr, refined_psnr, body):
-    path.write_text(json.dumps({
-        "preset": "fast", "stage": 2, "settings": {"refine_steps": 5}, "seconds": 12.0, "train_body_err_mm": body,
-        "geometry": {"clothing_chamfer_mm": body / 10, "clothing_frames": 2},
-        "scores": {"test_view": {"unrefined": {"psnr": psnr, "ssim": 0.9, "frames": 2},
-                                 "refined": {"psnr": refined_psnr, "ssim": None, "frames": 2}}}}))
+    path.write_text(
+        json.dumps(
+            {
+                "preset": "fast",
+                "stage": 2,
+                "settings": {"refine_steps": 5},
+                "seconds": 12.0,
+                "train_body_err_mm": body,
+                "geometry": {"clothing_chamfer_mm": body / 10, "clothing_frames": 2},
+                "scores": {
+                    "test_view": {
+                        "unrefined": {"psnr": psnr, "ssim": 0.9, "frames": 2},
+                        "refined": {"psnr": refined_psnr, "ssim": None, "frames": 2},
+                    }
+                },
+            }
+        )
+    )
 
 
 def write_bench(path, seconds, rss):
@@ -27,10 +40,26 @@ def write_bench(path, seconds, rss):
 def test_one_row_per_subject_and_a_mean_row(tmp_path):
     write_summary(tmp_path / "a.json", 20.0, 22.0, 50.0)
     write_summary(tmp_path / "b.json", 24.0, 25.0, 70.0)
-    (tmp_path / "ea.json").write_text(json.dumps({"lineup": {"body_iou": 0.9}, "clothing": {"faces": 100, "name": "x"},
-                                                  "settings": {"grid": 8}, "seconds": {"total": 3.0}}))
-    (tmp_path / "eb.json").write_text(json.dumps({"lineup": {"body_iou": 0.8}, "clothing": {"faces": 300, "name": "y"},
-                                                  "settings": {"grid": 8}, "seconds": {"total": 5.0}}))
+    (tmp_path / "ea.json").write_text(
+        json.dumps(
+            {
+                "lineup": {"body_iou": 0.9},
+                "clothing": {"faces": 100, "name": "x"},
+                "settings": {"grid": 8},
+                "seconds": {"total": 3.0},
+            }
+        )
+    )
+    (tmp_path / "eb.json").write_text(
+        json.dumps(
+            {
+                "lineup": {"body_iou": 0.8},
+                "clothing": {"faces": 300, "name": "y"},
+                "settings": {"grid": 8},
+                "seconds": {"total": 5.0},
+            }
+        )
+    )
     for s, t in (("a", 10), ("b", 30)):
         write_bench(tmp_path / f"{s}1.tsv", t, 1000)
         write_bench(tmp_path / f"{s}2.tsv", t / 2, 2000)
@@ -59,7 +88,9 @@ def test_bad_benchmark_entries_are_named(tmp_path):
         aggregate("syn", ["a"], [str(tmp_path / "a.json")], [], ["c/stage1=x.tsv"], tmp_path / "m.csv")
     (tmp_path / "bad.tsv").write_text("nothing here\n")
     with pytest.raises(DeltaError, match="bad.tsv"):
-        aggregate("syn", ["a"], [str(tmp_path / "a.json")], [], [f"a/stage1={tmp_path / 'bad.tsv'}"], tmp_path / "m.csv")
+        aggregate(
+            "syn", ["a"], [str(tmp_path / "a.json")], [], [f"a/stage1={tmp_path / 'bad.tsv'}"], tmp_path / "m.csv"
+        )
     assert not (tmp_path / "m.csv").exists()
 
 

@@ -81,7 +81,9 @@ def test_speedup_against_the_reference(tmp_path):
     manifest = {"s": {"reference": write_variant(tmp_path, "ref", 2.0, 0.05, 21.0, 400.0, 1e9),
                       "fast": write_variant(tmp_path, "fast", 0.2, 0.1, 23.0, 40.0, 1e8, eval_resolution=128)}}  # fmt: skip
     (tmp_path / "peak.json").write_text(json.dumps({"flop_per_s": 1e10}))
-    df = tradeoff(manifest, tmp_path / "peak.json", "reference", tmp_path / "t.csv", tmp_path / "t.png").set_index("variant")
+    df = tradeoff(manifest, tmp_path / "peak.json", "reference", tmp_path / "t.csv", tmp_path / "t.png").set_index(
+        "variant"
+    )
     # trained at 64², scored at its own size (no 'resolution' in the summary) or at a common 128²
     assert df.loc["reference", "eval_resolution"] == 64 and df.loc["fast", "eval_resolution"] == 128
     target = df.loc["reference", "reference_psnr"]
@@ -110,13 +112,18 @@ def test_cli_takes_a_manifest_longer_than_path_max(tmp_path, capsys):
     common = ["--peak", str(tmp_path / "peak.json"), "--reference", "reference", "--plot", str(tmp_path / "t.png")]
     assert main(["tradeoff", "--manifest", manifest, "--out", str(tmp_path / "inline.csv"), *common]) == 0
     (tmp_path / "manifest.json").write_text(manifest)
-    assert main(["tradeoff", "--manifest", str(tmp_path / "manifest.json"), "--out", str(tmp_path / "file.csv"), *common]) == 0
+    assert (
+        main(["tradeoff", "--manifest", str(tmp_path / "manifest.json"), "--out", str(tmp_path / "file.csv"), *common])
+        == 0
+    )
     inline, from_file = pd.read_csv(tmp_path / "inline.csv"), pd.read_csv(tmp_path / "file.csv")
     assert len(inline) == 41 and inline.equals(from_file)
     # bad input names the argument and what is wrong, with the CLI's error code
     assert main(["tradeoff", "--manifest", "{not json", "--out", str(tmp_path / "x.csv"), *common]) == 2
     assert "--manifest: not valid JSON" in capsys.readouterr().err
-    assert main(["tradeoff", "--manifest", str(tmp_path / "missing.json"), "--out", str(tmp_path / "x.csv"), *common]) == 2
+    assert (
+        main(["tradeoff", "--manifest", str(tmp_path / "missing.json"), "--out", str(tmp_path / "x.csv"), *common]) == 2
+    )
     assert "missing.json is neither inline JSON nor an existing JSON file" in capsys.readouterr().err
     assert not (tmp_path / "x.csv").exists()
 
@@ -126,7 +133,9 @@ def test_no_speedup_against_a_reference_that_did_not_learn(tmp_path):
     manifest = {"s": {"reference": write_variant(tmp_path, "ref", 2.0, 0.0, 14.0, 400.0, 1e9),
                       "fast": write_variant(tmp_path, "fast", 0.2, 0.1, 23.0, 40.0, 1e8)}}  # fmt: skip
     (tmp_path / "peak.json").write_text(json.dumps({"flop_per_s": 1e10}))
-    df = tradeoff(manifest, tmp_path / "peak.json", "reference", tmp_path / "t.csv", tmp_path / "t.png").set_index("variant")
+    df = tradeoff(manifest, tmp_path / "peak.json", "reference", tmp_path / "t.csv", tmp_path / "t.png").set_index(
+        "variant"
+    )
     assert df["speedup_vs_reference"].isna().all() and (df["reference_gain_db"] == 0.0).all()
     # the climbing reference of the test above gained 0.05 dB a step: final (25-step mean) minus the first 25
     climbing = losses(2.0, 0.05)
@@ -141,9 +150,14 @@ def test_no_speedup_for_a_run_that_starts_past_a_short_reference(tmp_path):
                       "fast": write_variant(tmp_path, "fast", 0.2, 0.01, 23.0, 40.0, 1e8, start=15.0),
                       "slow_start": write_variant(tmp_path, "slow", 0.2, 0.1, 20.0, 40.0, 1e8, start=5.0)}}  # fmt: skip
     (tmp_path / "peak.json").write_text(json.dumps({"flop_per_s": 1e10}))
-    df = tradeoff(manifest, tmp_path / "peak.json", "reference", tmp_path / "t.csv", tmp_path / "t.png").set_index("variant")
+    df = tradeoff(manifest, tmp_path / "peak.json", "reference", tmp_path / "t.csv", tmp_path / "t.png").set_index(
+        "variant"
+    )
     target = df.loc["reference", "reference_psnr"]
-    assert df.loc["fast", "train_psnr_start"] == pytest.approx(15.0 + 0.01 * 13) and df.loc["fast", "train_psnr_start"] > target
+    assert (
+        df.loc["fast", "train_psnr_start"] == pytest.approx(15.0 + 0.01 * 13)
+        and df.loc["fast", "train_psnr_start"] > target
+    )
     assert math.isnan(df.loc["fast", "speedup_vs_reference"])
     assert df.loc["fast", "time_to_reference_psnr_s"] == pytest.approx(0.2)  # measured all the same: its first step
     t_ref, t_slow = time_to_psnr(losses(2.0, 0.0125), target), time_to_psnr(losses(0.2, 0.1, start=5.0), target)
@@ -156,7 +170,9 @@ def test_a_resumed_stage_is_timed_by_the_training_clock(tmp_path):
     manifest = {"s": {"reference": write_variant(tmp_path, "ref", 2.0, 0.05, 21.0, 100.0, 1e9),
                       "fast": write_variant(tmp_path, "fast", 0.2, 0.1, 23.0, 45.0, 1e8)}}  # fmt: skip
     (tmp_path / "peak.json").write_text(json.dumps({"flop_per_s": 1e10}))
-    df = tradeoff(manifest, tmp_path / "peak.json", "reference", tmp_path / "t.csv", tmp_path / "t.png").set_index("variant")
+    df = tradeoff(manifest, tmp_path / "peak.json", "reference", tmp_path / "t.csv", tmp_path / "t.png").set_index(
+        "variant"
+    )
     # the reference's clock ends at 200 steps x 2 s; fast's benchmark (45 s, set-up included) outlasts its 40-s clock
     assert df.loc["reference", "stage1_s"] == 400.0 and df.loc["reference", "stage1_resumed"]
     assert df.loc["fast", "stage1_s"] == 45.0 and not df.loc["fast", "stage1_resumed"]

@@ -119,8 +119,13 @@ def bent_tube(dtype=D) -> BodyModel:
 def test_backward_of_forward_is_the_identity_near_the_body():
     """Points up to 3 cm off a dense body, posed with the elbow bent by 1.2 rad and back."""
     model = bent_tube()
-    out = lbs(model, torch.tensor([[1.0]], dtype=D), torch.tensor([[[0.2, 0.3, 0.1], [0, 0, 1.2]]], dtype=D),
-              offsets=0.01 * torch.sin(5 * model.v_template), transl=torch.tensor([[0.1, 0.2, 0.3]], dtype=D))
+    out = lbs(
+        model,
+        torch.tensor([[1.0]], dtype=D),
+        torch.tensor([[[0.2, 0.3, 0.1], [0, 0, 1.2]]], dtype=D),
+        offsets=0.01 * torch.sin(5 * model.v_template),
+        transl=torch.tensor([[0.1, 0.2, 0.3]], dtype=D),
+    )
     cano_T = lbs(model, torch.zeros(1, 1, dtype=D), model.canonical_pose[None]).vertex_transforms_3x4[0]
     cano = (cano_T[..., :3] @ model.v_template[..., None]).squeeze(-1) + cano_T[..., 3]
     disp = out.rest_vertices[0] - model.v_template

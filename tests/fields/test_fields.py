@@ -8,8 +8,15 @@ import pytest
 import torch
 
 from delta.fields.encodings import GridEncoding, PositionalEncoding, make_encoding, positional_encoding
-from delta.fields.networks import (MAX_LOG_DENSITY, MLP, DeformationField, FieldSpec, NeRFField, VertexField,
-                                  time_features)
+from delta.fields.networks import (
+    MAX_LOG_DENSITY,
+    MLP,
+    DeformationField,
+    FieldSpec,
+    NeRFField,
+    VertexField,
+    time_features,
+)
 
 D = torch.float64
 BOUNDS = torch.tensor([[-1.0, 0.0, 2.0], [1.0, 3.0, 4.0]])
@@ -234,7 +241,6 @@ def test_deformation_field_starts_at_zero_and_learns(spec):
     for name, p in field.named_parameters():
         assert p.grad is not None and p.grad.abs().sum() > 0, name
     assert x_c.grad is not None and x_c.grad.abs().sum() > 0
-
 
 
 def test_time_features_by_hand():

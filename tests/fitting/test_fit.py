@@ -2,12 +2,8 @@
 
 import math
 
-import pytest
 import torch
 
-from delta.body.keypoints import openpose18_map
-from delta.body.lbs import lbs
-from delta.body.model import load_body_model
 from delta.cameras.models import OrthographicCamera, PinholeCamera, look_at
 from delta.fitting import terms
 from delta.fitting.fit import FitConfig, KeypointModel, fit

@@ -17,7 +17,9 @@ QUICK = FitConfig(iterations=(20, 20, 10))
 
 
 def pinhole(distance=3.0, size=256, focal=350.0):
-    R, t = look_at(torch.tensor([0.0, 0.0, distance], dtype=D), torch.zeros(3, dtype=D), torch.tensor([0.0, 1.0, 0.0], dtype=D))
+    R, t = look_at(
+        torch.tensor([0.0, 0.0, distance], dtype=D), torch.zeros(3, dtype=D), torch.tensor([0.0, 1.0, 0.0], dtype=D)
+    )
     K = torch.tensor([[focal, 0, size / 2], [0, focal, size / 2], [0, 0, 1]], dtype=D)
     return PinholeCamera(K, R, t, torch.zeros(5, dtype=D), size, size)
 
@@ -61,7 +63,6 @@ def test_single_frame_and_no_keypoints_anywhere(body):
 def test_tiny_and_huge_subjects(body, height_px):
     """A body ~20 px tall, and one much taller than the 256 px image (keypoints off the image)."""
     model, kp_map = body
-    cam = pinhole()
     pose = torch.zeros(2, model.num_joints, 3, dtype=D)
     kp3d = KeypointModel(model, kp_map)(torch.zeros(model.num_shape, dtype=D), pose, torch.zeros(2, 3, dtype=D))
     distance = 350.0 * float(kp3d[0, :, 1].amax() - kp3d[0, :, 1].amin()) / height_px

@@ -24,7 +24,9 @@ def test_base_faces_come_back_from_an_upsampled_model():
     assert vids.tolist() == sorted(set(base.faces.flatten().tolist()))
     assert sorted(map(tuple, np.sort(faces, 1).tolist())) == sorted(map(tuple, np.sort(base.faces.numpy(), 1).tolist()))
     coarse = sil.coarse_mesh(fine, cell=0.0)  # no clustering: the base mesh, reindexed
-    torch.testing.assert_close(fine.v_template[coarse.vertex_ids][coarse.faces], fine.v_template[torch.from_numpy(faces)])
+    torch.testing.assert_close(
+        fine.v_template[coarse.vertex_ids][coarse.faces], fine.v_template[torch.from_numpy(faces)]
+    )
 
 
 def test_coarse_mesh_clusters_vertices_of_the_model(body):
@@ -50,8 +52,12 @@ def test_frames_silhouette_hard_squares_per_frame():
     torch.testing.assert_close(out, expect, atol=1e-6, rtol=0)
     # term and IoU: frame 0's mask is the full image -> half uncovered; frame 1's mask is exact
     masks = torch.stack([torch.ones(8, 8), expect[1]]).double()
-    torch.testing.assert_close(sil.silhouette_term(out, masks, fill=0.5), torch.tensor([0.25, 0.0], dtype=torch.float64), atol=1e-6, rtol=0)
-    torch.testing.assert_close(sil.soft_iou(out, masks), torch.tensor([0.5, 1.0], dtype=torch.float64), atol=1e-6, rtol=0)
+    torch.testing.assert_close(
+        sil.silhouette_term(out, masks, fill=0.5), torch.tensor([0.25, 0.0], dtype=torch.float64), atol=1e-6, rtol=0
+    )
+    torch.testing.assert_close(
+        sil.soft_iou(out, masks), torch.tensor([0.5, 1.0], dtype=torch.float64), atol=1e-6, rtol=0
+    )
 
 
 def test_supersampled_silhouette_is_the_covered_area():
@@ -73,7 +79,9 @@ def test_supersampled_silhouette_is_the_covered_area():
 def test_downsample_masks_area_average():
     m = np.zeros((1, 4, 4), np.uint8)
     m[0, :2, :2] = 255
-    torch.testing.assert_close(sil.downsample_masks(m, 2), torch.tensor([[[1.0, 0.0], [0.0, 0.0]]], dtype=torch.float64))
+    torch.testing.assert_close(
+        sil.downsample_masks(m, 2), torch.tensor([[[1.0, 0.0], [0.0, 0.0]]], dtype=torch.float64)
+    )
 
 
 def test_the_root_is_not_limited(body):

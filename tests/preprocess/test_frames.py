@@ -87,7 +87,7 @@ def test_synthetic_record_is_consistent_with_ground_truth(tmp_path, tiny_capture
 def test_peoplesnapshot_adapter_matches_the_synthetic_record(tmp_path, tiny_captures):
     ps = prepare(peoplesnapshot_source(tiny_captures / "ps", "tight", {"train": [0, 4, 1], "test": [5, 6, 1]}),
                  tmp_path / "ps.h5", 96)  # fmt: skip
-    syn = prepare(synthetic_source(tiny_captures / "tight", "tight"), tmp_path / "syn.h5", 96)
+    prepare(synthetic_source(tiny_captures / "tight", "tight"), tmp_path / "syn.h5", 96)
     assert ps["sources"] == {"person": "dataset:masks.hdf5", "keypoints": "dataset:keypoints.hdf5"}
     with FrameRecord(tmp_path / "ps.h5") as a, FrameRecord(tmp_path / "syn.h5") as b:
         assert len(a) == len(b) == 7

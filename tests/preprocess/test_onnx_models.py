@@ -57,8 +57,11 @@ def rvm_graph(path: Path, elem: int = F32, src_name: str = "src") -> Path:
         helper.make_node("Cast", ["pha_f"], ["pha"], to=elem),
     ]
     for k in range(1, 5):
-        nodes += [_const(f"inc{k}", float(k)), helper.make_node("Add", [f"r{k}i_{F32}", f"inc{k}"], [f"r{k}o_f"]),
-                  helper.make_node("Cast", [f"r{k}o_f"], [f"r{k}o"], to=elem)]
+        nodes += [
+            _const(f"inc{k}", float(k)),
+            helper.make_node("Add", [f"r{k}i_{F32}", f"inc{k}"], [f"r{k}o_f"]),
+            helper.make_node("Cast", [f"r{k}o_f"], [f"r{k}o"], to=elem),
+        ]
     img = lambda n, c: helper.make_tensor_value_info(n, elem, ["B", c, "H", "W"])  # noqa: E731
     state = lambda n: helper.make_tensor_value_info(n, elem, ["b", "c", "h", "w"])  # noqa: E731
     inputs = [img(src_name, 3)] + [state(f"r{k}i") for k in range(1, 5)]
@@ -69,14 +72,20 @@ def rvm_graph(path: Path, elem: int = F32, src_name: str = "src") -> Path:
 
 def modnet_graph(path: Path, rank: int = 4) -> Path:
     """MODNet signature; output = mean_c(input * 0.5 + 0.5), i.e. the grey value in [0, 1]."""
-    nodes = [_const("half", 0.5),
-             helper.make_node("Mul", ["input", "half"], ["a"]),
-             helper.make_node("Add", ["a", "half"], ["b"]),
-             helper.make_node("ReduceMean", ["b"], ["output"], axes=[1], keepdims=1)]
+    nodes = [
+        _const("half", 0.5),
+        helper.make_node("Mul", ["input", "half"], ["a"]),
+        helper.make_node("Add", ["a", "half"], ["b"]),
+        helper.make_node("ReduceMean", ["b"], ["output"], axes=[1], keepdims=1),
+    ]
     dims = [1, 3, "h", "w"][:rank]
     out_dims = [1, 1, "h", "w"][:rank]
-    graph = helper.make_graph(nodes, "modnet_standin", [helper.make_tensor_value_info("input", F32, dims)],
-                              [helper.make_tensor_value_info("output", F32, out_dims)])
+    graph = helper.make_graph(
+        nodes,
+        "modnet_standin",
+        [helper.make_tensor_value_info("input", F32, dims)],
+        [helper.make_tensor_value_info("output", F32, out_dims)],
+    )
     return _save(graph, path)
 
 
@@ -93,9 +102,13 @@ def parser_graph(path: Path, classes: int, rgb_class: tuple[int, int, int], size
     nodes = [helper.make_node("Conv", ["input.1", "w", "b"], ["d0"])]
     nodes += [helper.make_node("Identity", ["d0"], [f"d{i}"]) for i in range(1, extra_outputs + 1)]
     out = [helper.make_tensor_value_info(f"d{i}", F32, [1, classes, size, size]) for i in range(extra_outputs + 1)]
-    graph = helper.make_graph(nodes, "parser_standin",
-                              [helper.make_tensor_value_info("input.1", F32, [1, 3, size, size])], out,
-                              initializer=[numpy_helper.from_array(w, "w"), numpy_helper.from_array(b, "b")])
+    graph = helper.make_graph(
+        nodes,
+        "parser_standin",
+        [helper.make_tensor_value_info("input.1", F32, [1, 3, size, size])],
+        out,
+        initializer=[numpy_helper.from_array(w, "w"), numpy_helper.from_array(b, "b")],
+    )
     return _save(graph, path)
 
 
@@ -110,8 +123,12 @@ def quadrants(h: int = 40, w: int = 60) -> np.ndarray:
 
 def check_quadrants(labels: np.ndarray, expected: tuple[int, int, int, int], margin: int = 2) -> None:
     h, w = labels.shape
-    blocks = [labels[: h // 2 - margin, : w // 2 - margin], labels[: h // 2 - margin, w // 2 + margin :],
-              labels[h // 2 + margin :, : w // 2 - margin], labels[h // 2 + margin :, w // 2 + margin :]]
+    blocks = [
+        labels[: h // 2 - margin, : w // 2 - margin],
+        labels[: h // 2 - margin, w // 2 + margin :],
+        labels[h // 2 + margin :, : w // 2 - margin],
+        labels[h // 2 + margin :, w // 2 + margin :],
+    ]
     for block, cls in zip(blocks, expected):
         assert (block == cls).all(), (cls, np.unique(block))
 
@@ -250,11 +267,22 @@ def test_output_count_and_extra_inputs(tmp_path):
     assert open_session(path, {"*": 4}, threads=2).get_inputs()[0].name == "input"
 
 
-@pytest.mark.parametrize("bad", [np.zeros((8, 8, 3), np.float32), np.zeros((8, 8, 4), np.uint8),
-                                 np.zeros((8, 8), np.uint8), np.zeros((0, 8, 3), np.uint8), [[0, 0, 0]]])
+@pytest.mark.parametrize(
+    "bad",
+    [
+        np.zeros((8, 8, 3), np.float32),
+        np.zeros((8, 8, 4), np.uint8),
+        np.zeros((8, 8), np.uint8),
+        np.zeros((0, 8, 3), np.uint8),
+        [[0, 0, 0]],
+    ],
+)
 def test_bad_frames(tmp_path, bad):
-    models = [RobustVideoMatting(rvm_graph(tmp_path / "rvm.onnx")), MODNet(modnet_graph(tmp_path / "m.onnx")),
-              FaceParsing(parser_graph(tmp_path / "f.onnx", 19, (17, 1, 18), 64, 0))]
+    models = [
+        RobustVideoMatting(rvm_graph(tmp_path / "rvm.onnx")),
+        MODNet(modnet_graph(tmp_path / "m.onnx")),
+        FaceParsing(parser_graph(tmp_path / "f.onnx", 19, (17, 1, 18), 64, 0)),
+    ]
     for model in models:
         with pytest.raises(DeltaError, match=r"uint8 array of shape \(H, W, 3\)|empty frame"):
             model(bad)

@@ -212,7 +212,9 @@ def test_early_cull_loses_few_samples_the_exact_tests_keep_on_a_posed_anny(anny_
                              out.rest_vertices[0, ids] - body.v_template[ids], cano.vertex_transforms_3x4[0, ids],
                              body.weights[ids], near_cell=0.02, near_pad=0.14)  # fmt: skip
     cv = cano.vertices[0]
-    occ = OccupancyGrid(torch.stack([cv.amin(0) - 0.3, cv.amax(0) + 0.3]), OccupancySettings(enabled=True, resolution=64))
+    occ = OccupancyGrid(
+        torch.stack([cv.amin(0) - 0.3, cv.amax(0) + 0.3]), OccupancySettings(enabled=True, resolution=64)
+    )
     # occupied: a shell 2-8 cm from the canonical body on the +x side of a tilted plane (cuts the limbs)
     tree = deformer.prepare(cv[ids], cano.vertex_transforms_3x4[0, ids], torch.zeros_like(cv[ids]),
                             cano.vertex_transforms_3x4[0, ids], body.weights[ids]).tree  # fmt: skip

@@ -76,6 +76,4 @@ def test_camera_gradients():
     assert torch.autograd.gradcheck(lambda x: cam.project(x)[0], (X,))
     s = torch.tensor(0.9, dtype=torch.float64, requires_grad=True)
     t = torch.tensor([0.1, 0.2], dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(
-        lambda s_, t_: OrthographicCamera(s_, t_, 64, 64).project(X.detach())[0], (s, t)
-    )
+    assert torch.autograd.gradcheck(lambda s_, t_: OrthographicCamera(s_, t_, 64, 64).project(X.detach())[0], (s, t))

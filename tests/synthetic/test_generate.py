@@ -124,7 +124,9 @@ def test_gt_joints_project_onto_gt_keypoints(tiny_captures, anny_files, subject)
         np.testing.assert_allclose(fh["keypoints3d"][:], kp3d.numpy(), atol=1e-5)
     np.testing.assert_allclose(kp[..., :2], uv.numpy(), atol=1e-3)
     knee = model.joint_names.index("lowerleg01.L")
-    np.testing.assert_allclose(kp[:, 12, :2], camera.project(out.joints[:, knee : knee + 1])[0][:, 0].numpy(), atol=1e-3)
+    np.testing.assert_allclose(
+        kp[:, 12, :2], camera.project(out.joints[:, knee : knee + 1])[0][:, 0].numpy(), atol=1e-3
+    )
     assert set(np.unique(kp[..., 2]).tolist()) <= {0.0, np.float32(0.3).item(), 1.0}
     assert (kp[0, :, 2] == 1.0).mean() > 0.7  # the first frame faces the camera
 

@@ -85,7 +85,9 @@ def test_a_stage_fingerprint_covers_what_the_stage_reads(tiny_training):
     assert fingerprint(2, only1, data) == fingerprint(2, st, data)
     assert fingerprint(2, only2, data) != fingerprint(2, st, data)
     assert fingerprint(1, only1, data) != fingerprint(1, st, data)
-    assert fingerprint(1, shared, data) != fingerprint(1, st, data) and fingerprint(2, shared, data) != fingerprint(2, st, data)
+    assert fingerprint(1, shared, data) != fingerprint(1, st, data) and fingerprint(2, shared, data) != fingerprint(
+        2, st, data
+    )
     assert fingerprint(2, st, data, origin="a") != fingerprint(2, st, data, origin="b")
     # a stage's view resolves to the same settings for everything that stage reads
     view = resolve("fast", stage_view(only2.raw, 1))
@@ -136,7 +138,9 @@ def test_a_bad_checkpoint_is_set_aside_and_the_one_before_resumes(tiny_training,
     resumed = _model(inputs, st)[0]
     with caplog.at_level("INFO"):
         res = train_stage(1, resumed, data, st, run)
-    assert "set aside as checkpoint.pt.corrupt" in caplog.text and "resuming" in caplog.text and "at step 2" in caplog.text
+    assert (
+        "set aside as checkpoint.pt.corrupt" in caplog.text and "resuming" in caplog.text and "at step 2" in caplog.text
+    )
     assert (run / "checkpoint.pt.corrupt").is_file() and not marker.exists()
     assert list(res.losses["step"]) == list(range(1, 7))
     for k, v in whole.state_dict().items():

@@ -21,7 +21,14 @@ pytestmark = pytest.mark.slow
 TINY = {
     "resolution": 32,
     "render": {"samples": 8},
-    "stage1": {"iterations": 6, "rays": 128, "checkpoint_every": 2, "preview_every": 0, "log_every": 1, "lr_final": 0.1},
+    "stage1": {
+        "iterations": 6,
+        "rays": 128,
+        "checkpoint_every": 2,
+        "preview_every": 0,
+        "log_every": 1,
+        "lr_final": 0.1,
+    },
     "stage2": {"iterations": 4, "rays": 128, "patch": 16, "checkpoint_every": 2, "preview_every": 2},
 }
 
@@ -244,7 +251,7 @@ def test_only_the_visited_frames_move(tiny_training, tmp_path):
     st = resolve("fast", TINY, {"stage1": {"iterations": 3}})
     model, data = _model(tiny_training["loose"], st)
     before = [p.detach().clone() for p in model.per_frame_parameters()]
-    res = train_stage(1, model, data, st, tmp_path)
+    train_stage(1, model, data, st, tmp_path)
     moved = set()
     for p, old in zip(model.per_frame_parameters(), before):
         moved |= {int(i) for i in torch.nonzero((p.detach() != old).reshape(len(old), -1).any(1))}
