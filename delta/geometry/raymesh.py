@@ -90,13 +90,17 @@ def _face_tables(tri: torch.Tensor) -> dict:
     return dict(e1=e1, e2=e2, n=n, e2xa=e2xa, axe1=axe1, an=(a * n).sum(-1), **{"|" + k: v for k, v in norms.items()})
 
 
-def _search_chunk(o, d, ft: dict, tol: float) -> torch.Tensor:
+def _search_chunk(o, d, ft: dict, tol: float, tri: torch.Tensor) -> torch.Tensor:
     """(Rc,) first-hit face of a chunk of rays (-1: none).
 
     Möller–Trumbore with the ray-face products expanded into (Rc, 3) x (3, F)
     matmuls (no divisions; det's sign is folded into the tests). The expansion
-    loses precision to cancellation, so the inside tests carry a per-pair
-    rounding bound; the exact values are recomputed later anyway.
+    loses precision to cancellation (``o x d`` is large for a scene far from the
+    origin), so its inside tests carry a per-pair rounding bound and only propose
+    candidates: each candidate pair is decided by the direct Möller–Trumbore on
+    ``o - a`` (:func:`_confirm`), whose error does not grow with the distance to
+    the origin. Without that, a ray nearly parallel to a face of a scene 1 km from
+    the origin was taken to hit it up to 5 cm outside its edge.
     """
     m = torch.linalg.cross(o, d, dim=-1)
     det = -(d @ ft["n"].T)
@@ -110,9 +114,20 @@ def _search_chunk(o, d, ft: dict, tol: float) -> torch.Tensor:
     err_v = tol * (mn * ft["|e1"] + dn * ft["|axe1"])
     scale = dn * ft["|e1"] * ft["|e2"]
     ok = (det > tol * scale) & (u >= -err_u) & (v >= -err_v) & (u + v <= det + err_u + err_v + tol * scale) & (tn > 0)
-    t = torch.where(ok, tn / torch.where(ok, det, 1.0), torch.inf)
+    ray, face = ok.nonzero(as_tuple=True)
+    t = torch.full(ok.shape, torch.inf, dtype=o.dtype, device=o.device)
+    t[ray, face] = _confirm(o[ray], d[ray], tri[face], tol)
     best_t, best = t.min(dim=1)
     return torch.where(torch.isfinite(best_t), best, -1)
+
+
+def _confirm(o, d, tri, tol: float) -> torch.Tensor:
+    """(P,) hit distance of candidate (ray, face) pairs by the direct Möller–Trumbore, +inf where the ray
+    misses the face (barycentrics outside [0, 1] by more than ``tol``, a ray parallel to the plane, t <= 0)."""
+    t, u, v, det = moller_trumbore(o, d, tri[:, 0], tri[:, 1], tri[:, 2])
+    scale = d.norm(dim=-1) * (tri[:, 1] - tri[:, 0]).norm(dim=-1) * (tri[:, 2] - tri[:, 0]).norm(dim=-1)
+    hit = (det.abs() > tol * scale) & (u >= -tol) & (v >= -tol) & (u + v <= 1 + tol) & (t > 0)
+    return torch.where(hit, t, torch.inf)
 
 
 @torch.no_grad()
@@ -123,10 +138,11 @@ def _search_torch(vertices, faces, origins, dirs) -> torch.Tensor:
     R, F = o.shape[0], faces.shape[0]
     if R == 0 or F == 0:
         return torch.full((R,), -1, dtype=torch.int64, device=o.device)
-    ft = _face_tables(vertices.detach().to(work)[faces])
+    tri = vertices.detach().to(work)[faces]
+    ft = _face_tables(tri)
     step = max(1, _CHUNK_PAIRS // F)
     tol = 64 * torch.finfo(work).eps
-    return torch.cat([_search_chunk(o[s : s + step], d[s : s + step], ft, tol) for s in range(0, R, step)])
+    return torch.cat([_search_chunk(o[s : s + step], d[s : s + step], ft, tol, tri) for s in range(0, R, step)])
 
 
 def _search_embree(vertices, faces, origins, dirs) -> torch.Tensor:

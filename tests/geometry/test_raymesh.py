@@ -167,3 +167,40 @@ def test_dtype_follows_inputs_and_unknown_backend():
     assert abs(hits.t.item() - 1.5) < 1e-6
     with pytest.raises(ValueError, match="backend"):
         ray_mesh_hits(v, f, origins, dirs, backend="optix")
+
+
+@pytest.mark.parametrize("shift", [0.0, 1000.0])
+def test_torch_search_matches_exact_arithmetic_on_near_parallel_rays(shift):
+    """A 2 m quad in the plane z = 0, ``shift`` metres from the origin, and rays nearly parallel to it
+    (slopes 1e-9 to 1e-2) crossing its plane near the edges: the torch search decides hit or miss as
+    exact rational arithmetic on the same float32 inputs does, wherever the crossing lies more than
+    1 mm from an edge. (The expanded products alone took such rays 1 km out for hits up to 5 cm outside.)"""
+    import math
+    from fractions import Fraction
+
+    g = torch.Generator().manual_seed(7)
+    n = 3000
+    target = torch.rand(n, 2, generator=g, dtype=torch.float64) * 2.1 - 1.05
+    angle = torch.rand(n, generator=g, dtype=torch.float64) * 2 * math.pi
+    slope = 10 ** (torch.rand(n, generator=g, dtype=torch.float64) * 7 - 9)
+    dist = 10 ** (torch.rand(n, generator=g, dtype=torch.float64) * 3)
+    d = torch.stack([torch.cos(angle), torch.sin(angle), -slope], -1)
+    o = torch.cat([target + shift, torch.zeros(n, 1, dtype=torch.float64)], -1) - d * dist[:, None]
+    quad = torch.tensor([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]], dtype=torch.float64) + torch.tensor(
+        [shift, shift, 0]
+    )
+    o32, d32, v32 = o.float(), d.float(), quad.float()
+    hits = ray_mesh_hits(v32, torch.tensor([[0, 1, 2], [0, 2, 3]]), o32, d32, backend="torch")
+    s = Fraction(float(v32[0, 0]) + 1)  # the quad's centre as stored in float32 (exact: a whole number)
+    checked = 0
+    for i in range(n):
+        ox, oy, oz = (Fraction(float(x)) for x in o32[i])
+        dx, dy, dz = (Fraction(float(x)) for x in d32[i])
+        t = -oz / dz
+        px, py = ox + t * dx - s, oy + t * dy - s
+        margin = float(max(abs(px), abs(py)) - 1)
+        if t <= 0 or abs(margin) < 1e-3:
+            continue
+        checked += 1
+        assert bool(hits.hit[i]) == (margin < 0), (i, margin, float(t))
+    assert checked > 0.9 * n
