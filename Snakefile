@@ -40,6 +40,8 @@ onstart:
     # jobs that run here need the configured device here (a cluster's GPU nodes are checked by their jobs)
     if workflow.local_exec:
         check_device(config["device"])
+    for note in config["standin_notes"]:
+        logger.warning(note)
 
 
 rule all:

@@ -287,7 +287,7 @@ def cmd_tradeoff(args: argparse.Namespace) -> None:
 def cmd_aggregate(args: argparse.Namespace) -> None:
     from delta.eval.aggregate import aggregate
 
-    aggregate(args.dataset, args.subjects, args.summaries, args.exports, args.benchmarks, args.out)
+    aggregate(args.dataset, args.subjects, args.summaries, args.exports, args.benchmarks, args.out, args.source)
 
 
 def cmd_validate_config(args: argparse.Namespace) -> None:
@@ -477,6 +477,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--summaries", nargs="+", required=True, help="eval/summary.json per subject (same order)")
     p.add_argument("--exports", nargs="*", default=[], help="export/export.json per subject (same order)")
     p.add_argument("--benchmarks", nargs="*", default=[], help="rule=path.tsv: the training rules' benchmark files")
+    p.add_argument("--source", default="", help="what the figures were measured on (a column of every row)")
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_aggregate)
 

@@ -93,9 +93,12 @@ def _check_files(config: dict, base: Path) -> None:
     for name, dataset in config["datasets"].items():
         if name == "synthetic":
             continue
-        for key in ("kind", "root"):
-            if key not in dataset:
-                raise DeltaError(f"config key 'datasets.{name}.{key}' is required for a dataset other than 'synthetic'")
+        if "kind" not in dataset:
+            raise DeltaError(f"config key 'datasets.{name}.kind' is required for a dataset other than 'synthetic'")
+        if dataset["kind"] == "video" and not dataset.get("root"):
+            raise DeltaError(
+                f"config key 'datasets.{name}.root' is required for a video dataset (the folder of its videos)"
+            )
     for step in ("matting", "parsing"):
         cfg = config["preprocess"][step]
         if cfg["model"] not in ("none", "mediapipe", "default") and not (base / cfg["path"]).is_file():
@@ -187,6 +190,14 @@ def _check_frame_ranges(config: dict, base: Path, generated: set[str]) -> list[s
                 continue
             root = Path(spec["root"]) if Path(spec["root"]).is_absolute() else base / spec["root"]
             video = (root / subject if kind == "peoplesnapshot" else root) / f"{subject}.mp4"
+            if kind == "peoplesnapshot" and spec["root"] not in generated:
+                files = [f"{subject}.mp4", "masks.hdf5", "camera.pkl", "keypoints.hdf5"]
+                missing = [f for f in files if not (root / subject / f).is_file()]
+                if missing:
+                    out.append(f"config key 'datasets.{dataset}.root': People Snapshot subject '{subject}' lacks "
+                               f"{missing} in {root / subject} (copy the subject's folder there, or leave root "
+                               "empty for the synthetic stand-in)")  # fmt: skip
+                    continue
             n = None if spec["root"] in generated else _video_frames(video)
             for split in ("train", "test"):
                 r = ranges[split]
@@ -219,7 +230,7 @@ def _check_settings(config: dict) -> list[str]:
         except DeltaError as exc:
             out.append(str(exc))
 
-    for name, raw in config["datasets"].get("synthetic", {}).get("subjects", {}).items():
+    for name, raw in {**config["datasets"].get("synthetic", {}).get("subjects", {}), **config["standins"]}.items():
         attempt(parse_subject, name, raw)
     subjects = {s for spec in config["datasets"].values() for s in spec["subjects"]}
     fit, train, trade = config["fitting"], config["training"], config.get("tradeoff", {"variants": {}, "subjects": []})
@@ -264,6 +275,52 @@ def variant_training(config: dict, subject: str, variant: str) -> tuple[str, lis
     return own_preset or preset, overrides + [spec]
 
 
+#: What ``expand_standins`` tells the user once, with the line to change.
+STANDIN_NOTE = (
+    "datasets.{dataset}.root is empty: {dataset} runs on a synthetic stand-in in People Snapshot's layout "
+    "(subjects {subjects}, scored against their ground truth), not on People Snapshot. To use your copy, set "
+    "datasets.{dataset}.root to the folder holding {real}/."
+)
+
+
+def expand_standins(config: dict) -> dict:
+    """A People Snapshot dataset without a root becomes its synthetic stand-in.
+
+    Its subjects become ``standin-<name>`` with the stand-in's frame ranges, its root the folder the
+    workflow writes their People Snapshot layout to; their synthetic specs go to ``config["standins"]``
+    and the note to ``config["standin_notes"]``. Runs on the validated config (defaults filled in).
+    """
+    from delta.synthetic.standin import standin
+
+    config = dict(config, standins={}, standin_notes=[])
+    datasets = dict(config["datasets"])
+    for name, spec in datasets.items():
+        if spec.get("kind") != "peoplesnapshot" or spec.get("root"):
+            continue
+        scale = {"resolution": 1080, "frames": 0.25, **spec.get("standin", {})}
+        subjects = {}
+        for real in spec["subjects"]:
+            sname, syn, ranges = standin(real, scale["resolution"], scale["frames"])
+            config["standins"][sname] = syn
+            subjects[sname] = ranges
+        datasets[name] = {**spec, "root": SYNTHETIC_PEOPLESNAPSHOT_ROOT, "subjects": subjects, "standin_of": dict(
+            zip(subjects, spec["subjects"]))}  # fmt: skip
+        config["standin_notes"].append(STANDIN_NOTE.format(dataset=name, subjects=", ".join(subjects),
+                                                           real="/, ".join(spec["subjects"])))  # fmt: skip
+    config["datasets"] = datasets
+    return config
+
+
+def data_source(config: dict, dataset: str) -> str:
+    """What a dataset's figures were measured on, for the ``source`` column of its metrics."""
+    spec = config["datasets"][dataset]
+    kind = "synthetic" if dataset == "synthetic" else spec.get("kind")
+    if spec.get("standin_of"):
+        return "synthetic stand-in of People Snapshot (no copy configured)"
+    return {"synthetic": "synthetic (generated, ground truth)", "peoplesnapshot": "People Snapshot",
+            "video": "video"}[kind]  # fmt: skip
+
+
 def validate_workflow_config(config: dict, schema_path: str | os.PathLike = DEFAULT_SCHEMA,
                              base_dir: str | os.PathLike = ".", device: bool = True,
                              generated_roots: tuple[str, ...] = ()) -> dict:  # fmt: skip
@@ -273,13 +330,14 @@ def validate_workflow_config(config: dict, schema_path: str | os.PathLike = DEFA
     exists here (off for cluster submission); ``generated_roots`` are dataset roots the workflow writes
     itself (their videos do not exist yet).
     """
-    config = validate_config(config, schema_path, base_dir)
+    config = expand_standins(validate_config(config, schema_path, base_dir))
     problems = [f"config key '{k}': {v} is not a finite number" for k, v in
                 ((k, "NaN or infinity") for k in _non_finite(config))]  # fmt: skip
     problems += _check_names(config)
     if not problems:
         problems += _check_settings(config)
-        problems += _check_frame_ranges(config, Path(base_dir), set(generated_roots))
+        generated = set(generated_roots) | ({SYNTHETIC_PEOPLESNAPSHOT_ROOT} if config["standins"] else set())
+        problems += _check_frame_ranges(config, Path(base_dir), generated)
     if device:
         try:
             check_device(config["device"])

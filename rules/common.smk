@@ -3,15 +3,10 @@ import json
 import shlex
 from pathlib import Path
 
-from delta.config import (
-    SYNTHETIC_PEOPLESNAPSHOT_ROOT,
-    subject_training as _subject_training,
-)
-from delta.config import (
-    check_device,
-    validate_workflow_config,
-    variant_training as _variant_training,
-)
+from delta.config import SYNTHETIC_PEOPLESNAPSHOT_ROOT, check_device, data_source
+from delta.config import subject_training as _subject_training
+from delta.config import validate_workflow_config
+from delta.config import variant_training as _variant_training
 from delta.data.sources import PROVIDES
 from delta.synthetic.spec import parse_subject
 from delta.training.presets import resolve as resolve_training, stage_view
@@ -29,10 +24,9 @@ config = validate_workflow_config(
 BODY = config["body_model"]
 PRE = config["preprocess"]
 DATASETS = config["datasets"]
-SYNTHETIC = {
-    name: parse_subject(name, raw)
-    for name, raw in DATASETS.get("synthetic", {}).get("subjects", {}).items()
-}
+# the generated subjects: the synthetic dataset's and the People Snapshot stand-in's
+SYNTHETIC_RAW = DATASETS.get("synthetic", {}).get("subjects", {}) | config["standins"]
+SYNTHETIC = {name: parse_subject(name, raw) for name, raw in SYNTHETIC_RAW.items()}
 
 
 wildcard_constraints:
@@ -109,9 +103,7 @@ def anny_model_file():
 
 
 def synthetic_spec_json(wildcards):
-    return json.dumps(
-        DATASETS["synthetic"]["subjects"][wildcards.subject], sort_keys=True
-    )
+    return json.dumps(SYNTHETIC_RAW[wildcards.subject], sort_keys=True)
 
 
 def peoplesnapshot_files(subject):
@@ -131,7 +123,7 @@ def synthetic_targets():
             PATHS[k].format(subject=name)
             for k in ("syn_video", "syn_params", "syn_frames", "syn_splits")
         ]
-        if spec.camera == "pinhole":
+        if name in config["standins"]:  # People Snapshot's stand-in: its layout too
             out += peoplesnapshot_files(name)
     return out
 
@@ -392,6 +384,7 @@ def eval_inputs(wildcards):
     }
     if (
         dataset_kind(wildcards.dataset) == "synthetic"
+        or wildcards.subject in config["standins"]
     ):  # ground truth for the geometry columns
         files["gt"] = PATHS["syn_meshes"].format(subject=wildcards.subject)
         files["export"] = PATHS["export_json"].format(**wildcards)

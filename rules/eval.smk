@@ -117,6 +117,8 @@ rule aggregate_metrics:
     params:
         subjects=dataset_subjects,
         benchmarks=aggregate_benchmarks,
+        source=lambda w: data_source(config, w.dataset),
     shell:
         "delta aggregate --dataset {wildcards.dataset:q} --subjects {params.subjects:q} --summaries {input.summaries:q}"
-        " --exports {input.exports:q} --benchmarks {params.benchmarks:q} --out {output:q} > {log:q} 2>&1"
+        " --exports {input.exports:q} --benchmarks {params.benchmarks:q} --source {params.source:q}"
+        " --out {output:q} > {log:q} 2>&1"

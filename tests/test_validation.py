@@ -76,10 +76,54 @@ def test_frame_ranges_are_checked_against_the_video(tmp_path):
     assert cfg["datasets"]["clips"]["subjects"]["clip"]["test"] == [9, 11, 1]
 
 
+def people_snapshot_copy(root: Path, subject: str, frames: int, skip: str = "") -> Path:
+    """A subject folder in People Snapshot's layout (the files the existence check reads; ``skip`` left out)."""
+    video(root / subject / f"{subject}.mp4", frames)
+    for name in ("masks.hdf5", "camera.pkl", "keypoints.hdf5"):
+        if name != skip:
+            (root / subject / name).write_bytes(b"")
+    if skip == f"{subject}.mp4":
+        (root / subject / skip).unlink()
+    return root
+
+
 def test_a_standard_people_snapshot_split_is_checked_against_a_short_copy(tmp_path):
-    video(tmp_path / "ps" / "male-3-casual" / "male-3-casual.mp4", 100)
+    people_snapshot_copy(tmp_path / "ps", "male-3-casual", 100)
     cfg = {"datasets": {"peoplesnapshot": {"kind": "peoplesnapshot", "root": "ps", "subjects": {"male-3-casual": {}}}}}
     assert "ends at frame 455, but" in problems(cfg, tmp_path)
+
+
+@pytest.mark.parametrize("skip", ["camera.pkl", "male-3-casual.mp4"])
+def test_a_partial_people_snapshot_copy_names_the_missing_file_and_where(tmp_path, skip):
+    people_snapshot_copy(tmp_path / "ps", "male-3-casual", 700, skip=skip)
+    cfg = {"datasets": {"peoplesnapshot": {"kind": "peoplesnapshot", "root": "ps", "subjects": {"male-3-casual": {}}}}}
+    msg = problems(cfg, tmp_path)
+    assert f"People Snapshot subject 'male-3-casual' lacks ['{skip}'] in {tmp_path / 'ps' / 'male-3-casual'}" in msg
+    assert "leave root empty for the synthetic stand-in" in msg
+
+
+def test_without_a_copy_people_snapshot_is_its_stand_in():
+    from delta.synthetic.standin import standin
+
+    real = ["male-3-casual", "female-4-casual"]
+    cfg = validate_workflow_config({"datasets": {"peoplesnapshot": {"kind": "peoplesnapshot", "subjects": {s: {} for s in real}}}},
+                                   SCHEMA, base_dir=REPO)  # fmt: skip
+    ps = cfg["datasets"]["peoplesnapshot"]
+    assert sorted(ps["subjects"]) == ["standin-female-4-casual", "standin-male-3-casual"]
+    assert ps["standin_of"]["standin-male-3-casual"] == "male-3-casual"
+    assert ps["root"] == "data/synthetic_ps" and sorted(cfg["standins"]) == sorted(ps["subjects"])
+    # the real splits' shapes at a quarter of their frames, rounded up: male-3-casual trains on 114, tests on 55
+    assert ps["subjects"]["standin-male-3-casual"] == {"train": [0, 28, 1], "test": [29, 42, 1]}
+    spec = cfg["standins"]["standin-male-3-casual"]
+    assert spec["resolution"] == 1080 and spec["turn_frames"] == 43 and spec["camera"] == "pinhole"
+    assert standin("female-4-casual")[1]["phenotype"]["gender"] < 0.5 < spec["phenotype"]["gender"]
+    assert (
+        len(cfg["standin_notes"]) == 1 and "set datasets.peoplesnapshot.root to the folder" in cfg["standin_notes"][0]
+    )
+    small = validate_workflow_config({"datasets": {"peoplesnapshot": {"kind": "peoplesnapshot", "subjects": {"male-3-casual": {}},
+                                                                      "standin": {"resolution": 64, "frames": 0.04}}}},
+                                     SCHEMA, base_dir=REPO)  # fmt: skip
+    assert small["standins"]["standin-male-3-casual"]["turn_frames"] == 5 + 3  # ceil(4.56), ceil(2.2)
 
 
 def test_cuda_without_a_gpu_is_refused_before_any_job(monkeypatch):

@@ -16,6 +16,7 @@ from delta.body.model import load_body_model
 from tests.conftest import ANNY_CACHE
 
 REPO = Path(__file__).resolve().parents[1]
+STANDIN = "standin-male-3-casual"
 pytestmark = pytest.mark.workflow
 
 
@@ -55,30 +56,30 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
     for rule in ("convert_anny", "upsample_body"):
         assert list((work / "logs" / rule).glob("*.log")), f"{rule} wrote no log"
     assert (work / "results/benchmarks/convert_anny/all.tsv").is_file()
-    # the embedded default: two synthetic captures, People Snapshot layout for the pinhole one
-    for subject in ("tight", "loose"):
+    # the embedded default: synthetic captures, and People Snapshot's stand-in in that dataset's layout
+    for subject in ("tight", "loose", STANDIN):
         capture = work / "data/synthetic" / subject
         assert (capture / f"{subject}.mp4").stat().st_size > 0
         for name in ("params.npz", "frames.h5", "meshes.h5", "splits.json"):
             assert (capture / "gt" / name).is_file()
         assert (work / "results/benchmarks/synthesize" / f"{subject}.tsv").is_file()
-    ps = work / "data/synthetic_ps/tight"
-    assert sorted(p.name for p in ps.iterdir()) == ["camera.pkl", "keypoints.hdf5", "masks.hdf5", "tight.mp4"]
-    assert not (work / "data/synthetic_ps/loose").exists()  # orthographic: no such layout
+    ps = work / "data/synthetic_ps" / STANDIN
+    assert sorted(p.name for p in ps.iterdir()) == ["camera.pkl", "keypoints.hdf5", "masks.hdf5", f"{STANDIN}.mp4"]
+    assert not (work / "data/synthetic_ps/tight").exists()  # not a stand-in: no such layout
     # frame records of every configured subject, with the sources recorded
-    for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", "tight")):
+    for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", STANDIN)):
         summary = json.loads((work / "results" / dataset / subject / "frames.json").read_text())
         assert summary["frames"] > 0 and "person" in summary["sources"]
-    ps_sources = json.loads((work / "results/peoplesnapshot/tight/frames.json").read_text())["sources"]
+    ps_sources = json.loads((work / "results/peoplesnapshot" / STANDIN / "frames.json").read_text())["sources"]
     assert ps_sources["person"] == "dataset:masks.hdf5"  # shipped: no matting ran
     assert ps_sources["clothing"] == "model:default:pose_landmark_full.onnx"  # not shipped: the default parser
     assert not (work / "logs/matte").exists()
     # the body-model initialisation ran on every subject
-    for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", "tight")):
+    for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", STANDIN)):
         report = (work / "results" / dataset / subject / "init" / "report.csv").read_text().splitlines()
         assert report[0] == "frame,flagged,few_keypoints,empty_mask,residual_px,confident_keypoints" and len(report) > 5
     # both training stages ran on every subject, resumable checkpoints beside their outputs
-    for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", "tight")):
+    for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", STANDIN)):
         for stage in (1, 2):
             out = work / "results" / dataset / subject / f"stage{stage}"
             assert (out / "model.pt").is_file() and (out / "checkpoint.pt").is_file()
@@ -86,7 +87,8 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
             assert (work / "logs/train" / f"{dataset}_{subject}_stage{stage}.log").is_file()
             assert (work / "results/benchmarks/train" / f"{dataset}_{subject}_stage{stage}.tsv").is_file()
     # evaluation, export and the per-dataset tables
-    for dataset, subjects in (("synthetic", ["tight", "loose", "upper"]), ("peoplesnapshot", ["tight"])):
+    standins = [f"standin-{s}" for s in ("male-3-casual", "male-4-casual", "female-3-casual", "female-4-casual")]
+    for dataset, subjects in (("synthetic", ["tight", "loose", "upper"]), ("peoplesnapshot", standins)):
         table = pd.read_csv(work / "results" / dataset / "metrics.csv")
         assert sorted(table["subject"][:-1]) == sorted(subjects) and table["subject"].iloc[-1] == "mean"
         for col in ("psnr", "ssim", "l1", "stlpips_alex"):
@@ -106,6 +108,12 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
             assert (out / "stage1" / "losses.png").is_file() and (out / "stage2" / "losses.png").is_file()
     synthetic = pd.read_csv(work / "results/synthetic/metrics.csv")
     assert synthetic["train_body_err_mm"].notna().all()  # ground truth: geometry columns
+    ps = pd.read_csv(work / "results/peoplesnapshot/metrics.csv")
+    assert ps["train_body_err_mm"].notna().all()  # the stand-in is scored against its ground truth too
+    assert (ps["source"] == "synthetic stand-in of People Snapshot (no copy configured)").all()
+    assert (synthetic["source"] == "synthetic (generated, ground truth)").all()
+    assert "datasets.peoplesnapshot.root is empty" in res.stdout + res.stderr  # said once, with what to change
+    assert (res.stdout + res.stderr).count("datasets.peoplesnapshot.root is empty") == 1
     # the report gathers the tables, images, curves and videos under their categories
     report = snakemake(work, "--configfile", ".test/config/ci.yaml", "--report", "report.html")
     assert report.returncode == 0, report.stdout[-3000:] + report.stderr[-3000:]

@@ -78,8 +78,9 @@ def subject_row(dataset: str, subject: str, summary: dict, export: dict | None, 
 
 
 def aggregate(dataset: str, subjects: list[str], summaries: list[str], exports: list[str], benchmarks: list[str],
-              out: str | Path) -> pd.DataFrame:  # fmt: skip
-    """Write ``out``; ``benchmarks`` are ``SUBJECT/RULE=PATH``."""
+              out: str | Path, source: str = "") -> pd.DataFrame:  # fmt: skip
+    """Write ``out``; ``benchmarks`` are ``SUBJECT/RULE=PATH``; ``source`` (what the figures were measured
+    on) goes in a column of every row."""
     if len(summaries) != len(subjects) or (exports and len(exports) != len(subjects)):
         raise DeltaError(
             f"aggregate: {len(subjects)} subjects but {len(summaries)} summaries and {len(exports)} exports"
@@ -98,6 +99,8 @@ def aggregate(dataset: str, subjects: list[str], summaries: list[str], exports: 
     mean = {"dataset": dataset, "subject": "mean"} | df[numeric].mean().to_dict()
     mean |= {c: df[c].iloc[0] for c in ("preset", "stage", "refine_steps") if c in df and df[c].nunique() == 1}
     df = pd.concat([df, pd.DataFrame([mean])], ignore_index=True)
+    if source:
+        df.insert(2, "source", source)
     with atomic_path(out) as tmp:
         df.to_csv(tmp, index=False)
     return df
