@@ -374,14 +374,17 @@ def evaluated_model(wildcards):
     return PATHS["stage_model"].format(stage=EVAL["stage"], **wildcards)
 
 
-def eval_inputs(wildcards):
-    configured(wildcards)
-    files = {
+def trained_inputs(wildcards):
+    """What export and evaluation read: the evaluated stage's model, its frames and the body model."""
+    return {
         "model": evaluated_model(wildcards),
         "record": PATHS["record"].format(**wildcards),
         "body": body_model_file(),
-        "alex": PATHS["perceptual_alex"],
     }
+
+
+def eval_inputs(wildcards):
+    files = trained_inputs(wildcards) | {"alex": PATHS["perceptual_alex"]}
     if (
         dataset_kind(wildcards.dataset) == "synthetic"
         or wildcards.subject in config["standins"]

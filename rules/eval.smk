@@ -25,9 +25,7 @@ rule plot_losses:
 
 rule export_avatar:
     input:
-        model=evaluated_model,
-        record=PATHS["record"],
-        body=body_model_file(),
+        unpack(trained_inputs),
     output:
         json=PATHS["export_json"],
         glb=PATHS["export_glb"],
