@@ -100,7 +100,7 @@ def cmd_synthesize(args: argparse.Namespace) -> None:
     from delta.synthetic.spec import parse_subject
 
     _threads(args.threads)
-    raw = json_or_file(args.spec, "--spec")
+    raw = json_or_file(args.settings, "--settings")
     spec = parse_subject(args.subject, raw)
     generate(spec, args.body, args.out, shape_space=args.shape_space, anny_cache=args.anny_cache)
     log.info("synthetic capture '%s' written to %s", args.subject, args.out)
@@ -117,21 +117,21 @@ def cmd_prepare(args: argparse.Namespace) -> None:
 
     from delta.data.sources import peoplesnapshot_source, synthetic_source, video_source
     from delta.io import save_json
-    from delta.preprocess.frames import prepare
+    from delta.preprocess.frames import PrepareSettings, prepare
     from delta.preprocess.steps import attach
 
-    cfg = json_or_file(args.subject_config, "--subject-config")
+    st = settings.from_arguments(PrepareSettings, args, "prepare")
     adapters = {"synthetic": lambda: synthetic_source(args.root, args.subject),
-                "peoplesnapshot": lambda: peoplesnapshot_source(args.root, args.subject, cfg),
-                "video": lambda: video_source(args.root, args.subject, cfg)}  # fmt: skip
-    source = adapters[args.kind]()
-    if args.use_provided is not None:  # the config chose to ignore some of what the dataset ships
+                "peoplesnapshot": lambda: peoplesnapshot_source(args.root, args.subject, st.frames),
+                "video": lambda: video_source(args.root, args.subject, st.frames)}  # fmt: skip
+    source = adapters[st.kind]()
+    if st.use_provided is not None:  # the config chose to ignore some of what the dataset ships
         for name in list(source.provided):
-            if name not in args.use_provided:
+            if name not in st.use_provided:
                 del source.provided[name]
     for step_file in args.steps:
         attach(source, step_file)
-    summary = prepare(source, args.out, args.size, args.margin)
+    summary = prepare(source, args.out, st.resolution, st.crop_margin)
     if args.summary:
         save_json(args.summary, summary)
 
@@ -329,7 +329,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("synthesize", help="render a synthetic capture with ground truth")
     p.add_argument("--subject", required=True)
-    p.add_argument("--spec", required=True, help="the subject's spec as JSON (config datasets.synthetic.subjects)")
+    p.add_argument("--settings", required=True, help="the subject's spec as JSON (config datasets.synthetic.subjects)")
     p.add_argument("--body", required=True, help="the Anny body model npz")
     p.add_argument("--shape-space", help="the Anny shape-space npz (needed for phenotypes)")
     p.add_argument("--anny-cache", default="resources/anny_cache")
@@ -344,14 +344,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_to_peoplesnapshot)
 
     p = sub.add_parser("prepare", help="write a subject's frame record (crop, undistort, masks, keypoints)")
-    p.add_argument("--kind", required=True, choices=["synthetic", "peoplesnapshot", "video"])
-    p.add_argument("--use-provided", nargs="*", help="dataset arrays to use (default: all it ships)")
     p.add_argument("--steps", nargs="*", default=[], help="outputs of matting / parsing steps")
     p.add_argument("--root", required=True)
     p.add_argument("--subject", required=True)
-    p.add_argument("--subject-config", default="{}")
-    p.add_argument("--size", type=int, default=512)
-    p.add_argument("--margin", type=float, default=0.08)
+    from delta.preprocess.frames import PrepareSettings
+
+    settings.add_arguments(p, PrepareSettings)
     p.add_argument("--out", required=True)
     p.add_argument("--summary")
     p.set_defaults(func=cmd_prepare)

@@ -6,7 +6,7 @@ from the field's docstring) and its validation. A rule passes a job its resolved
 JSON (``--settings``); the command reads it with :func:`from_mapping`.
 
 A field declares what the schema needs in its ``metadata``: ``minimum`` / ``maximum`` (inclusive),
-``exclusive_minimum``, ``choices`` (for strings, or the items of a tuple of strings), and
+``exclusive_minimum``, ``choices`` (for strings, or the items of a tuple of strings), ``min_items``, and
 ``config: False`` for a field that the workflow fills in itself (a path), not the user.
 """
 
@@ -43,6 +43,8 @@ def _type_schema(tp: Any, meta: dict) -> dict:
         return _type_schema(inner[0], meta)
     if tp is bool:
         return {"type": "boolean"}
+    if tp is dict or origin is dict:
+        return {"type": "object"}
     if tp is int:
         out: dict = {"type": "integer"}
     elif tp is float:
@@ -56,7 +58,9 @@ def _type_schema(tp: Any, meta: dict) -> dict:
         if origin is tuple and args and args[-1] is not Ellipsis:
             out |= {"minItems": len(args), "maxItems": len(args)}
         elif "choices" in meta:
-            out |= {"uniqueItems": True, "minItems": 1}
+            out["uniqueItems"] = True
+        if "min_items" in meta:
+            out["minItems"] = meta["min_items"]
         return out
     else:
         raise TypeError(f"no schema for the type {tp!r}")
@@ -163,6 +167,8 @@ def add_arguments(parser: Any, cls: type) -> None:
             continue
         flag = "--" + f.name.replace("_", "-")
         tp = hints[f.name]
+        if tp is dict or typing.get_origin(tp) is dict:
+            continue  # a mapping comes through --settings only
         help_ = docs.get(f.name, "")
         if tp is bool:
             parser.add_argument(flag, dest=f.name, type=_boolean, default=None, metavar="true|false", help=help_)

@@ -210,10 +210,19 @@ def prepare_root(wildcards):
     return DATASETS[wildcards.dataset]["root"]
 
 
-def subject_config_json(wildcards):
-    return json.dumps(
-        DATASETS[wildcards.dataset]["subjects"][wildcards.subject], sort_keys=True
+def prepare_settings(wildcards):
+    """A frame record's job, as JSON: the adapter, the image size and margin, the subject's frames."""
+    kind = dataset_kind(wildcards.dataset)
+    frames = (
+        {}
+        if kind == "synthetic"
+        else DATASETS[wildcards.dataset]["subjects"][wildcards.subject]
     )
+    return json.dumps(
+        {"kind": kind, "resolution": PRE["resolution"], "crop_margin": PRE["crop_margin"],
+         "frames": frames, "use_provided": used_provided(wildcards.dataset)},
+        sort_keys=True,
+    )  # fmt: skip
 
 
 def record_targets():

@@ -17,18 +17,12 @@ rule prepare_frames:
         mem_mb=prepare_mem_mb,
         runtime=30,
     params:
-        kind=lambda w: dataset_kind(w.dataset),
         root=prepare_root,
-        cfg=subject_config_json,
-        size=PRE["resolution"],
-        margin=PRE["crop_margin"],
-        use=lambda w: used_provided(w.dataset),
+        settings=prepare_settings,
         steps=lambda w: list(step_files(w).values()),
     shell:
-        "delta prepare --kind {params.kind:q} --root {params.root:q} --subject {wildcards.subject:q}"
-        " --subject-config {params.cfg:q} --size {params.size:q} --margin {params.margin:q}"
-        " --use-provided {params.use:q} --steps {params.steps:q}"
-        " --out {output.record:q} --summary {output.summary:q} > {log:q} 2>&1"
+        "delta prepare --root {params.root:q} --subject {wildcards.subject:q} --settings {params.settings:q}"
+        " --steps {params.steps:q} --out {output.record:q} --summary {output.summary:q} > {log:q} 2>&1"
 
 
 rule matte:

@@ -26,7 +26,7 @@ rule synthesize:
         cache=PATHS["anny_cache"],
         out=lambda w: str(Path(PATHS["syn_video"].format(subject=w.subject)).parent),
     shell:
-        "delta synthesize --subject {wildcards.subject:q} --spec {params.spec:q} --body {input.body:q}"
+        "delta synthesize --subject {wildcards.subject:q} --settings {params.spec:q} --body {input.body:q}"
         " --shape-space {input.shape_space:q} --anny-cache {params.cache:q} --out {params.out:q}"
         " --threads {threads} > {log:q} 2>&1"
 

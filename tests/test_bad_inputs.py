@@ -85,10 +85,10 @@ def prepare_args(root, out, steps=None, kind="video", config=None) -> list[str]:
     """``delta prepare`` of ``root``'s clip; ``steps`` {name: file}, by default the matting and keypoint steps'."""
     steps = {"m": root / "matte.h5", "k": root / "keypoints.h5"} if steps is None else steps
     steps = [str(s) for s in steps.values()]
-    args = ["prepare", "--kind", kind, "--root", str(root), "--subject", "clip", "--size", "32",
+    args = ["prepare", "--kind", kind, "--root", str(root), "--subject", "clip", "--resolution", "32",
             "--out", str(out), "--summary", str(out.with_suffix(".json"))]  # fmt: skip
     if config is not None:
-        args += ["--subject-config", json.dumps(config)]
+        args += ["--settings", json.dumps({"frames": config})]
     return args + (["--steps", *steps] if steps else [])
 
 

@@ -26,7 +26,7 @@ class Knobs:
     steps: int = _f(default=3, metadata={"minimum": 1, "maximum": 9})
     """How many steps."""
     rate: float = _f(default=0.5, metadata={"exclusive_minimum": 0})
-    kinds: tuple[str, ...] = _f(default=("a",), metadata={"choices": ("a", "b")})
+    kinds: tuple[str, ...] = _f(default=("a",), metadata={"choices": ("a", "b"), "min_items": 1})
     """Which kinds."""
     flag: bool = True
     pair: Optional[tuple[str, str]] = None

@@ -52,7 +52,7 @@ class EvalSettings:
     stage: int = _f(default=2, metadata={"minimum": 1, "maximum": 2})
     """Which training stage's model the workflow evaluates and exports."""
     splits: tuple[str, ...] = _f(
-        default=("test_view", "test_pose"), metadata={"choices": ("train", "test_view", "test_pose")}
+        default=("test_view", "test_pose"), metadata={"choices": ("train", "test_view", "test_pose"), "min_items": 1}
     )
     """Which frames are scored (frames of these splits in the record)."""
     max_frames: int = _f(default=0, metadata={"minimum": 0})

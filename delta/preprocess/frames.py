@@ -7,10 +7,11 @@ the person keeps its scale across frames.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Optional
 
 import cv2
 import h5py
@@ -127,6 +128,24 @@ def crop(img: np.ndarray, box: CropBox, interp: int, mask: bool = False) -> np.n
         img = cv2.copyMakeBorder(img, pad, pad, pad, pad, border, value=0)
     patch = img[box.v0 + pad : box.v0 + pad + box.size, box.u0 + pad : box.u0 + pad + box.size]
     return cv2.resize(patch, (box.out, box.out), interpolation=interp)
+
+
+@dataclasses.dataclass
+class PrepareSettings:
+    """How ``delta prepare`` makes a subject's frame record: what the workflow resolves for one job."""
+
+    kind: str = dataclasses.field(default="video", metadata={"choices": ("synthetic", "peoplesnapshot", "video")})
+    """Which adapter reads the capture."""
+    resolution: int = dataclasses.field(default=512, metadata={"minimum": 32, "maximum": 2048})
+    """Side of the square training images."""
+    crop_margin: float = dataclasses.field(default=0.08, metadata={"minimum": 0, "maximum": 1})
+    """Margin added around the person's box on each side, as a fraction of its side."""
+    frames: dict = dataclasses.field(default_factory=dict)
+    """The subject's frame ranges, ``{"train": [first, last, step], "test": [...]}`` (video, People Snapshot)."""
+    use_provided: Optional[tuple[str, ...]] = dataclasses.field(
+        default=None, metadata={"choices": ("person", "clothing", "skin", "hair", "keypoints")}
+    )
+    """The dataset's own arrays to use (None: all it ships); model steps give the rest."""
 
 
 def prepare(source: Source, out_path: str | Path, size: int, margin: float = 0.08) -> dict:

@@ -196,7 +196,7 @@ def test_cli_in_a_fresh_process_reproduces_the_bytes(tmp_path, tiny_captures, an
     import subprocess
     import sys
 
-    cmd = [sys.executable, "-m", "delta.cli", "synthesize", "--subject", "tight", "--spec",
+    cmd = [sys.executable, "-m", "delta.cli", "synthesize", "--subject", "tight", "--settings",
            json.dumps(TINY_SUBJECTS["tight"]), "--body", anny_files["body"], "--shape-space",
            anny_files["shape_space"], "--anny-cache", anny_files["cache"], "--out", str(tmp_path / "tight")]  # fmt: skip
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
