@@ -94,21 +94,34 @@ def test_a_stage_fingerprint_covers_what_the_stage_reads(tiny_training):
     assert stage_view(view.raw, 1) == stage_view(only2.raw, 1) and view.stage1 == only2.stage1
 
 
-def test_a_finished_checkpoint_is_written_out_and_a_stale_one_is_not_resumed(tiny_training, tmp_path, caplog):
+@pytest.fixture(scope="module")
+def whole_run(tiny_training, tmp_path_factory):
+    """One uninterrupted stage-1 run of the tiny tight subject: its folder, model and losses."""
+    st = resolve("fast", TINY)
+    model, data = _model(tiny_training["tight"], st)
+    out = tmp_path_factory.mktemp("whole")
+    result = train_stage(1, model, data, st, out)
+    return {"dir": out, "model": model, "losses": result.losses, "data": data, "settings": st}
+
+
+def test_a_finished_checkpoint_is_written_out_and_a_stale_one_is_not_resumed(
+    tiny_training, whole_run, tmp_path, caplog
+):
     """A checkpoint at the last step of the same run is finished work (Snakemake marks model.pt incomplete
     after a SIGTERM, and --rerun-incomplete removes it): loaded and written out, not trained again.
     One of other settings is not resumed."""
-    st = resolve("fast", TINY)
+    import shutil
+
+    st, data = whole_run["settings"], whole_run["data"]
     inputs = tiny_training["tight"]
-    model, data = _model(inputs, st)
-    first = train_stage(1, model, data, st, tmp_path / "run")
+    shutil.copytree(whole_run["dir"], tmp_path / "run")
     assert load_state(tmp_path / "run" / CHECKPOINT)["step"] == 6
     model_b, _ = _model(inputs, st)
     with caplog.at_level("INFO"):
         again = train_stage(1, model_b, data, st, tmp_path / "run")
     assert "the stage is finished" in caplog.text
-    assert again.losses.equals(first.losses)
-    for k, v in model.state_dict().items():
+    assert again.losses.equals(whole_run["losses"])
+    for k, v in whole_run["model"].state_dict().items():
         assert torch.equal(v, model_b.state_dict()[k]), k
     # an interrupted run of other settings is not resumed
     other = resolve("fast", TINY, {"stage1": {"lr": {"nerf": 1e-3}}})
@@ -120,13 +133,11 @@ def test_a_finished_checkpoint_is_written_out_and_a_stale_one_is_not_resumed(tin
 
 
 @pytest.mark.parametrize("damage", ["truncate", "crafted"])
-def test_a_bad_checkpoint_is_set_aside_and_the_one_before_resumes(tiny_training, tmp_path, caplog, damage):
+def test_a_bad_checkpoint_is_set_aside_and_the_one_before_resumes(tiny_training, whole_run, tmp_path, caplog, damage):
     """checkpoint_every 2: steps 2 and 4 are kept (checkpoint.prev.pt, checkpoint.pt). With the newest
     damaged, the run resumes from step 2 and ends where an uninterrupted run ends."""
-    st = resolve("fast", TINY)
+    st, data, whole = whole_run["settings"], whole_run["data"], whole_run["model"]
     inputs = tiny_training["tight"]
-    whole, data = _model(inputs, st)
-    train_stage(1, whole, data, st, tmp_path / "whole")
     run = tmp_path / "run"
     train_stage(1, _model(inputs, st)[0], data, st, run, max_steps=4)
     assert load_state(run / PREVIOUS_CHECKPOINT)["step"] == 2 and load_state(run / CHECKPOINT)["step"] == 4
