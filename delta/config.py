@@ -297,10 +297,9 @@ def expand_standins(config: dict) -> dict:
     for name, spec in datasets.items():
         if spec.get("kind") != "peoplesnapshot" or spec.get("root"):
             continue
-        scale = {"resolution": 1080, "frames": 0.25, **spec.get("standin", {})}
         subjects = {}
         for real in spec["subjects"]:
-            sname, syn, ranges = standin(real, scale["resolution"], scale["frames"])
+            sname, syn, ranges = standin(real, **spec.get("standin", {}))
             config["standins"][sname] = syn
             subjects[sname] = ranges
         datasets[name] = {**spec, "root": SYNTHETIC_PEOPLESNAPSHOT_ROOT, "subjects": subjects, "standin_of": dict(
