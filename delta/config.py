@@ -237,7 +237,12 @@ def _check_settings(config: dict) -> list[str]:
     for section, named in (("fitting", fit["subjects"]), ("training", train["subjects"])):
         for s in sorted(set(named) - subjects):
             out.append(f"config key '{section}.subjects.{s}': not a configured subject ({sorted(subjects)})")
-    for s in sorted(subjects):
+    # the sections every subject shares, once; then each subject's own keys
+    before = len(out)
+    attempt(fit_config, fit["settings"], where="fitting.settings")
+    attempt(resolve, config["preset"], train["overrides"], where="training.overrides")
+    shared_ok = len(out) == before
+    for s in sorted(subjects) if shared_ok else []:
         attempt(fit_config, fit["settings"], fit["subjects"].get(s, {}), where=f"fitting (subject '{s}')")
         preset, overrides = subject_training(config, s)
         attempt(resolve, preset, *overrides, where=f"training (subject '{s}')")

@@ -83,12 +83,15 @@ def load_state(path: str | os.PathLike, map_location: Any = "cpu") -> dict:
         state = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
         found = re.search(r"GLOBAL (\S+)", str(exc))
-        what = f" ({found.group(1)})" if found else ""
-        raise DeltaError(f"{path}: refused: it holds objects other than tensors and plain values{what}, "
-                         "which could run code when loaded") from None  # fmt: skip
-    except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile) as exc:
-        why = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
-        raise DeltaError(f"{path}: cannot be read (truncated or corrupt: {why})") from None
+        if found is None:
+            raise DeltaError(
+                f"{path}: not a model or checkpoint file written by delta (no torch archive in it)"
+            ) from None
+        raise DeltaError(f"{path}: refused: it holds objects other than tensors and plain values "
+                         f"({found.group(1)}), which could run code when loaded") from None  # fmt: skip
+    except (RuntimeError, EOFError, OSError, ValueError, zipfile.BadZipFile):
+        raise DeltaError(f"{path}: cannot be read: truncated or corrupt (delete it; the step that writes it "
+                         "will write it again)") from None  # fmt: skip
     if not isinstance(state, dict):
         raise DeltaError(f"{path}: holds a {type(state).__name__}, not the dictionary a model or checkpoint file holds")
     return state

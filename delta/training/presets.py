@@ -231,6 +231,29 @@ def check_numbers(d: dict) -> None:
             raise DeltaError(f"training.{key}: {value} (expected {bounds})")
 
 
+def _names(cls) -> set[str]:
+    return {f.name for f in dataclasses.fields(cls)}
+
+
+def _check_keys(d: dict) -> None:
+    """Every key of the merged settings is one the settings read; an unknown one is named with its section
+    and the keys allowed there."""
+    sections = {"": set(_COMMON) | {k for p in PRESETS.values() for k in p}, "stage1": _names(StageSettings),
+                "stage2": _names(StageSettings), "render": _names(RenderSettings), "weights": _names(LossWeights),
+                "render.occupancy": _names(OccupancySettings), "dynamics": {"time_freqs", "dropout", "pose_knots"},
+                **{f: _names(FieldSpec) for f in ("nerf", "offsets", "albedo", "deformation")}}  # fmt: skip
+    for section, allowed in sections.items():
+        node = d
+        for part in filter(None, section.split(".")):
+            node = node.get(part, {}) if isinstance(node, dict) else {}
+        if not isinstance(node, dict):
+            raise DeltaError(f"training.{section}: expected a mapping of keys, got {node!r}")
+        unknown = sorted(set(node) - allowed)
+        if unknown:
+            where = f"training.{section}" if section else "training"
+            raise DeltaError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(allowed)}")
+
+
 def resolve(preset: str, *overrides: dict, where: str = "") -> TrainSettings:
     """The preset's settings with overrides deep-merged in order; ``where`` prefixes every error (the
     subject or variant they belong to)."""
@@ -251,6 +274,7 @@ def _resolve(preset: str, *overrides: dict) -> TrainSettings:
             raise DeltaError(f"training settings: expected a mapping of keys, got {o!r}")
         d = deep_merge(d, o or {})
     check_numbers(d)
+    _check_keys(d)
     stages = {s: deep_merge(_STAGE_DEFAULTS, d[s]) for s in ("stage1", "stage2")}
     try:
         render = dict(d["render"])
