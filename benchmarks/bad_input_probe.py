@@ -96,7 +96,7 @@ def error_message(text: str) -> str:
     for i, line in enumerate(lines):  # Snakemake: "DeltaError in file ..., line N:", the message, then "  File ..."
         if re.match(r"^\w*Error in file ", line):
             out = [line.strip()]
-            for nxt in lines[i + 1:i + 6]:
+            for nxt in lines[i + 1 : i + 6]:
                 if nxt.startswith("  File ") or not nxt.strip():
                     break
                 out.append(nxt.strip())
@@ -107,7 +107,7 @@ def error_message(text: str) -> str:
         for i, line in enumerate(lines):
             if re.search(pat, line):
                 out = [line.strip()]
-                for nxt in lines[i + 1:i + 4]:
+                for nxt in lines[i + 1 : i + 4]:
                     if nxt.startswith((" ", "\t")) and nxt.strip() and not nxt.strip().startswith("File "):
                         out.append(nxt.strip())
                     else:
@@ -120,7 +120,7 @@ def exception_of(text: str) -> str:
     """The exception a traceback ends with ("" when there is no traceback)."""
     if TRACEBACK not in text:
         return ""
-    tail = text[text.rindex(TRACEBACK):].splitlines()
+    tail = text[text.rindex(TRACEBACK) :].splitlines()
     for line in tail[1:]:
         m = re.match(r"^([A-Za-z_][\w.]*(Error|Exception|Interrupt|Exit))\b", line)
         if m:
@@ -139,7 +139,7 @@ def classify(case: Case, run: Run, rc: int, seen: str) -> tuple[str, str]:
         return "silent_wrong", "exit 0 on input that cannot give a valid result"
     exc = exception_of(seen)
     if exc and not exc.endswith("DeltaError"):
-        return "traceback", f"{exc}: {error_message(seen[seen.rindex(TRACEBACK):])}"
+        return "traceback", f"{exc}: {error_message(seen[seen.rindex(TRACEBACK) :])}"
     msg = error_message(seen)
     if exc:
         return "unclear_error", f"DeltaError shown with a traceback: {msg}"
@@ -159,8 +159,9 @@ def execute(case: Case, root: Path) -> dict:
                 "exit_code": "", "outcome": "setup_failed", "message": f"{type(exc).__name__}: {exc}"[:200],
                 "leftover": "", "seconds": round(time.perf_counter() - t0, 1)}  # fmt: skip
     try:
-        res = subprocess.run(run.argv, cwd=run.cwd, env=ENV, capture_output=True, text=True, timeout=run.timeout,
-                             check=False)
+        res = subprocess.run(
+            run.argv, cwd=run.cwd, env=ENV, capture_output=True, text=True, timeout=run.timeout, check=False
+        )
         rc, seen = res.returncode, res.stdout + "\n" + res.stderr
     except subprocess.TimeoutExpired as exc:
         rc = 124
@@ -239,7 +240,9 @@ SHARED: Shared | None = None
 
 def cli(*args) -> None:
     """A setup step through the CLI; it must succeed."""
-    res = subprocess.run([*delta_cmd(), *map(str, args)], env=ENV, capture_output=True, text=True, timeout=600, check=False)
+    res = subprocess.run(
+        [*delta_cmd(), *map(str, args)], env=ENV, capture_output=True, text=True, timeout=600, check=False
+    )
     if res.returncode != 0:
         raise RuntimeError(f"delta {args[0]} failed: {(res.stderr or res.stdout)[-300:]}")
 
@@ -442,7 +445,14 @@ def model_case(make: Callable[[Path], Path], sub: str) -> Callable[[Path], Run]:
             argv = ["export", *common, "--out", work / "export", "--grid", 24, "--turntable-frames", 2]
             left = ["export"]
         else:
-            argv = ["evaluate", *common, "--out", work / "eval" / "metrics.csv", "--summary", work / "eval" / "summary.json"]
+            argv = [
+                "evaluate",
+                *common,
+                "--out",
+                work / "eval" / "metrics.csv",
+                "--summary",
+                work / "eval" / "summary.json",
+            ]
             left = ["eval"]
         run = delta_run(work, argv, r"model\.pt", left)
         run.short = run.short.replace(SHARED.root.parent.as_posix() + "/", "")
@@ -494,6 +504,7 @@ def build_cases() -> list[Case]:
 
     base, tiny = repo_config, tiny_config
     tight = lambda: copy.deepcopy(tiny()["datasets"]["synthetic"]["subjects"]["tight"])
+
     def renamed(name: str, config: Callable[[], dict] = base) -> Callable[[Path], dict]:
         """The tight subject again under another name (set directly: the name is no dotted key)."""
 
@@ -508,72 +519,179 @@ def build_cases() -> list[Case]:
     cases = [
         # --------------------------------------------------------------------------- config
         Case("config_repo_valid", "config", validate_case(lambda w: base(), r"."), "ok"),
-        Case("config_tiny_merged_valid", "config", validate_case(lambda w: base(), r".", extra=(
-            str(REPO / ".test" / "config" / "config.yaml"),)), "ok"),
-        Case("config_unknown_top_key", "config", validate_case(lambda w: put(base(), "learning_rate", 0.1),
-                                                               r"learning_rate")),
-        Case("config_typo_stage1_iteratons", "config",
-             validate_case(lambda w: put(base(), "training.overrides.stage1.iteratons", 10), r"iteratons")),
-        Case("config_typo_fitting_settings", "config",
-             validate_case(lambda w: put(base(), "fitting.settings.sil_weigth", 300), r"sil_weigth")),
-        Case("config_typo_synthetic_garmnets", "config",
-             validate_case(lambda w: put(base(), "datasets.synthetic.subjects.tight.garmnets", ["tshirt"]), r"garmnets")),
-        Case("config_preset_fastest", "config",
-             validate_case(lambda w: put(base(), "training.subjects.tight", {"preset": "fastest"}), r"fastest")),
-        Case("config_fit_iterations_negative", "config",
-             validate_case(lambda w: put(base(), "fitting.settings.iterations", [-1, 10, 10]), r"iterations")),
-        Case("config_lr_final_nan", "config",
-             validate_case(lambda w: put(base(), "training.overrides.stage2.lr_final", float("nan")), r"lr_final")),
-        Case("config_crop_margin_nan", "config",
-             validate_case(lambda w: put(base(), "preprocess.crop_margin", float("nan")), r"crop_margin")),
-        Case("config_stage1_iterations_-5", "config",
-             validate_case(lambda w: put(base(), "training.overrides.stage1.iterations", -5), r"iterations")),
-        Case("config_stage1_rays_0", "config",
-             validate_case(lambda w: put(base(), "training.overrides.stage1.rays", 0), r"rays")),
-        Case("config_training_resolution_100000", "config",
-             validate_case(lambda w: put(base(), "training.overrides.resolution", 100000), r"resolution")),
-        Case("config_evaluation_resolution_100000", "config",
-             validate_case(lambda w: put(base(), "evaluation.resolution", 100000), r"evaluation.*resolution|resolution.*100000")),
+        Case(
+            "config_tiny_merged_valid",
+            "config",
+            validate_case(lambda w: base(), r".", extra=(str(REPO / ".test" / "config" / "config.yaml"),)),
+            "ok",
+        ),
+        Case(
+            "config_unknown_top_key",
+            "config",
+            validate_case(lambda w: put(base(), "learning_rate", 0.1), r"learning_rate"),
+        ),
+        Case(
+            "config_typo_stage1_iteratons",
+            "config",
+            validate_case(lambda w: put(base(), "training.overrides.stage1.iteratons", 10), r"iteratons"),
+        ),
+        Case(
+            "config_typo_fitting_settings",
+            "config",
+            validate_case(lambda w: put(base(), "fitting.settings.sil_weigth", 300), r"sil_weigth"),
+        ),
+        Case(
+            "config_typo_synthetic_garmnets",
+            "config",
+            validate_case(lambda w: put(base(), "datasets.synthetic.subjects.tight.garmnets", ["tshirt"]), r"garmnets"),
+        ),
+        Case(
+            "config_preset_fastest",
+            "config",
+            validate_case(lambda w: put(base(), "training.subjects.tight", {"preset": "fastest"}), r"fastest"),
+        ),
+        Case(
+            "config_fit_iterations_negative",
+            "config",
+            validate_case(lambda w: put(base(), "fitting.settings.iterations", [-1, 10, 10]), r"iterations"),
+        ),
+        Case(
+            "config_lr_final_nan",
+            "config",
+            validate_case(lambda w: put(base(), "training.overrides.stage2.lr_final", float("nan")), r"lr_final"),
+        ),
+        Case(
+            "config_crop_margin_nan",
+            "config",
+            validate_case(lambda w: put(base(), "preprocess.crop_margin", float("nan")), r"crop_margin"),
+        ),
+        Case(
+            "config_stage1_iterations_-5",
+            "config",
+            validate_case(lambda w: put(base(), "training.overrides.stage1.iterations", -5), r"iterations"),
+        ),
+        Case(
+            "config_stage1_rays_0",
+            "config",
+            validate_case(lambda w: put(base(), "training.overrides.stage1.rays", 0), r"rays"),
+        ),
+        Case(
+            "config_training_resolution_100000",
+            "config",
+            validate_case(lambda w: put(base(), "training.overrides.resolution", 100000), r"resolution"),
+        ),
+        Case(
+            "config_evaluation_resolution_100000",
+            "config",
+            validate_case(
+                lambda w: put(base(), "evaluation.resolution", 100000), r"evaluation.*resolution|resolution.*100000"
+            ),
+        ),
         Case("config_subject_dotdot", "config", validate_case(renamed(".."), r"'\.\.'")),
         Case("config_subject_traversal", "config", validate_case(renamed("../../etc"), r"\.\./\.\./etc")),
         Case("config_subject_space", "config", validate_case(renamed("my subject"), r"my subject")),
         Case("config_subject_accent", "config", validate_case(renamed("sujet-é"), r"sujet-é")),
-        Case("config_video_no_test_range", "config", validate_case(
-            lambda w: put(base(), "datasets.vid", video_dataset(w, {"train": [0, 5, 1]})), r"datasets\.vid\.subjects\.clip.*test")),
-        Case("config_video_test_past_end", "config", validate_case(
-            lambda w: put(base(), "datasets.vid", video_dataset(w, {"train": [0, 5, 1], "test": [8, 12, 1]})),
-            r"datasets\.vid\.subjects\.clip\.test.*12")),
+        Case(
+            "config_video_no_test_range",
+            "config",
+            validate_case(
+                lambda w: put(base(), "datasets.vid", video_dataset(w, {"train": [0, 5, 1]})),
+                r"datasets\.vid\.subjects\.clip.*test",
+            ),
+        ),
+        Case(
+            "config_video_test_past_end",
+            "config",
+            validate_case(
+                lambda w: put(base(), "datasets.vid", video_dataset(w, {"train": [0, 5, 1], "test": [8, 12, 1]})),
+                r"datasets\.vid\.subjects\.clip\.test.*12",
+            ),
+        ),
         Case("config_device_cuda_no_gpu", "config", validate_case(lambda w: put(base(), "device", "cuda"), r"device")),
-        Case("config_device_cuda_cluster_flag", "config",
-             validate_case(lambda w: put(base(), "device", "cuda"), r".", extra=("--cluster",)), "ok"),
-        Case("config_validate_from_outside_repo", "config", validate_case(lambda w: base(), r".", cwd_outside=True), "ok"),
-        Case("config_yaml_syntax_error", "config",
-             validate_case(None, r"config\.yaml.*cannot read", text="preset: fast\ntraining:\n  overrides: {stage1: [\n")),
+        Case(
+            "config_device_cuda_cluster_flag",
+            "config",
+            validate_case(lambda w: put(base(), "device", "cuda"), r".", extra=("--cluster",)),
+            "ok",
+        ),
+        Case(
+            "config_validate_from_outside_repo", "config", validate_case(lambda w: base(), r".", cwd_outside=True), "ok"
+        ),
+        Case(
+            "config_yaml_syntax_error",
+            "config",
+            validate_case(
+                None, r"config\.yaml.*cannot read", text="preset: fast\ntraining:\n  overrides: {stage1: [\n"
+            ),
+        ),
         # the same mistakes as Snakemake sees them (dry runs of the tiny config)
         Case("snakemake_tiny_dry_run", "config", snakemake_case(lambda w: tiny(), r"."), "ok"),
-        Case("snakemake_unknown_top_key", "config", snakemake_case(lambda w: put(tiny(), "learning_rate", 0.1), r"learning_rate")),
-        Case("snakemake_typo_stage1_iteratons", "config",
-             snakemake_case(lambda w: put(tiny(), "training.overrides.stage1.iteratons", 10), r"iteratons")),
-        Case("snakemake_lr_final_nan", "config",
-             snakemake_case(lambda w: put(tiny(), "training.overrides.stage2.lr_final", float("nan")), r"lr_final")),
-        Case("snakemake_subject_traversal", "config", snakemake_case(
-            renamed("../../etc", tiny), r"\.\./\.\./etc")),
-        Case("snakemake_video_no_test_range", "config", snakemake_case(
-            lambda w: put(tiny(), "datasets.vid", video_dataset(w, {"train": [0, 5, 1]})), r"datasets\.vid\.subjects\.clip.*test")),
-        Case("snakemake_device_cuda_real_run", "config", snakemake_case(
-            lambda w: put(tiny(), "device", "cuda"), r"device|cuda", args=(), leftovers=("logs", "resources", "results", "data"),
-            timeout=180)),
+        Case(
+            "snakemake_unknown_top_key",
+            "config",
+            snakemake_case(lambda w: put(tiny(), "learning_rate", 0.1), r"learning_rate"),
+        ),
+        Case(
+            "snakemake_typo_stage1_iteratons",
+            "config",
+            snakemake_case(lambda w: put(tiny(), "training.overrides.stage1.iteratons", 10), r"iteratons"),
+        ),
+        Case(
+            "snakemake_lr_final_nan",
+            "config",
+            snakemake_case(lambda w: put(tiny(), "training.overrides.stage2.lr_final", float("nan")), r"lr_final"),
+        ),
+        Case("snakemake_subject_traversal", "config", snakemake_case(renamed("../../etc", tiny), r"\.\./\.\./etc")),
+        Case(
+            "snakemake_video_no_test_range",
+            "config",
+            snakemake_case(
+                lambda w: put(tiny(), "datasets.vid", video_dataset(w, {"train": [0, 5, 1]})),
+                r"datasets\.vid\.subjects\.clip.*test",
+            ),
+        ),
+        Case(
+            "snakemake_device_cuda_real_run",
+            "config",
+            snakemake_case(
+                lambda w: put(tiny(), "device", "cuda"),
+                r"device|cuda",
+                args=(),
+                leftovers=("logs", "resources", "results", "data"),
+                timeout=180,
+            ),
+        ),
         # ---------------------------------------------------------------------------- paths
-        Case("paths_evil_root_dry_run", "paths", snakemake_case(
-            lambda w: evil_dataset(w, False), r".", args=("-n", "-p", "-F", "results/clips/clip/frames.h5"),
-            check=check_dry_run_quoting), "ok"),
-        Case("paths_evil_root_prepare_real_run", "paths", snakemake_case(
-            lambda w: evil_dataset(w, True), r".", args=("-p", "results/clips/clip/frames.h5"),
-            check=check_real_run), "ok"),
+        Case(
+            "paths_evil_root_dry_run",
+            "paths",
+            snakemake_case(
+                lambda w: evil_dataset(w, False),
+                r".",
+                args=("-n", "-p", "-F", "results/clips/clip/frames.h5"),
+                check=check_dry_run_quoting,
+            ),
+            "ok",
+        ),
+        Case(
+            "paths_evil_root_prepare_real_run",
+            "paths",
+            snakemake_case(
+                lambda w: evil_dataset(w, True), r".", args=("-p", "results/clips/clip/frames.h5"), check=check_real_run
+            ),
+            "ok",
+        ),
         # ------------------------------------------------------------------------ model files
-        Case("model_crafted_pickle_export", "model-file", model_case(lambda w: crafted(w / "model.pt", w / MARKER), "export")),
-        Case("model_crafted_pickle_evaluate", "model-file",
-             model_case(lambda w: crafted(w / "model.pt", w / MARKER), "evaluate")),
+        Case(
+            "model_crafted_pickle_export",
+            "model-file",
+            model_case(lambda w: crafted(w / "model.pt", w / MARKER), "export"),
+        ),
+        Case(
+            "model_crafted_pickle_evaluate",
+            "model-file",
+            model_case(lambda w: crafted(w / "model.pt", w / MARKER), "evaluate"),
+        ),
         Case("model_truncated_export", "model-file", model_case(lambda w: truncated(w / "model.pt"), "export")),
         Case("model_truncated_evaluate", "model-file", model_case(lambda w: truncated(w / "model.pt"), "evaluate")),
         Case("model_json_text_export", "model-file", model_case(json_model, "export")),
@@ -583,21 +701,53 @@ def build_cases() -> list[Case]:
         Case("input_grey_video", "input", prepare_case("gggggg", names=r"clip\.mp4: no person found")),
         Case("input_noise_video", "input", prepare_case("nnnnnn", names=r"clip\.mp4: no person found")),
         Case("input_zero_K", "input", prepare_case(camera=json.dumps({"K": [[0] * 3] * 3}), names=r"camera\.json.*K")),
-        Case("input_nan_in_K", "input", prepare_case(camera=json.dumps({"K": [[50, 0, float("nan")], K[1], K[2]]}),
-                                                     names=r"camera\.json.*K.*not finite")),
-        Case("input_nan_in_distortion", "input", prepare_case(camera=json.dumps({"K": K, "dist": [0.1, float("nan")]}),
-                                                              names=r"camera\.json.*distortion")),
-        Case("input_camera_json_not_json", "input", prepare_case(camera='{"K": [[50, 0, 32]', names=r"camera\.json.*JSON")),
-        Case("input_camera_json_missing_K", "input", prepare_case(camera='{"dist": [0, 0, 0, 0, 0]}',
-                                                                  names=r"camera\.json.*'K'")),
-        Case("input_masks_extra_channel", "input", prepare_case(masks=lambda m: np.repeat(m[..., None], 3, -1),
-                                                                names=r"matte\.h5.*shape")),
+        Case(
+            "input_nan_in_K",
+            "input",
+            prepare_case(
+                camera=json.dumps({"K": [[50, 0, float("nan")], K[1], K[2]]}), names=r"camera\.json.*K.*not finite"
+            ),
+        ),
+        Case(
+            "input_nan_in_distortion",
+            "input",
+            prepare_case(camera=json.dumps({"K": K, "dist": [0.1, float("nan")]}), names=r"camera\.json.*distortion"),
+        ),
+        Case(
+            "input_camera_json_not_json",
+            "input",
+            prepare_case(camera='{"K": [[50, 0, 32]', names=r"camera\.json.*JSON"),
+        ),
+        Case(
+            "input_camera_json_missing_K",
+            "input",
+            prepare_case(camera='{"dist": [0, 0, 0, 0, 0]}', names=r"camera\.json.*'K'"),
+        ),
+        Case(
+            "input_masks_extra_channel",
+            "input",
+            prepare_case(masks=lambda m: np.repeat(m[..., None], 3, -1), names=r"matte\.h5.*shape"),
+        ),
         Case("input_masks_wrong_size", "input", prepare_case(masks=lambda m: m[:, :, :-4], names=r"matte\.h5.*shape")),
-        Case("input_partly_bad_capture", "input", prepare_case("pgpnpg", expect_summary=lambda s: "" if (
-            s.get("few_keypoints") == [1, 3, 5] and s.get("frames") == 6) else f"bad frames not listed: {s}"), "ok"),
+        Case(
+            "input_partly_bad_capture",
+            "input",
+            prepare_case(
+                "pgpnpg",
+                expect_summary=lambda s: (
+                    ""
+                    if (s.get("few_keypoints") == [1, 3, 5] and s.get("frames") == 6)
+                    else f"bad frames not listed: {s}"
+                ),
+            ),
+            "ok",
+        ),
         # --------------------------------------------------------------------------- training
-        Case("train_settings_iterations_-5", "training",
-             train_settings_case('{"stage1": {"iterations": -5}}', r"iterations")),
+        Case(
+            "train_settings_iterations_-5",
+            "training",
+            train_settings_case('{"stage1": {"iterations": -5}}', r"iterations"),
+        ),
         Case("train_settings_not_json", "training", train_settings_case("not json", r"--settings")),
     ]
     return cases
@@ -659,7 +809,9 @@ def main(argv: list[str] | None = None) -> int:
         for case in cases:
             row = execute(case, root)
             rows.append(row)
-            print(f"{row['outcome']:>14}  {row['case']:<36} {row['seconds']:>6.1f}s  {row['message'][:110]}", flush=True)
+            print(
+                f"{row['outcome']:>14}  {row['case']:<36} {row['seconds']:>6.1f}s  {row['message'][:110]}", flush=True
+            )
     finally:
         if args.keep:
             print(f"kept {root}")
