@@ -257,10 +257,10 @@ def capture(root: Path, frames: str) -> dict:
 
 def prepare_argv(root: Path, out: Path, steps: list | None = None, kind: str = "video", config: dict | None = None):
     steps = [root / "matte.h5", root / "keypoints.h5"] if steps is None else steps
-    argv = ["prepare", "--kind", kind, "--root", str(root), "--subject", "clip", "--size", "32",
+    argv = ["prepare", "--kind", kind, "--root", str(root), "--subject", "clip", "--resolution", "32",
             "--out", str(out), "--summary", str(out.with_suffix(".json"))]  # fmt: skip
     if config is not None:
-        argv += ["--subject-config", json.dumps(config)]
+        argv += ["--settings", json.dumps({"frames": config})]
     return argv + (["--steps", *map(str, steps)] if steps else [])
 
 
