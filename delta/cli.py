@@ -117,7 +117,7 @@ def cmd_prepare(args: argparse.Namespace) -> None:
 
     from delta.data.sources import peoplesnapshot_source, synthetic_source, video_source
     from delta.io import save_json
-    from delta.preprocess.frames import PrepareSettings, prepare
+    from delta.preprocess.frames import PrepareSettings, prepare, scoring_size
     from delta.preprocess.steps import attach
 
     st = settings.from_arguments(PrepareSettings, args, "prepare")
@@ -131,7 +131,8 @@ def cmd_prepare(args: argparse.Namespace) -> None:
                 del source.provided[name]
     for step_file in args.steps:
         attach(source, step_file)
-    summary = prepare(source, args.out, st.resolution, st.crop_margin)
+    full = scoring_size(st.kind, source.camera.width, source.camera.height, st.score_size)
+    summary = prepare(source, args.out, st.resolution, st.crop_margin, full)
     if args.summary:
         save_json(args.summary, summary)
 
@@ -198,20 +199,27 @@ def cmd_export(args: argparse.Namespace) -> None:
 
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
-    from delta.eval.evaluate import EvalSettings, clothing_distance, evaluate, summarize, train_body_error_mm, write_csv
+    from delta.eval.evaluate import (
+        EvalSettings,
+        clothing_distance,
+        convention,
+        evaluate,
+        summarize,
+        train_body_error_mm,
+        write_csv,
+    )
     from delta.io import save_json
     from delta.training.run import load_trained
 
     _threads(args.threads)
     st = settings.from_arguments(EvalSettings, args, "evaluation", perceptual_dir=args.perceptual)
     t0 = time.perf_counter()
-    trained = load_trained(args.model, args.record, args.body, args.device, st.resolution)
+    trained = load_trained(args.model, args.record, args.body, args.device)
     df = evaluate(trained, args.record, st, args.gt_meshes, args.subject)
     summary = {"subject": args.subject, "model": args.model, "stage": trained.stage, "preset": trained.preset,
                "settings": {"splits": list(st.splits), "max_frames": st.max_frames, "refine_steps": st.refine_steps,
-                            "supersample": st.supersample, "resolution": trained.data.resolution,
-                            "train_resolution": trained.settings.resolution},
-               "scores": summarize(df)}  # fmt: skip
+                            "supersample": st.supersample},
+               "convention": convention(df, st), "scores": summarize(df)}  # fmt: skip
     if args.gt_meshes:
         summary["train_body_err_mm"] = round(train_body_error_mm(trained, args.gt_meshes), 2)
         surface = Path(args.export_dir or "") / "clothing_nerf_space.ply"

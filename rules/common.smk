@@ -220,7 +220,7 @@ def prepare_settings(wildcards):
     )
     return json.dumps(
         {"kind": kind, "resolution": PRE["resolution"], "crop_margin": PRE["crop_margin"],
-         "frames": frames, "use_provided": used_provided(wildcards.dataset)},
+         "score_size": PRE["score_size"], "frames": frames, "use_provided": used_provided(wildcards.dataset)},
         sort_keys=True,
     )  # fmt: skip
 

@@ -120,14 +120,8 @@ def tradeoff_manifest(wildcards):
 
 
 def variant_eval_settings(wildcards):
-    """The evaluation section with the study's own frames, refinement, splits and resolution
-    (a resolution equal to the variant's training resolution is left at 0: it is the default).
-    """
-    settings = {**EVAL, **TRADE["evaluation"]}
-    preset, overrides = variant_training(wildcards.subject, wildcards.variant)
-    if settings.get("resolution") == resolve_training(preset, *overrides).resolution:
-        settings["resolution"] = 0
-    return eval_settings(wildcards, settings)
+    """The evaluation section with the study's own frames, refinement and splits."""
+    return eval_settings(wildcards, {**EVAL, **TRADE["evaluation"]})
 
 
 def tradeoff_inputs(wildcards):

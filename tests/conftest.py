@@ -1,7 +1,15 @@
-"""Shared fixtures: small analytic body models, the SMPL-X fixture generator, Anny."""
+"""Shared fixtures: small analytic body models, the SMPL-X fixture generator, Anny.
+
+The suite runs in two pytest-xdist workers (``-n 2``, the README's test command): the caches
+under ``resources/`` (Anny's build, the converted MediaPipe models, the perceptual weights) are
+built by one worker at a time (:func:`exclusive`), each worker's torch uses one thread (two
+workers on two cores), and the end-to-end workflow run, the longest test, starts first.
+"""
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
 from pathlib import Path
 
@@ -14,6 +22,27 @@ from delta.body.model import BodyModel
 REPO = Path(__file__).resolve().parents[1]
 ANNY_CACHE = Path(os.environ.get("DELTA_ANNY_CACHE", REPO / "resources" / "anny_cache"))
 MODELS_DIR = REPO / "resources" / "models"
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    torch.set_num_threads(1)
+
+
+@contextlib.contextmanager
+def exclusive(name: str):
+    """Hold the lock ``resources/.{name}.lock``: one worker builds a shared cache, the others wait and read it."""
+    path = REPO / "resources" / f".{name}.lock"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def pytest_collection_modifyitems(config, items):
+    """The end-to-end workflow run first: started last, it would run alone at the end."""
+    items.sort(key=lambda item: item.name != "test_tiny_configuration_end_to_end")
 
 
 def tree_model(dtype=torch.float64, num_shape: int = 2, seed: int = 0) -> BodyModel:
@@ -91,7 +120,8 @@ def anny_model():
     """Anny itself (float64, dense LBS), with its build cache under resources/ (slow the first time)."""
     from delta.body.anny_convert import build_anny
 
-    return build_anny(ANNY_CACHE)
+    with exclusive("anny"):
+        return build_anny(ANNY_CACHE)
 
 
 @pytest.fixture(scope="session")
@@ -144,8 +174,9 @@ def mediapipe_pose_model():
     from delta.preprocess.mediapipe_convert import MODELS, convert
 
     target = MODELS_DIR / "mediapipe" / "pose_landmark_full.onnx"
-    if not all((MODELS_DIR / "mediapipe" / f"{m}.onnx").is_file() for m in MODELS):
-        convert(MODELS_DIR / "mediapipe", REPO / "resources" / "envs" / "mediapipe-convert")
+    with exclusive("mediapipe"):
+        if not all((MODELS_DIR / "mediapipe" / f"{m}.onnx").is_file() for m in MODELS):
+            convert(MODELS_DIR / "mediapipe", REPO / "resources" / "envs" / "mediapipe-convert")
     return target
 
 
@@ -154,7 +185,8 @@ def perceptual_weights():
     """The folder of the shift-tolerant VGG16/AlexNet weights, fetched once from the registry when missing."""
     from delta.perceptual import weights as W
 
-    return Path(W.ensure_weights(REPO / "resources" / "models" / "stlpips")["vgg"]).parent
+    with exclusive("stlpips"):
+        return Path(W.ensure_weights(REPO / "resources" / "models" / "stlpips")["vgg"]).parent
 
 
 # ----------------------------------------------------------- tiny training

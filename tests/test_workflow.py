@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import h5py
 import pandas as pd
 import pytest
@@ -40,16 +41,19 @@ def test_lint_is_clean():
 
 
 @pytest.mark.slow
-def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
+def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_model):
     work = workflow_copy(tmp_path)
-    # two synthetic subjects and one People Snapshot subject (configs merge: the main config lists them all;
-    # the upper-body capture has tests of its own)
+    # one synthetic subject (orthographic, a dress) and one People Snapshot subject (its stand-in: pinhole with
+    # lens distortion, the dataset's adapter and the ONNX steps); configs merge: the main config lists them all,
+    # and the other synthetic captures have tests of their own
     main = yaml.safe_load((work / "config/config.yaml").read_text())
     main["datasets"]["peoplesnapshot"]["subjects"] = {"male-3-casual": {}}
-    del main["datasets"]["synthetic"]["subjects"]["upper"]
+    for name in ("upper", "tight"):
+        del main["datasets"]["synthetic"]["subjects"][name]
     (work / "config/config.yaml").write_text(yaml.safe_dump(main))
     cfg = yaml.safe_load((work / ".test/config/config.yaml").read_text())
-    del cfg["datasets"]["synthetic"]["subjects"]["upper"]
+    for name in ("upper", "tight"):
+        del cfg["datasets"]["synthetic"]["subjects"][name]
     cfg["body_model"]["anny"]["cache_dir"] = str(ANNY_CACHE)  # reuse the session's Anny build
     cfg["preprocess"]["models_dir"] = str(mediapipe_pose_model.parent.parent)  # and its converted models
     (work / ".test/config/ci.yaml").write_text(yaml.safe_dump(cfg))
@@ -64,7 +68,7 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
         assert list((work / "logs" / rule).glob("*.log")), f"{rule} wrote no log"
     assert (work / "results/benchmarks/convert_anny/all.tsv").is_file()
     # the embedded default: synthetic captures, and People Snapshot's stand-in in that dataset's layout
-    for subject in ("tight", "loose", STANDIN):
+    for subject in ("loose", STANDIN):
         capture = work / "data/synthetic" / subject
         assert (capture / f"{subject}.mp4").stat().st_size > 0
         for name in ("params.npz", "frames.h5", "meshes.h5", "splits.json"):
@@ -72,9 +76,9 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
         assert (work / "results/benchmarks/synthesize" / f"{subject}.tsv").is_file()
     ps = work / "data/synthetic_ps" / STANDIN
     assert sorted(p.name for p in ps.iterdir()) == ["camera.pkl", "keypoints.hdf5", "masks.hdf5", f"{STANDIN}.mp4"]
-    assert not (work / "data/synthetic_ps/tight").exists()  # not a stand-in: no such layout
+    assert not (work / "data/synthetic_ps/loose").exists()  # not a stand-in: no such layout
     # frame records of every configured subject, with the sources recorded
-    for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", STANDIN)):
+    for dataset, subject in (("synthetic", "loose"), ("peoplesnapshot", STANDIN)):
         summary = json.loads((work / "results" / dataset / subject / "frames.json").read_text())
         assert summary["frames"] > 0 and "person" in summary["sources"]
     ps_sources = json.loads((work / "results/peoplesnapshot" / STANDIN / "frames.json").read_text())["sources"]
@@ -82,11 +86,11 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
     assert ps_sources["clothing"] == "model:default:pose_landmark_full.onnx"  # not shipped: the default parser
     assert not (work / "logs/matte").exists()
     # the body-model initialisation ran on every subject
-    for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", STANDIN)):
+    for dataset, subject in (("synthetic", "loose"), ("peoplesnapshot", STANDIN)):
         report = (work / "results" / dataset / subject / "init" / "report.csv").read_text().splitlines()
         assert report[0] == "frame,flagged,few_keypoints,empty_mask,residual_px,confident_keypoints" and len(report) > 5
     # both training stages ran on every subject, resumable checkpoints beside their outputs
-    for dataset, subject in (("synthetic", "tight"), ("synthetic", "loose"), ("peoplesnapshot", STANDIN)):
+    for dataset, subject in (("synthetic", "loose"), ("peoplesnapshot", STANDIN)):
         for stage in (1, 2):
             out = work / "results" / dataset / subject / f"stage{stage}"
             assert (out / "model.pt").is_file() and (out / "checkpoint.pt").is_file()
@@ -94,7 +98,9 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
             assert (work / "logs/train" / f"{dataset}_{subject}_stage{stage}.log").is_file()
             assert (work / "results/benchmarks/train" / f"{dataset}_{subject}_stage{stage}.tsv").is_file()
     # evaluation, export and the per-dataset tables
-    for dataset, subjects in (("synthetic", ["tight", "loose"]), ("peoplesnapshot", [STANDIN])):
+    # scored on whole frames at the capture's scoring size: the stand-in's 64² frames halved as People
+    # Snapshot's 1080² are (540²), the synthetic capture at its own 64²; exported at that size too
+    for dataset, subjects, size in (("synthetic", ["loose"], 64), ("peoplesnapshot", [STANDIN], 32)):
         table = pd.read_csv(work / "results" / dataset / "metrics.csv")
         assert sorted(table["subject"][:-1]) == sorted(subjects) and table["subject"].iloc[-1] == "mean"
         for col in ("psnr", "ssim", "l1", "stlpips_alex"):
@@ -104,13 +110,19 @@ def test_tiny_configuration_end_to_end(tmp_path, mediapipe_pose_model):
         assert (table["test_view_psnr"] < 60).all() and (table["test_view_ssim"] <= 1).all()
         assert (table["stage1_s"] > 0).all() and (table["stage2_s"] > 0).all()
         assert (table["export_body_faces"] > 0).all() and table["export_body_watertight"].astype(bool).all()
+        assert (table["resolution"] == f"{size}x{size}").all() and (table["image"] == "full").all()
+        assert (table["train_resolution"] == 32).all() and (table["data_range"] == 1).all()
         for subject in subjects:
             out = work / "results" / dataset / subject
             frames = pd.read_csv(out / "eval" / "metrics.csv")
             assert set(frames["refined"]) == {True, False} and (frames["background"] == "white").all()
             for name in ("avatar.glb", "turntable.mp4", "novel_pose.mp4", "body_canonical.ply", "export.json"):
                 assert (out / "export" / name).stat().st_size > 0, name
-            assert list((out / "export" / "sidebyside").glob("*.png"))
+            sides = sorted((out / "export" / "sidebyside").glob("*.png"))
+            assert sides and cv2.imread(str(sides[0])).shape == (size, 3 * size, 3)
+            video = cv2.VideoCapture(str(out / "export" / "turntable.mp4"))
+            assert (video.get(cv2.CAP_PROP_FRAME_WIDTH), video.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (size, size)
+            video.release()
             assert (out / "stage1" / "losses.png").is_file() and (out / "stage2" / "losses.png").is_file()
     synthetic = pd.read_csv(work / "results/synthetic/metrics.csv")
     assert synthetic["train_body_err_mm"].notna().all()  # ground truth: geometry columns

@@ -98,6 +98,68 @@ def load_frames(record_path, resolution: int, background=(1.0, 1.0, 1.0), box_ma
     return FrameData(images, person_t, ext_t, interior, boxes, train, split, frame_ids, camera, skin)
 
 
+@dataclasses.dataclass
+class FullFrames:
+    """Some frames of a record whole, at the capture's scoring size (H×W), for scoring and exports."""
+
+    rows: list[int]
+    """The record's frame indices, in the order of the arrays."""
+    images: torch.Tensor
+    """(F, H, W, 3) in [0, 1], composited on the background."""
+    person: torch.Tensor
+    """(F, H, W) person alpha."""
+    parts: dict[str, torch.Tensor]
+    """'clothing' / 'hair': (F, H, W) bool, the masks the record holds."""
+    exterior: torch.Tensor
+    """(F, H, W) clothing or hair, inside the person."""
+    interior: torch.Tensor
+    """(F, H, W) visible body."""
+    crop: tuple[int, int, int]
+    """(u0, v0, side) of the record's crop, in the capture's pixels."""
+    source_size: tuple[int, int]
+    """(W, H) of the capture."""
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(W, H)."""
+        return int(self.images.shape[2]), int(self.images.shape[1])
+
+    def view_geometry(self, n: int) -> tuple[tuple[float, float], tuple[float, float]]:
+        """(scale, shift) taking these frames' pixel coordinates to those of the crop at n×n:
+        capture pixel = full pixel × capture/full size, crop pixel = (capture pixel − corner) × n/side."""
+        (W, H), (Ws, Hs) = self.source_size, self.size
+        u0, v0, side = self.crop
+        k = n / side
+        return (W / Ws * k, H / Hs * k), (-u0 * k, -v0 * k)
+
+
+def load_full_frames(record_path, rows: list[int], background=(1.0, 1.0, 1.0)) -> FullFrames:
+    """The record's whole frames ``rows`` (its ``full`` group), composited on the background."""
+    bg = np.asarray(background, dtype=np.float32)
+    with FrameRecord(record_path) as rec:
+        if "full" not in rec.h5:
+            raise DeltaError(f"{record_path}: no whole frames to score (the 'full' group); the record was "
+                             "prepared by an older version: delete it and rerun the prepare_frames rule")  # fmt: skip
+        g = rec.h5["full"]
+        imgs, person, parts = [], [], {m: [] for m in ("clothing", "hair") if m in g}
+        for r in rows:
+            a = g["person"][r].astype(np.float32) / 255.0
+            imgs.append(g["images"][r].astype(np.float32) / 255.0 * a[..., None] + bg * (1 - a[..., None]))
+            person.append(a)
+            for m in parts:
+                parts[m].append(g[m][r] > 0)
+        u0, v0, side, _ = (int(x) for x in rec.h5.attrs["crop"])
+        W, H = (int(x) for x in rec.h5.attrs["source_size"])
+    person_t = torch.from_numpy(np.stack(person))
+    parts_t = {m: torch.from_numpy(np.stack(v)) for m, v in parts.items()}
+    ext = torch.zeros_like(person_t)
+    for m in parts_t.values():
+        ext = torch.maximum(ext, m.float())
+    ext = torch.minimum(ext, person_t)
+    return FullFrames(list(rows), torch.from_numpy(np.stack(imgs)), person_t, parts_t, ext,
+                      (person_t - ext).clamp(0, 1), (u0, v0, side), (W, H))  # fmt: skip
+
+
 def frame_times(frame_ids: np.ndarray, train: np.ndarray, split: np.ndarray | None = None) -> torch.Tensor:
     """(N,) each frame's time in the training sequence, 0 at its first frame and 1 at its last.
 

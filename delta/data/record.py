@@ -10,7 +10,10 @@ One HDF5 file per subject (``results/{dataset}/{subject}/frames.h5``):
 - camera: attrs ``camera_model``; pinhole ``K`` (3, 3), ``R``, ``t`` (undistorted: no distortion left);
   orthographic ``ortho_scale`` (N,), ``ortho_trans`` (N, 2);
 - attrs ``sources`` (JSON: which step or dataset file produced each array), ``crop`` (u0, v0, size, out),
-  ``source_size`` (W, H).
+  ``source_size`` (W, H);
+- group ``full``: every frame whole (not cropped), undistorted and area-resized to the capture's scoring
+  size (attr ``size`` (W, H): People Snapshot 540×540, a synthetic capture its own): ``images``,
+  ``person`` and the part masks as above. Evaluation scores and exports render these frames.
 """
 
 from __future__ import annotations
@@ -49,6 +52,23 @@ class RecordWriter:
             self.keypoints[i] = keypoints
         if face is not None and self.face is not None:
             self.face[i] = face
+
+
+class FullFrameWriter:
+    """The ``full`` group: frames whole at the scoring size (see the module's docstring)."""
+
+    def __init__(self, h5: h5py.File, n: int, width: int, height: int, masks: tuple[str, ...]):
+        g = h5.create_group("full")
+        g.attrs["size"] = np.array([width, height])
+        kw = dict(compression="gzip", compression_opts=3, track_times=False)
+        self.images = g.create_dataset("images", (n, height, width, 3), np.uint8, chunks=(1, height, width, 3), **kw)
+        self.masks = {m: g.create_dataset(m, (n, height, width), np.uint8, chunks=(1, height, width), **kw)
+                      for m in masks}  # fmt: skip
+
+    def write(self, i: int, image: np.ndarray, masks: dict[str, np.ndarray]) -> None:
+        self.images[i] = image
+        for name, dset in self.masks.items():
+            dset[i] = masks[name]
 
 
 def write_camera_attrs(h5: h5py.File, camera) -> None:

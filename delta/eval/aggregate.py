@@ -1,6 +1,7 @@
 """``results/{dataset}/metrics.csv``: one row per subject plus a ``mean`` row.
 
-Columns: the convention (background, image, resolution, preset, stage, refinement steps),
+Columns: the convention (preset, stage, background, image — the full frame —, resolution scored at,
+training resolution, supersampling, data range, perceptual metric, test-time refinement),
 wall time and peak memory of each training stage (from the rules' benchmark files), the
 mean of every score per test split — ``{split}_{score}`` before test-time refinement and
 ``{split}_{score}_refined`` after it — the body error over the training frames, and the
@@ -59,6 +60,7 @@ def benchmark_row(path: str | Path) -> dict:
 def subject_row(dataset: str, subject: str, summary: dict, export: dict | None, benchmarks: dict[str, str]) -> dict:
     row = {"dataset": dataset, "subject": subject, "preset": summary.get("preset"), "stage": summary.get("stage"),
            "refine_steps": summary.get("settings", {}).get("refine_steps")}  # fmt: skip
+    row |= summary.get("convention", {})
     for rule, path in sorted(benchmarks.items()):
         b = benchmark_row(path)
         row[f"{rule}_s"], row[f"{rule}_max_rss_mb"] = b["s"], b["max_rss_mb"]
@@ -97,7 +99,8 @@ def aggregate(dataset: str, subjects: list[str], summaries: list[str], exports: 
     df = pd.DataFrame(rows)
     numeric = df.select_dtypes("number").columns.drop(["stage", "refine_steps"], errors="ignore")
     mean = {"dataset": dataset, "subject": "mean"} | df[numeric].mean().to_dict()
-    mean |= {c: df[c].iloc[0] for c in ("preset", "stage", "refine_steps") if c in df and df[c].nunique() == 1}
+    same = [c for c in df.columns if c not in ("dataset", "subject") and c not in numeric and df[c].nunique() == 1]
+    mean |= {c: df[c].iloc[0] for c in ["stage", "refine_steps", *same] if c in df and df[c].nunique() == 1}
     df = pd.concat([df, pd.DataFrame([mean])], ignore_index=True)
     if source:
         df.insert(2, "source", source)

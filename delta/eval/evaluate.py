@@ -1,7 +1,8 @@
 """Score a trained avatar on a subject's test frames: ``results/{dataset}/{subject}/eval/``.
 
-One row per (frame, refined) in ``metrics.csv``: PSNR / SSIM / L1 of the whole image and
-per region, ST-LPIPS (alex), LPIPS-Alex when the user gave its weights, IoU of the NeRF
+One row per (frame, refined) in ``metrics.csv``: PSNR / SSIM / L1 of the whole frame at the
+capture's scoring size (People Snapshot 540×540, a synthetic capture its own; whatever size the
+avatar was trained at) and per region, ST-LPIPS (alex), LPIPS-Alex when the user gave its weights, IoU of the NeRF
 mask with the record's exterior mask and of the mesh silhouette with the person mask, and,
 when ground truth is given (synthetic captures), the body vertex error. The convention
 travels in every row: background colour, full image, resolution, whether the test frame's
@@ -16,7 +17,6 @@ import logging
 from pathlib import Path
 from typing import Optional
 
-import cv2
 import h5py
 import numpy as np
 import pandas as pd
@@ -26,12 +26,12 @@ import trimesh
 from delta import DeltaError
 from delta import metrics as M
 from delta.body.model import REGION
-from delta.data.record import FrameRecord
+from delta.data.frames import load_full_frames
 from delta.eval.geometry import mesh_distance, vertex_error
 from delta.eval.heldout import refine_frame
 from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import atomic_path
-from delta.models.image import pixel_grid, render_image
+from delta.models.image import View, full_view, live_rays, pixel_grid, reach_box, render_image
 from delta.training.run import Trained
 
 log = logging.getLogger(__name__)
@@ -69,9 +69,6 @@ class EvalSettings:
     """Rays a pixel along each axis, averaged: the frames are area-downsampled photographs whose
     edge pixels mix person and background; one centre ray a pixel cannot (tight subject, four
     test views: 1 → 2 → 4 raised PSNR 25.4 → 26.8 → 27.1 dB)."""
-    resolution: int = _f(default=0, metadata={"minimum": 0, "maximum": 4096})
-    """Score at this image size (0: each avatar's training resolution); a common size makes avatars
-    trained at different resolutions comparable."""
     lpips_alex: Optional[tuple[str, str]] = None
     """Standard LPIPS-Alex: [torchvision's alexnet-owt-7be5be79.pth, the lpips package's weights/v0.1/alex.pth]
     (the user's files); not given: ST-LPIPS only."""
@@ -91,28 +88,17 @@ def pick_frames(split: np.ndarray, names: tuple[str, ...], max_frames: int) -> l
     return out
 
 
-def region_masks(record_path: str | Path, frames: list[int], n: int) -> dict[str, torch.Tensor]:
-    """Clothing and hair masks (F, n, n) of the given frames, resized as the training data is."""
-    out = {}
-    with FrameRecord(record_path) as rec:
-        for name in ("clothing", "hair"):
-            if name in rec.h5:
-                ms = [cv2.resize(rec.h5[name][f].astype(np.float32), (n, n), interpolation=cv2.INTER_AREA)
-                      for f in frames]  # fmt: skip
-                out[name] = torch.from_numpy(np.stack(ms)) > 0.5
-    return out
-
-
 @torch.no_grad()
-def face_pixels(model, frame: int, mesh_vertices: torch.Tensor) -> torch.Tensor:
-    """(n, n) bool: pixel centres whose ray first hits a face / eyes / mouth triangle of the body."""
-    n = model.resolution
-    pixels = pixel_grid(n, device=mesh_vertices.device)
-    origins, dirs = model.camera(frame).rays(pixels)
+def face_pixels(model, frame: int, mesh_vertices: torch.Tensor, view: View) -> torch.Tensor:
+    """(H, W) bool: pixel centres of the view whose ray first hits a face / eyes / mouth triangle of the body."""
+    pixels = view.to_model(pixel_grid(view.height, device=mesh_vertices.device, width=view.width))
+    live = torch.nonzero(live_rays(pixels, reach_box(model, frame, mesh_vertices))).squeeze(1)
+    face = torch.zeros(len(pixels), dtype=torch.bool, device=pixels.device)
+    origins, dirs = model.camera(frame).rays(pixels[live])
     hits = ray_mesh_hits(mesh_vertices, model.body.faces, origins, dirs)
     labels = model.body.regions[model.body.faces[hits.face.clamp_min(0), 0]]
-    face = hits.hit & torch.isin(labels, torch.tensor(FACE_REGIONS, device=labels.device))
-    return face.reshape(n, n).cpu()
+    face[live] = hits.hit & torch.isin(labels, torch.tensor(FACE_REGIONS, device=labels.device))
+    return face.reshape(view.height, view.width).cpu()
 
 
 class Perceptual:
@@ -162,7 +148,8 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
         raise DeltaError(f"{record}: no frames of the splits {list(st.splits)} to evaluate")
     dev = model.background.device
     perceptual = Perceptual(st, dev)
-    regions = region_masks(record, [f for f, _ in frames], data.resolution)
+    full = load_full_frames(record, [f for f, _ in frames], trained.settings.background)
+    view = full_view(full, model.resolution)
     gt = gt_body_vertices(gt_meshes, data.frame_ids[[f for f, _ in frames]]) if gt_meshes else {}
     passes = [False, True] if st.refine_steps and st.report_unrefined else [bool(st.refine_steps)]
     bg = "white" if tuple(trained.settings.background) == (1.0, 1.0, 1.0) else str(tuple(trained.settings.background))
@@ -174,21 +161,20 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
                 refine_frame(model, data, f, st.refine_steps, rays=st.refine_rays, lr=st.refine_lr, seed=f)
             with torch.no_grad():
                 mesh, offsets, out = model.posed_mesh(f)
-            img = render_image(model, f, supersample=st.supersample)
-            masks = {
-                "body": data.interior[f] > 0.5,
-                "face": face_pixels(model, f, mesh.vertices) & (data.interior[f] > 0.5),
-            }
-            masks |= {name: m[k] for name, m in regions.items()}
+            img = render_image(model, f, supersample=st.supersample, view=view)
+            body = full.interior[k] > 0.5
+            masks = {"body": body, "face": face_pixels(model, f, mesh.vertices, view) & body}
+            masks |= {name: m[k] for name, m in full.parts.items()}
             row = {"subject": subject, "frame": f, "frame_id": int(data.frame_ids[f]), "split": split,
                    "refined": refined, "refine_steps": st.refine_steps if refined else 0, "stage": trained.stage,
-                   "preset": trained.preset, "background": bg, "image": "full", "resolution": data.resolution,
-                   "train_resolution": trained.settings.resolution}  # fmt: skip
-            row |= score_image(img, data.images[f], masks, perceptual)
+                   "preset": trained.preset, "background": bg, "image": "full",
+                   "resolution": "{}x{}".format(*full.size), "train_resolution": trained.settings.resolution,
+                   "supersample": st.supersample}  # fmt: skip
+            row |= score_image(img, full.images[k], masks, perceptual)
             row["nerf_iou"] = (
-                M.iou(img["nerf_mask"] > 0.5, data.exterior[f] > 0.5) if model.nerf is not None else np.nan
+                M.iou(img["nerf_mask"] > 0.5, full.exterior[k] > 0.5) if model.nerf is not None else np.nan
             )
-            row["mesh_iou"] = M.iou(img["silhouette"] > 0.5, data.person[f] > 0.5)
+            row["mesh_iou"] = M.iou(img["silhouette"] > 0.5, full.person[k] > 0.5)
             if gt:
                 ref = gt[int(data.frame_ids[f])]
                 v = mesh.vertices.cpu().numpy()
@@ -262,6 +248,15 @@ def clothing_distance(trained: Trained, nerf_space_mesh: str | Path, gt_meshes: 
             "clothing_completeness_mm": 1000 * float(np.mean([r.completeness for r in rows])),
             "clothing_normal_consistency": float(np.mean([r.normal_consistency for r in rows])),
             "clothing_frames": len(rows)}  # fmt: skip
+
+
+def convention(df: pd.DataFrame, st: EvalSettings) -> dict:
+    """How the scores were taken, as the columns of ``metrics.csv`` carry it."""
+    first = df.iloc[0]
+    return {"background": str(first["background"]), "image": str(first["image"]), "resolution": str(first["resolution"]),
+            "train_resolution": int(first["train_resolution"]), "supersample": st.supersample, "data_range": 1,
+            "perceptual": "+".join(c for c in ("stlpips_alex", "lpips_alex") if c in df) or "none",
+            "refinement": f"pose and camera, model frozen, {st.refine_steps} steps" if st.refine_steps else "none"}  # fmt: skip
 
 
 def summarize(df: pd.DataFrame) -> dict:

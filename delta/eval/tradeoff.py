@@ -133,7 +133,8 @@ def variant_row(subject: str, variant: str, files: dict, peak: float) -> dict:
     row["train_s"] = total
     row["stages"] = 2 if "bench2" in files else 1
     summary = _read_json(files["summary"])
-    row["eval_resolution"] = summary.get("settings", {}).get("resolution", row["resolution"])
+    scored = summary.get("convention", {}).get("resolution") or summary.get("settings", {}).get("resolution")
+    row["eval_resolution"] = scored or row["resolution"]
     scores = summary.get("scores", {})
     for split, passes in scores.items():
         for name, vals in passes.items():

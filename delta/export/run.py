@@ -19,7 +19,8 @@ from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import atomic_path, save_json
 from delta.metrics import psnr
 from delta.models.avatar import HybridAvatar
-from delta.models.image import pixel_grid, render_image
+from delta.data.frames import load_full_frames
+from delta.models.image import full_view, pixel_grid, render_image
 from delta.training.run import Trained, load_trained
 
 log = logging.getLogger(__name__)
@@ -97,17 +98,24 @@ def export_avatar(model_path: str | Path, record: str | Path, body_path: str | P
     """Write every export of a trained avatar into ``out_dir``; returns the summary (also ``export.json``)."""
     t_start = time.perf_counter()
     tr = _load(model_path, record, body_path, device)
-    summary = export_trained(tr, out_dir, settings, {"model": str(model_path), "record": str(record)})
+    summary = export_trained(tr, out_dir, settings, {"model": str(model_path), "record": str(record)}, record)
     log.info("export (%.1f s, loading included) written to %s", time.perf_counter() - t_start, out_dir)
     return summary
 
 
-def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, about: dict | None = None) -> dict:
-    """The exports of a loaded avatar (``about`` is copied into the summary)."""
+def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, about: dict | None = None,
+                   record: str | Path | None = None) -> dict:  # fmt: skip
+    """The exports of a loaded avatar (``about`` is copied into the summary).
+
+    With the frame ``record``, the videos and side-by-sides show the capture's whole frame at its
+    scoring size, whatever the avatar was trained at; without, the avatar's own crop.
+    """
     t_start = time.perf_counter()
     model, data, out = tr.model, tr.data, Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     frames = report_frames(data.split, max(settings.sidebyside, 1))
+    full = load_full_frames(record, frames, tr.settings.background) if record is not None else None
+    view = full_view(full, model.resolution) if full is not None else None
     posed_frame = frames[0]
     times: dict[str, float] = {}
 
@@ -144,10 +152,11 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
     rows = []
     (out / "sidebyside").mkdir(exist_ok=True)
     for k, f in enumerate(frames):
-        img = render_image(model, f)
+        img = render_image(model, f)  # the line-up check compares with the model's own crop
         if k < settings.sidebyside:  # (the line-up check uses at least one frame)
+            shown, reference = (render_image(model, f, view=view), full.images[k]) if full else (img, data.images[f])
             with atomic_path(out / "sidebyside" / f"frame_{int(data.frame_ids[f]):05d}.png") as tmp:
-                cv2.imwrite(str(tmp), side_by_side(data.images[f], img["rgb"]))
+                cv2.imwrite(str(tmp), side_by_side(reference, shown["rgb"]))
         rows.append({**check_frame(model, f, clothing, img), "psnr": round(psnr(img["rgb"].clamp(0, 1), data.images[f]), 2),
                      "split": int(data.split[f])})  # fmt: skip
     summary["frames"] = rows
@@ -160,18 +169,19 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
     summary["turntable"] = {
         "frame": turn_frame,
         "frames": write_video(
-            out / "turntable.mp4", turntable(model, turn_frame, settings.turntable_frames), settings.fps
+            out / "turntable.mp4", turntable(model, turn_frame, settings.turntable_frames, view), settings.fps
         ),
     }
     times["turntable"] = time.perf_counter() - t
     t = time.perf_counter()
     novel = novel_pose_frames(data.split)
-    summary["novel_pose"] = {"frames": write_video(out / "novel_pose.mp4", render_frames(model, novel), settings.fps),
+    summary["novel_pose"] = {"frames": write_video(out / "novel_pose.mp4", render_frames(model, novel, view), settings.fps),
                              "test_pose_frames": bool((data.split == 2).any())}  # fmt: skip
     times["novel_pose"] = time.perf_counter() - t
     times["total"] = time.perf_counter() - t_start
     summary["seconds"] = {k: round(v, 2) for k, v in times.items()}
-    summary["resolution"] = model.resolution
+    summary["resolution"] = "{}x{}".format(*full.size) if full else f"{model.resolution}x{model.resolution}"
+    summary["model_resolution"] = model.resolution
     save_json(out / "export.json", summary)
     log.info("line-up IoU %s, times %s", summary["lineup"], summary["seconds"])
     return summary

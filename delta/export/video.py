@@ -14,7 +14,7 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_
 
 from delta.io import atomic_path
 from delta.models.avatar import HybridAvatar
-from delta.models.image import render_image
+from delta.models.image import View, render_image
 
 #: Absolute error (mean over RGB) shown at the top of the heat map's colour scale.
 ERROR_SCALE = 0.25
@@ -109,13 +109,14 @@ def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: int)
 
 
 @torch.no_grad()
-def turntable(model: HybridAvatar, frame: int, count: int) -> Iterator[np.ndarray]:
-    """``count`` renders of ``frame`` turned through one full revolution about its vertical axis."""
+def turntable(model: HybridAvatar, frame: int, count: int, view: View | None = None) -> Iterator[np.ndarray]:
+    """``count`` renders of ``frame`` turned through one full revolution about its vertical axis
+    (the model's crop, or ``view``: the capture's whole frame)."""
     with baked_trajectory(model, frame):
-        yield from _turntable(model, frame, count)
+        yield from _turntable(model, frame, count, view)
 
 
-def _turntable(model: HybridAvatar, frame: int, count: int) -> Iterator[np.ndarray]:
+def _turntable(model: HybridAvatar, frame: int, count: int, view: View | None) -> Iterator[np.ndarray]:
     out = model.pose_body(frame)
     verts = out.vertices[0]
     centre = 0.5 * (verts.amin(0) + verts.amax(0))
@@ -125,12 +126,12 @@ def _turntable(model: HybridAvatar, frame: int, count: int) -> Iterator[np.ndarr
     for k in range(count):
         new_pose, new_t = turned_params(pose, transl, root_joint, centre, 2 * math.pi * k / count)
         with frame_params(model, frame, new_pose, new_t):
-            yield to_bgr(render_image(model, frame)["rgb"])
+            yield to_bgr(render_image(model, frame, view=view)["rgb"])
 
 
-def render_frames(model: HybridAvatar, frames: Iterable[int]) -> Iterator[np.ndarray]:
+def render_frames(model: HybridAvatar, frames: Iterable[int], view: View | None = None) -> Iterator[np.ndarray]:
     for f in frames:
-        yield to_bgr(render_image(model, int(f))["rgb"])
+        yield to_bgr(render_image(model, int(f), view=view)["rgb"])
 
 
 def error_map(reference: torch.Tensor, render: torch.Tensor) -> np.ndarray:

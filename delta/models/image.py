@@ -5,17 +5,52 @@ These live with the model, not in ``delta.render``: :func:`render_image` renders
 :class:`~delta.models.avatar.HybridAvatar` (its posed mesh, its ``render``, its render settings), and
 ``delta.render`` sits below ``delta.models`` (the avatar is built from the renderer's pieces), so it
 may not import the avatar (``tests/test_layers.py``).
+
+An image is the model's own n×n crop by default, or any :class:`View` of the frame: the capture's
+whole frame at its scoring size (evaluation, exports) is one whose pixels map linearly onto the crop's.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
+
 import torch
 
+from delta.data.frames import FullFrames
 from delta.models.avatar import HybridAvatar
 
 
-def pixel_grid(n: int, supersample: int = 1, device=None) -> torch.Tensor:
-    """(n·n·s², 2) ray positions (u, v): an s×s grid of sub-pixel centres in each pixel, pixels row-major.
+@dataclasses.dataclass(frozen=True)
+class View:
+    """A height×width image of a frame whose pixel coordinates (u, v) are the model's
+    (u·scale[0] + shift[0], v·scale[1] + shift[1]) (pixel centres at +0.5 in both)."""
+
+    height: int
+    width: int
+    scale: tuple[float, float] = (1.0, 1.0)
+    shift: tuple[float, float] = (0.0, 0.0)
+
+    def to_model(self, pixels: torch.Tensor) -> torch.Tensor:
+        """(R, 2) view pixel coordinates -> the model's."""
+        scale = torch.tensor(self.scale, dtype=pixels.dtype, device=pixels.device)
+        return pixels * scale + torch.tensor(self.shift, dtype=pixels.dtype, device=pixels.device)
+
+    def from_model(self, pixels: torch.Tensor) -> torch.Tensor:
+        scale = torch.tensor(self.scale, dtype=pixels.dtype, device=pixels.device)
+        return (pixels - torch.tensor(self.shift, dtype=pixels.dtype, device=pixels.device)) / scale
+
+
+def full_view(full: FullFrames, n: int) -> View:
+    """The view of a record's whole frames (at their scoring size) for an avatar rendering n×n crops."""
+    scale, shift = full.view_geometry(n)
+    W, H = full.size
+    return View(H, W, scale, shift)
+
+
+def pixel_grid(n: int, supersample: int = 1, device=None, width: int | None = None) -> torch.Tensor:
+    """(n·w·s², 2) ray positions (u, v) of an n-row, w-column image (w = n unless given): an s×s grid
+    of sub-pixel centres in each pixel, pixels row-major.
 
     s = 1 gives the pixel centres. Averaging the s² renders of a pixel is the area average a
     downsampled photograph holds (its edge pixels mix person and background).
@@ -23,8 +58,9 @@ def pixel_grid(n: int, supersample: int = 1, device=None) -> torch.Tensor:
     s = int(supersample)
     if s < 1:
         raise ValueError(f"supersample must be >= 1, got {s}")
+    w = n if width is None else int(width)
     sub = (torch.arange(s, dtype=torch.float32) + 0.5) / s
-    jj, ii = torch.meshgrid(torch.arange(n, dtype=torch.float32), torch.arange(n, dtype=torch.float32), indexing="xy")
+    jj, ii = torch.meshgrid(torch.arange(w, dtype=torch.float32), torch.arange(n, dtype=torch.float32), indexing="xy")
     du, dv = torch.meshgrid(sub, sub, indexing="xy")
     u = jj.reshape(-1, 1) + du.reshape(1, -1)
     v = ii.reshape(-1, 1) + dv.reshape(1, -1)
@@ -32,26 +68,55 @@ def pixel_grid(n: int, supersample: int = 1, device=None) -> torch.Tensor:
 
 
 @torch.no_grad()
-def render_image(model: HybridAvatar, frame: int, chunk: int = 4096, supersample: int = 1) -> dict[str, torch.Tensor]:
-    """Full-frame composite, mesh-only, NeRF-only images and NeRF mask, (n, n, ·) each.
+def reach_box(model: HybridAvatar, frame: int, vertices: torch.Tensor) -> torch.Tensor | None:
+    """(4,) (u_min, u_max, v_min, v_max) in the model's pixels bounding everything a ray of the frame
+    can meet: the posed mesh's box, grown by the exterior's margin when there is a NeRF. None when
+    a corner lies behind a pinhole camera (no bound then)."""
+    margin = model.spec.render.box_margin if model.nerf is not None else 0.0
+    lo, hi = vertices.amin(0) - margin, vertices.amax(0) + margin
+    corners = torch.stack([torch.stack([(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]])
+                           for i, j, k in itertools.product((0, 1), repeat=3)])  # fmt: skip
+    uv, depth = model.camera(frame).project(corners)
+    if model.pinhole and bool((depth <= 0).any()):
+        return None
+    return torch.stack([uv[:, 0].min(), uv[:, 0].max(), uv[:, 1].min(), uv[:, 1].max()])
 
-    ``supersample`` s renders s² rays a pixel and averages them (anti-aliased edges).
+
+def live_rays(pixels: torch.Tensor, box: torch.Tensor | None) -> torch.Tensor:
+    """(R,) bool: ray positions (model pixels) inside the reach box (with a pixel to spare)."""
+    if box is None:
+        return torch.ones(len(pixels), dtype=torch.bool, device=pixels.device)
+    u, v = pixels[:, 0], pixels[:, 1]
+    return (u >= box[0] - 1) & (u <= box[1] + 1) & (v >= box[2] - 1) & (v <= box[3] + 1)
+
+
+@torch.no_grad()
+def render_image(model: HybridAvatar, frame: int, chunk: int = 4096, supersample: int = 1,
+                 view: View | None = None) -> dict[str, torch.Tensor]:  # fmt: skip
+    """Composite, mesh-only, NeRF-only images, NeRF mask and silhouette, (H, W, ·) each.
+
+    The image is the model's n×n crop, or ``view``. ``supersample`` s renders s² rays a pixel and
+    averages them (anti-aliased edges). Rays outside the projection of the box that holds the
+    posed mesh and the exterior's reach meet nothing: they get the background without being cast.
     """
-    n, s2 = model.resolution, int(supersample) ** 2
-    pixels = pixel_grid(n, supersample, model.background.device)
+    view = view or View(model.resolution, model.resolution)
+    H, W, s2 = view.height, view.width, int(supersample) ** 2
+    dev = model.background.device
+    pixels = view.to_model(pixel_grid(H, supersample, dev, width=W))
     mesh = model.posed_mesh(frame)[0]
+    live = torch.nonzero(live_rays(pixels, reach_box(model, frame, mesh.vertices))).squeeze(1)
+    bg = model.background
+    full = {"rgb": bg.expand(len(pixels), 3), "mesh": bg.expand(len(pixels), 3), "nerf": bg.expand(len(pixels), 3),
+            "nerf_mask": bg.new_zeros(len(pixels)), "silhouette": bg.new_zeros(len(pixels))}  # fmt: skip
+    full = {k: v.clone() for k, v in full.items()}
     perturb = model.spec.render.perturb
     model.spec.render.perturb = False
-    parts: dict[str, list] = {"rgb": [], "mesh": [], "nerf": [], "nerf_mask": [], "silhouette": []}
     try:
-        for s in range(0, len(pixels), chunk):
-            r = model.render(frame, pixels[s : s + chunk], mesh=mesh)
-            for k, v in zip(parts, (r.rgb, r.mesh_rgb, r.nerf_rgb, r.nerf_mask, r.silhouette)):
-                parts[k].append(v)
+        for s in range(0, len(live), chunk):
+            idx = live[s : s + chunk]
+            r = model.render(frame, pixels[idx], mesh=mesh)
+            for k, v in zip(full, (r.rgb, r.mesh_rgb, r.nerf_rgb, r.nerf_mask, r.silhouette)):
+                full[k][idx] = v.to(full[k].dtype)
     finally:
         model.spec.render.perturb = perturb
-    out = {}
-    for k, v in parts.items():
-        x = torch.cat(v)
-        out[k] = x.reshape(n * n, s2, -1).mean(1).reshape(n, n, -1).squeeze(-1).cpu()
-    return out
+    return {k: x.reshape(H * W, s2, -1).mean(1).reshape(H, W, -1).squeeze(-1).cpu() for k, x in full.items()}

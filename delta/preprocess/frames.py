@@ -29,7 +29,7 @@ from delta.data.person import (
     no_person_message,
     plausible_mask,
 )
-from delta.data.record import MASKS, RecordWriter, write_camera_attrs
+from delta.data.record import MASKS, FullFrameWriter, RecordWriter, write_camera_attrs
 from delta.data.sources import Source
 from delta.io import atomic_path
 
@@ -146,20 +146,50 @@ class PrepareSettings:
         default=None, metadata={"choices": ("person", "clothing", "skin", "hair", "keypoints")}
     )
     """The dataset's own arrays to use (None: all it ships); model steps give the rest."""
+    score_size: int = dataclasses.field(default=0, metadata={"minimum": 0, "maximum": 4096})
+    """Long side of the whole frames kept for scoring and exports (0: the dataset's protocol: People
+    Snapshot's 1080² frames halved to 540², any other capture at its own size up to 1080)."""
 
 
-def prepare(source: Source, out_path: str | Path, size: int, margin: float = 0.08) -> dict:
+#: the long side of a capture's whole frames when scored, unless the dataset's protocol says otherwise
+MAX_SCORE_SIZE = 1080
+
+
+def scoring_size(kind: str, width: int, height: int, score_size: int = 0) -> tuple[int, int]:
+    """(W, H) of the whole frames that evaluation scores and exports render: ``score_size`` on the long
+    side, else the protocol's (People Snapshot: half its frame, 540 of 1080; otherwise the capture's
+    own, at most :data:`MAX_SCORE_SIZE`). Never larger than the capture."""
+    long = max(width, height)
+    if score_size:
+        target = min(score_size, long)
+    elif kind == "peoplesnapshot":
+        target = (long + 1) // 2
+    else:
+        target = min(long, MAX_SCORE_SIZE)
+    return max(1, round(width * target / long)), max(1, round(height * target / long))
+
+
+def prepare(source: Source, out_path: str | Path, size: int, margin: float = 0.08,
+            full_size: tuple[int, int] | None = None) -> dict:  # fmt: skip
     """Write the frame record of ``source`` (see :mod:`delta.data.record`); returns a summary.
 
-    Frames whose provided person mask is empty are skipped and listed in the record.
+    ``full_size`` (W, H): the size of the whole frames kept for scoring (default: the capture's own,
+    see :func:`scoring_size`). Frames whose provided person mask is empty are skipped and listed in
+    the record.
     """
+    full_size = full_size or scoring_size("", source.camera.width, source.camera.height)
     try:
-        return _prepare(source, out_path, size, margin)
+        return _prepare(source, out_path, size, margin, full_size)
     finally:
         source.close()
 
 
-def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
+def whole(img: np.ndarray, full_size: tuple[int, int], interp: int) -> np.ndarray:
+    """A whole (undistorted) frame or mask resized to the scoring size (W, H)."""
+    return img if img.shape[1::-1] == tuple(full_size) else cv2.resize(img, full_size, interpolation=interp)
+
+
+def _prepare(source: Source, out_path, size: int, margin: float, full_size: tuple[int, int]) -> dict:
     last = max(i for i, _ in source.frames)
     if source.num_video_frames and last >= source.num_video_frames:
         raise DeltaError(f"{source.video}: asked for frame {last} but the dataset's annotations hold "
@@ -210,6 +240,7 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
         h5.create_dataset("frame_ids", data=np.array([i for i, _ in frames], dtype=np.int64), track_times=False)
         h5.create_dataset("split", data=np.array([s for _, s in frames], dtype=np.uint8), track_times=False)
         writer = RecordWriter(h5, len(frames), size, masks, face="face_landmarks" in source.provided)
+        full = FullFrameWriter(h5, len(frames), *full_size, masks)
         row = {i: r for r, (i, _) in enumerate(frames)}
         for i, rgb in iter_video(source.video, set(row)):
             if rgb.shape[:2] != (source.camera.height, source.camera.width):
@@ -219,18 +250,23 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
             if rgb.shape[:2] != mask.shape[:2]:
                 raise DeltaError(f"{source.video}: frame {i} is {rgb.shape[1]}x{rgb.shape[0]} but its mask is "
                                  f"{mask.shape[1]}x{mask.shape[0]}")  # fmt: skip
-            out_masks = {"person": crop(und.image(mask, mask=True), box, cv2.INTER_AREA, mask=True)}
+            person_u = und.image(mask, mask=True)
+            out_masks = {"person": crop(person_u, box, cv2.INTER_AREA, mask=True)}
+            full_masks = {"person": whole(person_u, full_size, cv2.INTER_AREA)}
             for m in masks[1:]:  # parts lie inside the person, whichever step made each
                 part = und.image(source.provided[m](i), mask=True, nearest=True)
                 out_masks[m] = crop(part, box, cv2.INTER_NEAREST, mask=True) * (out_masks["person"] > 127)
+                full_masks[m] = whole(part, full_size, cv2.INTER_NEAREST) * (full_masks["person"] > 127)
             points = {}
             for name in ("keypoints", "face_landmarks"):  # undistorted, then moved with the crop
                 if name in source.provided:
                     p = np.asarray(source.provided[name](i), dtype=np.float64).copy()
                     p[:, :2] = box.apply_to_points(torch.from_numpy(und.points(p[:, :2]))).numpy()
                     points[name] = p
-            writer.write(row[i], crop(und.image(rgb), box, cv2.INTER_AREA), out_masks, points.get("keypoints"),
+            rgb_u = und.image(rgb)
+            writer.write(row[i], crop(rgb_u, box, cv2.INTER_AREA), out_masks, points.get("keypoints"),
                          points.get("face_landmarks"))  # fmt: skip
+            full.write(row[i], whole(rgb_u, full_size, cv2.INTER_AREA), full_masks)
         write_camera_attrs(h5, camera)
         ids = np.array([i for i, _ in frames])
         for name, values in source.body_params.items():  # per-frame rows for the kept frames; per-subject as is
@@ -242,7 +278,7 @@ def _prepare(source: Source, out_path, size: int, margin: float) -> dict:
         h5.attrs["source_size"] = np.array([source.camera.width, source.camera.height])
         h5.attrs["skipped_empty"] = np.array(empty, dtype=np.int64)
     summary = {"frames": len(frames), "skipped_empty": empty, "few_keypoints": few, "implausible_mask": odd,
-               "crop": [box.u0, box.v0, box.size, box.out],
+               "crop": [box.u0, box.v0, box.size, box.out], "full_size": list(full_size),
                "sources": {k: v for k, v in source.origin.items() if k in source.provided or k in ("camera", "smpl")}}  # fmt: skip
     log.info("prepared %s", summary)
     return summary

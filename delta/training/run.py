@@ -203,20 +203,16 @@ class Trained:
     preset: str
 
 
-def load_trained(model_path: str | Path, record: str | Path, body_path: str | Path, device: str = "cpu",
-                 resolution: int = 0) -> Trained:  # fmt: skip
+def load_trained(model_path: str | Path, record: str | Path, body_path: str | Path, device: str = "cpu") -> Trained:
     """Rebuild a stage's avatar from its model.pt (the settings it was trained with travel inside).
 
-    ``resolution`` > 0 loads the frames at that size instead of the training resolution, and the
-    avatar renders at it (the cameras are rescaled): avatars trained at different resolutions are
-    then scored on the same images.
+    The frames are loaded at the training resolution; other images of a frame (the capture's whole
+    frame for scoring and exports) are :class:`delta.models.image.View` s of it.
     """
-    if resolution < 0:
-        raise DeltaError(f"resolution: {resolution} (expected > 0, or 0 for the training resolution)")
     dev = pick_device(device)
     state = migrate_model(load_state(model_path, map_location=dev), model_path)
     st = resolve(state["preset"], state["settings"])
-    data = load_frames(record, resolution or st.resolution, st.background, st.box_margin)
+    data = load_frames(record, st.resolution, st.background, st.box_margin)
     spec = st.avatar if state.get("nerf", True) else dataclasses.replace(st.avatar, nerf=None)
     scope = _scope(state)
     spec = dataclasses.replace(spec, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]))
@@ -235,8 +231,5 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
         model.load_state_dict(state["model"])
     except RuntimeError as e:
         raise DeltaError(f"{model_path}: does not match {body_path} or {record}: {str(e)[:300]}") from None
-    if model.pinhole and data.resolution != st.resolution:
-        with torch.no_grad():  # intrinsics in pixels of the training images; an orthographic camera is in NDC
-            model.cam_K[:2] *= data.resolution / st.resolution
     model.eval()
     return Trained(model, data, st, int(state["stage"]), str(state["preset"]))

@@ -2,12 +2,14 @@
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 import torch
 
 from delta import DeltaError
 from delta.eval.evaluate import EvalSettings, evaluate, face_pixels, pick_frames, summarize, train_body_error_mm
+from delta.models.image import View, render_image
 from delta.training.run import load_trained
 
 pytestmark = pytest.mark.slow
@@ -36,7 +38,8 @@ def test_rows_scores_and_convention(trained):
     assert len(df) == 2 * len(frames)  # before and after refinement
     assert list(df["refined"]) == [False, True] * len(frames)
     assert set(df["background"]) == {"white"} and set(df["image"]) == {"full"}
-    assert (df["resolution"] == tr.data.resolution).all()
+    # the whole frame at the capture's own size (the tiny capture is 128², the avatar trained at 32²)
+    assert set(df["resolution"]) == {"128x128"} and (df["train_resolution"] == tr.data.resolution).all()
     assert df["psnr"].between(5, 60).all() and df["ssim"].between(0, 1).all() and (df["l1"] > 0).all()
     # a few steps from the GT init: the body stays within centimetres of the GT body
     assert df["body_err_mm"].between(0, 30).all()
@@ -53,7 +56,8 @@ def test_face_pixels_lie_on_the_head(trained):
     f = int(np.flatnonzero(tr.data.split == 1)[0])
     with torch.no_grad():
         mesh = tr.model.posed_mesh(f)[0]
-    face = face_pixels(tr.model, f, mesh.vertices)
+    n = tr.model.resolution
+    face = face_pixels(tr.model, f, mesh.vertices, View(n, n))
     person = tr.data.person[f] > 0.5
     rows = torch.nonzero(person.any(1)).squeeze(1)
     assert face.any(), "a front-ish view shows some of the face"
@@ -85,26 +89,84 @@ def test_psnr_rises_with_refinement_from_a_perturbed_pose(trained):
 
 
 @pytest.mark.parametrize("subject", ["tight", "loose"])
-def test_a_common_resolution_renders_the_same_rays(tiny_trained, subject):
-    """Loaded at twice its training resolution, an avatar renders the sub-pixel rays of its own
-    resolution's 2×2 supersampling: the 2× render area-downsampled is that supersampled render
-    (pinhole intrinsics rescaled; an orthographic camera is resolution-free)."""
-    from delta.models.image import render_image
-
+def test_a_finer_view_renders_the_supersampled_rays(tiny_trained, subject):
+    """A view at twice the avatar's resolution casts the sub-pixel rays of its own 2×2 supersampling:
+    the 2× render area-downsampled is that supersampled render (pinhole and orthographic alike)."""
     t = tiny_trained[subject]
     own = load_trained(t["model"], t["record"], t["body"])
-    big = load_trained(t["model"], t["record"], t["body"], resolution=2 * own.data.resolution)
-    n = own.data.resolution
-    assert big.data.resolution == 2 * n and big.data.images.shape[1:3] == (2 * n, 2 * n)
-    assert big.settings.resolution == n and big.model.resolution == 2 * n
+    n = own.model.resolution
     f = int(np.flatnonzero(own.data.split == 1)[0])
     a = render_image(own.model, f, supersample=2)
-    b = render_image(big.model, f, supersample=1)
+    b = render_image(own.model, f, view=View(2 * n, 2 * n, (0.5, 0.5)))
     for key in ("rgb", "silhouette"):
         down = b[key].reshape(n, 2, n, 2, -1).mean((1, 3)).reshape(a[key].shape)
         torch.testing.assert_close(down, a[key], atol=2e-5, rtol=0)
     assert a["rgb"].std() > 0.05, "a blank render would pass trivially"
-    df = evaluate(big, t["record"], EvalSettings(splits=("test_view",), max_frames=1, refine_steps=0, supersample=1))
-    assert (df["resolution"] == 2 * n).all() and (df["train_resolution"] == n).all()
-    with pytest.raises(DeltaError, match="resolution"):
-        load_trained(t["model"], t["record"], t["body"], resolution=-1)
+
+
+def test_the_whole_frame_holds_the_crop(trained):
+    """Each pixel of the avatar's own crop render is the area average of the whole-frame render's pixels
+    it covers (the tiny capture: 128² frames, a 128-pixel crop, the avatar at 32²: 4×4 blocks)."""
+    tr, t = trained
+    from delta.data.frames import load_full_frames
+    from delta.models.image import full_view
+
+    f = int(np.flatnonzero(tr.data.split == 1)[0])
+    full = load_full_frames(t["record"], [f])
+    whole = render_image(tr.model, f, view=full_view(full, tr.model.resolution))["rgb"]
+    (u0, v0, side), (W, H), n = full.crop, full.size, tr.model.resolution
+    assert full.source_size == (W, H) and side % n == 0, "the tiny capture is scored at its own size"
+    k = side // n
+    own = render_image(tr.model, f, supersample=k)["rgb"]
+    rows = [i for i in range(n) if 0 <= v0 + k * i and v0 + k * (i + 1) <= H]
+    cols = [j for j in range(n) if 0 <= u0 + k * j and u0 + k * (j + 1) <= W]
+    assert len(rows) > n // 2 and len(cols) > n // 2
+    for i in rows[:: max(len(rows) // 6, 1)]:
+        for j in cols:
+            block = whole[v0 + k * i : v0 + k * (i + 1), u0 + k * j : u0 + k * (j + 1)]
+            torch.testing.assert_close(block.reshape(-1, 3).mean(0), own[i, j], atol=2e-5, rtol=0)
+    assert own.std() > 0.05, "a blank render would pass trivially"
+    outside = torch.ones(H, W, dtype=torch.bool)  # the crop holds every frame's person: outside it, the background
+    outside[max(v0, 0) : v0 + side, max(u0, 0) : u0 + side] = False
+    torch.testing.assert_close(full.images[0][outside], torch.ones_like(full.images[0][outside]))
+
+
+@pytest.mark.parametrize("size", [128, 64])
+def test_whole_frames_are_scored_at_the_capture_size_as_an_independent_scorer_would(tiny_trained, tmp_path, size):
+    """The loose capture (orthographic, no lens distortion: its frames are the video's as they are) prepared
+    for scoring at its own 128² and at 64²: the targets are the video frames area-resized and put on
+    white, the render has that size whatever the avatar trained at, and the row's PSNR / SSIM are
+    scikit-image's on those two images (data range 1, Gaussian SSIM of Wang et al.)."""
+    from pathlib import Path
+
+    from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+    from delta.data.frames import load_full_frames
+    from delta.data.sources import synthetic_source
+    from delta.models.image import full_view
+    from delta.preprocess.frames import iter_video, prepare
+
+    t = tiny_trained["loose"]
+    record = tmp_path / "frames.h5"
+    prepare(synthetic_source(Path(t["capture"]), "loose"), record, size=64, full_size=(size, size))
+    tr = load_trained(t["model"], record, t["body"])
+    df = evaluate(tr, record, EvalSettings(splits=("test_view",), max_frames=2, refine_steps=0, supersample=1))
+    assert set(df["resolution"]) == {f"{size}x{size}"} and (df["train_resolution"] == tr.model.resolution).all()
+    rows = [int(f) for f in df["frame"]]
+    full = load_full_frames(record, rows)
+    view = full_view(full, tr.model.resolution)
+    src = synthetic_source(Path(t["capture"]), "loose")
+    ids = [int(tr.data.frame_ids[f]) for f in rows]
+    videos = dict(iter_video(src.video, set(ids)))
+    kw = dict(data_range=1.0, channel_axis=-1, gaussian_weights=True, sigma=1.5, use_sample_covariance=False)
+    for k, (row, fid) in enumerate(zip(df.itertuples(), ids)):
+        a = cv2.resize(src.provided["person"](fid).astype(np.float32) / 255, (size, size), interpolation=cv2.INTER_AREA)
+        rgb = cv2.resize(videos[fid].astype(np.float32) / 255, (size, size), interpolation=cv2.INTER_AREA)
+        target = rgb * a[..., None] + (1 - a[..., None])
+        np.testing.assert_allclose(full.images[k].numpy(), target, atol=1.5 / 255)
+        render = render_image(tr.model, row.frame, view=view)["rgb"].clamp(0, 1).double().numpy()
+        assert render.shape == (size, size, 3)
+        gt = full.images[k].double().numpy()
+        assert row.psnr == pytest.approx(peak_signal_noise_ratio(gt, render, data_range=1.0), abs=1e-4)
+        assert row.ssim == pytest.approx(structural_similarity(gt, render, **kw), abs=1e-4)
+    src.close()

@@ -22,7 +22,7 @@ from delta.perceptual import weights as W
 from delta.perceptual.idmrf import SemanticLoss, idmrf_loss, mrf_loss
 from delta.perceptual.nets import BlurPool2d, ShiftTolerantAlexNet, ShiftTolerantVGG16, load_backbone
 from delta.perceptual.stlpips import STLPIPS
-from tests.conftest import MODELS_DIR
+from tests.conftest import MODELS_DIR, exclusive
 
 CACHE = MODELS_DIR / "stlpips"
 
@@ -39,7 +39,8 @@ PACKAGE_VALUES = {
 def weight_files():
     """``{net: path}``; fetched into resources/models/stlpips when missing."""
     try:
-        return W.ensure_weights(CACHE)
+        with exclusive("stlpips"):
+            return W.ensure_weights(CACHE)
     except DeltaError as exc:
         pytest.skip(f"ST-LPIPS weights unavailable and cannot be fetched: {exc}")
 

@@ -187,3 +187,43 @@ def test_peoplesnapshot_reconstructed_poses_reach_the_record(tmp_path, tiny_capt
     with FrameRecord(tmp_path / "out.h5") as rec:
         np.testing.assert_array_equal(rec.h5["smpl_pose"][:], pose[[0, 2, 4, 5, 6]])
         np.testing.assert_array_equal(rec.h5["smpl_betas"][:], np.arange(10.0))
+
+
+def test_scoring_size_follows_the_protocol():
+    from delta.preprocess.frames import scoring_size
+
+    assert scoring_size("peoplesnapshot", 1080, 1080) == (540, 540)  # People Snapshot is scored at 540²
+    assert scoring_size("synthetic", 512, 512) == (512, 512)  # a synthetic capture at its own size
+    assert scoring_size("video", 1920, 1080) == (1080, 608)  # a long side of at most 1080
+    assert scoring_size("video", 640, 480) == (640, 480)
+    assert scoring_size("peoplesnapshot", 1080, 1080, score_size=270) == (270, 270)
+    assert scoring_size("synthetic", 256, 256, score_size=512) == (256, 256)  # never larger than the capture
+
+
+@pytest.mark.slow
+def test_whole_frames_map_onto_the_crop(tmp_path, tiny_captures):
+    """People Snapshot's whole frames are kept at half size; a point of the capture, halved, is carried
+    by the whole frames' view geometry to where the crop puts it (the record's keypoints)."""
+    from delta.data.frames import load_full_frames
+    from delta.models.image import View
+    from delta.preprocess.frames import scoring_size
+
+    src = peoplesnapshot_source(tiny_captures / "ps", "tight", {"train": [0, 4, 1], "test": [5, 6, 1]})
+    W, H = src.camera.width, src.camera.height
+    keypoints = [np.asarray(src.provided["keypoints"](i)) for i in range(7)]
+    und = __import__("delta.preprocess.frames", fromlist=["Undistorter"]).Undistorter(src.camera)
+    prepare(src, tmp_path / "ps.h5", 96, full_size=scoring_size("peoplesnapshot", W, H))
+    full = load_full_frames(tmp_path / "ps.h5", [0, 5])
+    assert full.size == ((W + 1) // 2, (H + 1) // 2) and full.images.shape[1:3] == (full.size[1], full.size[0])
+    scale, shift = full.view_geometry(96)
+    view = View(full.size[1], full.size[0], scale, shift)
+    with FrameRecord(tmp_path / "ps.h5") as rec:
+        for row, frame in ((0, 0), (1, 5)):
+            kp = keypoints[frame]
+            ok = kp[:, 2] > 0
+            halved = und.points(kp[ok, :2]) * np.array([full.size[0] / W, full.size[1] / H])
+            mapped = view.to_model(torch.from_numpy(halved)).numpy()
+            np.testing.assert_allclose(mapped, rec.h5["keypoints"][frame][ok, :2], atol=1e-3)
+            # and the whole frame's person, where the crop lies, is the record's (up to resampling)
+            assert abs(full.person[row].sum().item() * (96 / full.crop[2] * W / full.size[0]) ** 2
+                       - rec.h5["person"][frame].astype(np.float64).sum() / 255) < 0.05 * rec.h5["person"][frame].sum() / 255  # fmt: skip
