@@ -32,6 +32,7 @@ from delta.eval.heldout import refine_frame
 from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import atomic_path
 from delta.models.image import View, full_view, live_rays, pixel_grid, reach_box, render_image
+from delta.progress import Progress
 from delta.training.run import Trained
 
 log = logging.getLogger(__name__)
@@ -155,6 +156,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
     bg = "white" if tuple(trained.settings.background) == (1.0, 1.0, 1.0) else str(tuple(trained.settings.background))
     keep = model.modelled.cpu().numpy()
     rows = []
+    progress = Progress(f"evaluate ({view.width}x{view.height})", len(frames))
     for k, (f, split) in enumerate(frames):
         for refined in passes:
             if refined:
@@ -180,8 +182,8 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
                 v = mesh.vertices.cpu().numpy()
                 row["body_err_mm"] = 1000 * vertex_error(v[keep], ref[keep]) if ref.shape == v.shape else np.nan
             rows.append(row)
-        log.info("frame %d (%s): %s", f, split, {k: round(v, 3) for k, v in rows[-1].items() if k.startswith(("psnr", "ssim"))
-                                                  and isinstance(v, float)})  # fmt: skip
+        scores = " ".join(f"{k} {v:.3f}" for k, v in rows[-1].items() if k in ("psnr", "ssim", "stlpips_alex"))
+        progress.report(k + 1, f"frame {f} ({split}) {scores}")
     return pd.DataFrame(rows)
 
 

@@ -21,6 +21,7 @@ from delta.metrics import psnr
 from delta.models.avatar import HybridAvatar
 from delta.data.frames import load_full_frames
 from delta.models.image import full_view, pixel_grid, render_image
+from delta.progress import Progress
 from delta.training.run import Trained, load_trained
 
 log = logging.getLogger(__name__)
@@ -151,6 +152,9 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
     t = time.perf_counter()
     rows = []
     (out / "sidebyside").mkdir(exist_ok=True)
+    novel = novel_pose_frames(data.split)
+    size = f"{view.width}x{view.height}" if view else f"{model.resolution}x{model.resolution}"
+    progress = Progress(f"export renders ({size})", len(frames) + settings.turntable_frames + len(novel))
     for k, f in enumerate(frames):
         img = render_image(model, f)  # the line-up check compares with the model's own crop
         if k < settings.sidebyside:  # (the line-up check uses at least one frame)
@@ -159,6 +163,7 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
                 cv2.imwrite(str(tmp), side_by_side(reference, shown["rgb"]))
         rows.append({**check_frame(model, f, clothing, img), "psnr": round(psnr(img["rgb"].clamp(0, 1), data.images[f]), 2),
                      "split": int(data.split[f])})  # fmt: skip
+        progress.tick("line-up and side-by-side")
     summary["frames"] = rows
     keys = [k for k in ("iou_body", "iou_body_soft", "iou_avatar") if k in rows[0]]
     summary["lineup"] = {k: round(float(np.mean([r[k] for r in rows])), 4) for k in keys}
@@ -169,13 +174,14 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
     summary["turntable"] = {
         "frame": turn_frame,
         "frames": write_video(
-            out / "turntable.mp4", turntable(model, turn_frame, settings.turntable_frames, view), settings.fps
+            out / "turntable.mp4",
+            progress.counted(turntable(model, turn_frame, settings.turntable_frames, view), "turntable"),
+            settings.fps,
         ),
     }
     times["turntable"] = time.perf_counter() - t
     t = time.perf_counter()
-    novel = novel_pose_frames(data.split)
-    summary["novel_pose"] = {"frames": write_video(out / "novel_pose.mp4", render_frames(model, novel, view), settings.fps),
+    summary["novel_pose"] = {"frames": write_video(out / "novel_pose.mp4", progress.counted(render_frames(model, novel, view), "novel pose"), settings.fps),
                              "test_pose_frames": bool((data.split == 2).any())}  # fmt: skip
     times["novel_pose"] = time.perf_counter() - t
     times["total"] = time.perf_counter() - t_start

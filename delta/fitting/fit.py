@@ -29,6 +29,7 @@ from delta.fitting import silhouette as sil
 from delta.fitting import terms
 from delta.fitting.limits import joint_limits
 from delta.fitting.start import FACE, TORSO, facing_orientation, init_ortho_scale, init_translation, interpolate
+from delta.progress import Progress
 
 
 @dataclasses.dataclass
@@ -196,6 +197,10 @@ def _project(camera, pinhole: bool, cam_params: list[torch.Tensor], points: torc
     return OrthographicCamera(cam_params[0].exp(), cam_params[1], camera.width, camera.height).project(points)[0]
 
 
+#: optimisation steps between progress lines
+PROGRESS_EVERY = 50
+
+
 def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, cfg: FitConfig = FitConfig(),
         pose_weights: torch.Tensor | None = None, knees: list[int] = (), masks: torch.Tensor | None = None,
         start: FitStart | None = None, exterior: torch.Tensor | None = None,
@@ -289,7 +294,10 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
         return total
 
     stages = list(enumerate(cfg.iterations))
-    for stage, steps in stages[2:] if start is not None else stages[1:]:
+    todo = stages[2:] if start is not None else stages[1:]
+    progress = Progress(f"fit ({pose.shape[0]} frames)", sum(steps for _, steps in todo))
+    done = 0
+    for stage, steps in todo:
         params = [transl] * pinhole + cam_params + [pose] + [betas] * (stage > 1)
         opt = torch.optim.Adam(params, lr=cfg.lr)
         for _ in range(steps):
@@ -299,6 +307,9 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
             for p in params:  # a non-finite gradient (degenerate geometry) must not poison the parameters
                 torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
             opt.step()
+            done += 1
+            if done % PROGRESS_EVERY == 0 or done == progress.total:
+                progress.report(done, f"fit stage {stage + 1}")
     return _result(points, betas, pose, transl, camera, cam_params, detected, few, empty)
 
 

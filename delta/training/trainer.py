@@ -13,7 +13,6 @@ import hashlib
 import json
 import logging
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Callable, Optional
@@ -29,6 +28,7 @@ from delta.data.frames import FrameData, RayBatch, sample_rays
 from delta.io import atomic_path, load_state
 from delta.models.avatar import HybridAvatar
 from delta.models.image import render_image
+from delta.progress import Progress
 from delta.training.presets import StageSettings, TrainSettings, stage_view
 
 log = logging.getLogger(__name__)
@@ -219,6 +219,7 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
                  "central %.0f%% of the person box)", start + 1, warmup_end, 100 * cfg.nerf_warmup_crop)  # fmt: skip
     t0, seen = time.time(), 0
     before = rows[-1].get("seconds", 0.0) if rows else 0.0  # wall time of the runs this one resumes
+    progress = Progress(f"stage {stage}", cfg.iterations, start)
     for step in range(start, end):
         warm = step < warmup_end
         for g, lr in zip(optimizer.param_groups, base_lr):
@@ -250,7 +251,10 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
                      **({"warmup": float(warm)} if warmup_end else {}),
                      **{k: float(v.detach()) for k, v in terms.items()}})  # fmt: skip
         if (step + 1) % cfg.log_every == 0 or step + 1 == end:
-            _progress(stage, step + 1, cfg.iterations, rows[-1], seen / (time.time() - t0))
+            row = rows[-1]
+            progress.report(
+                step + 1, f"loss {row['loss']:.4f} psnr {row['psnr']:.2f} dB {seen / (time.time() - t0):.2f} it/s"
+            )
         if (step + 1) % cfg.checkpoint_every == 0 or step + 1 == end:
             save_checkpoint(ckpt, model, optimizer, step + 1, generator, rows, key)
         if cfg.preview_every and ((step + 1) % cfg.preview_every == 0 or step + 1 == cfg.iterations):
@@ -311,14 +315,6 @@ def frame_locked(params: list[torch.Tensor], frame: int):
 def _to(batch: RayBatch, device) -> RayBatch:
     return dataclasses.replace(batch, **{f: getattr(batch, f).to(device) for f in
                                         ("pixels", "rgb", "person", "exterior", "interior")})  # fmt: skip
-
-
-def _progress(stage: int, step: int, total: int, row: dict, rate: float) -> None:
-    width = 30
-    done = int(width * step / total)
-    bar = "#" * done + "-" * (width - done)
-    print(f"stage {stage} [{bar}] {step}/{total} loss {row['loss']:.4f} psnr {row['psnr']:.2f} dB "
-          f"{rate:.2f} it/s", file=sys.stderr, flush=True)  # fmt: skip
 
 
 def write_preview(model: HybridAvatar, data: FrameData, frame: int, path: Path) -> None:
