@@ -186,7 +186,20 @@ def cmd_train(args: argparse.Namespace) -> None:
     over = json_or_file(args.settings, "--settings")
     over = [dict(o) if isinstance(o, dict) else o for o in (over if isinstance(over, list) else [over])]
     preset = over[0].pop("preset", args.preset) if over and isinstance(over[0], dict) else args.preset
-    run_stage(args.stage, args.record, args.body, args.start, args.out, preset, over, args.device, args.perceptual)
+    user_set = over[0].pop("user_set", []) if over and isinstance(over[0], dict) else []
+    run_stage(args.stage, args.record, args.body, args.start, args.out, preset, over, args.device, args.perceptual,
+              scene=args.scene, user_set=user_set)  # fmt: skip
+
+
+def cmd_analyze_scene(args: argparse.Namespace) -> None:
+    from delta.scene.analysis import analyze, write_scene
+
+    _threads(args.threads)
+    configured = json_or_file(args.settings, "--settings")
+    if not isinstance(configured, dict) or {"max_dist", "samples"} - set(configured):
+        raise DeltaError('--settings: expected {"max_dist": metres, "samples": count} (the configured render settings)')
+    write_scene(args.out, analyze(args.record, args.init, args.body, float(configured["max_dist"]),
+                                  int(configured["samples"])))  # fmt: skip
 
 
 def cmd_export(args: argparse.Namespace) -> None:
@@ -406,9 +419,28 @@ def build_parser() -> argparse.ArgumentParser:
         "over the preset; the first may name its 'preset' (what the train rule passes: the stage's view)",
     )
     p.add_argument("--perceptual", default=None, help="folder of the shift-tolerant VGG weights (stage 2)")
+    p.add_argument(
+        "--scene",
+        default=None,
+        help="scene.json of delta analyze-scene: its decisions apply where "
+        "the settings' 'user_set' keys do not say otherwise",
+    )
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     p.add_argument("--threads", type=int, default=1)
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("analyze-scene", help="decide what a subject's capture requires modelled (scene.json)")
+    p.add_argument("--record", required=True)
+    p.add_argument("--init", required=True, help="the init fit's params.npz")
+    p.add_argument("--body", required=True)
+    p.add_argument(
+        "--settings",
+        default='{"max_dist": 0.1, "samples": 16}',
+        help="the configured render settings: {max_dist (m), samples}: the room's floor and the sample spacing",
+    )
+    p.add_argument("--out", required=True, help="scene.json")
+    p.add_argument("--threads", type=int, default=1)
+    p.set_defaults(func=cmd_analyze_scene)
 
     from delta.perceptual.weights import add_fetch_perceptual_arguments, cmd_fetch_perceptual
     from delta.export.settings import ExportSettings

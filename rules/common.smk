@@ -63,6 +63,7 @@ PATHS = {
     "record_summary": "results/{dataset}/{subject}/frames.json",
     "init_params": "results/{dataset}/{subject}/init/params.npz",
     "init_report": "results/{dataset}/{subject}/init/report.csv",
+    "scene": "results/{dataset}/{subject}/scene.json",
     "stage_dir": "results/{dataset}/{subject}/stage{stage}",
     "stage_model": "results/{dataset}/{subject}/stage{stage}/model.pt",
     "stage_losses": "results/{dataset}/{subject}/stage{stage}/losses.csv",
@@ -273,19 +274,47 @@ def wildcard_training(wildcards):
     return subject_training(wildcards.subject)
 
 
+def set_keys(overrides, prefix=""):
+    """The dotted keys the config's overrides set (what the scene analysis leaves alone)."""
+    keys = []
+    for over in overrides:
+        for k, v in over.items():
+            if isinstance(v, dict) and v:
+                keys += set_keys([v], f"{prefix}{k}.")
+            else:
+                keys.append(f"{prefix}{k}")
+    return sorted(set(keys))
+
+
 def stage_training(wildcards):
-    """A training job's whole configuration, as JSON: the preset and the resolved settings the stage reads."""
+    """A training job's whole configuration, as JSON: the preset, the resolved settings the stage reads,
+    and which keys the config sets itself (the scene analysis decides the others it covers).
+    """
     preset, overrides = wildcard_training(wildcards)
     raw = resolve_training(preset, *overrides).raw
     return json.dumps(
-        {"preset": preset, **stage_view(raw, int(wildcards.stage))}, sort_keys=True
+        {
+            "preset": preset,
+            "user_set": set_keys(overrides),
+            **stage_view(raw, int(wildcards.stage)),
+        },
+        sort_keys=True,
+    )
+
+
+def scene_settings_json(wildcards):
+    """The configured room and samples of a subject's exterior: the scene analysis's floor and spacing."""
+    render = TRAINING[wildcards.subject].avatar.render
+    return json.dumps(
+        {"max_dist": render.max_dist, "samples": render.samples}, sort_keys=True
     )
 
 
 def train_inputs(wildcards):
     """Stage 1 starts from the init fit; stage 2 from stage 1's model (and the VGG weights of its semantic loss)."""
     w = dict(wildcards)
-    files = {"record": PATHS["record"].format(**w), "body": body_model_file()}
+    files = {"record": PATHS["record"].format(**w), "body": body_model_file(),
+             "scene": PATHS["scene"].format(dataset=w["dataset"], subject=w["subject"])}  # fmt: skip
     if wildcards.stage == "1":
         files["start"] = PATHS["init_params"].format(**w)
         return files

@@ -42,5 +42,5 @@ rule train:
         perceptual=lambda w: str(Path(PATHS["perceptual_vgg"]).parent),
     shell:
         "delta train --stage {wildcards.stage:q} --record {input.record:q} --body {input.body:q} --start {input.start:q}"
-        " --out {params.out:q} --settings {params.settings:q}"
+        " --out {params.out:q} --settings {params.settings:q} --scene {input.scene:q}"
         " --perceptual {params.perceptual:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"

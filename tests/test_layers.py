@@ -39,6 +39,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("delta.models",),
     ("delta.preprocess", "delta.synthetic"),
     ("delta.fitting",),
+    ("delta.scene",),  # what a capture requires modelled, from its frames and init fit
     ("delta.training",),
     ("delta.export",),
     ("delta.eval",),

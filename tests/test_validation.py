@@ -46,7 +46,7 @@ def video(path: Path, frames: int, size: int = 32) -> Path:
     ({"training": {"overrides": {"stage1": {"rays": 0}}}}, "training.stage1.rays: 0"),
     ({"training": {"overrides": {"resolution": 100000}}}, "training.resolution: 100000"),
     ({"preprocess": {"crop_margin": float("nan")}}, "'preprocess.crop_margin': NaN"),
-    ({"evaluation": {"resolution": 100000}}, "'evaluation.resolution': 100000 is greater than the maximum"),
+    ({"evaluation": {"supersample": 100}}, "'evaluation.supersample': 100 is greater than the maximum"),
     ({"fitting": {"subjects": {"nobody": {}}}}, "'fitting.subjects.nobody': not a configured subject"),
     ({"tradeoff": {"variants": {"v": {"stage1": {"rays": -1}}}}}, "tradeoff.variants.v (subject 'tight')"),
 ])  # fmt: skip

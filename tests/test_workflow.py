@@ -89,6 +89,17 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
     for dataset, subject in (("synthetic", "loose"), ("peoplesnapshot", STANDIN)):
         report = (work / "results" / dataset / subject / "init" / "report.csv").read_text().splitlines()
         assert report[0] == "frame,flagged,few_keypoints,empty_mask,residual_px,confident_keypoints" and len(report) > 5
+    # the scene analysis decided what each capture requires, and training took it (where the config is silent)
+    for dataset, subject in (("synthetic", "loose"), ("peoplesnapshot", STANDIN)):
+        scene = json.loads((work / "results" / dataset / subject / "scene.json").read_text())
+        assert scene["decisions"]["exterior"] == "yes" and scene["decisions"]["capture"] == "full"
+        assert (
+            scene["evidence"]["reach"]["per_region"]
+            and (work / "logs/analyze_scene" / f"{dataset}_{subject}.log").is_file()
+        )
+        taken = json.loads((work / "results" / dataset / subject / "stage1" / "settings.json").read_text())["settings"]
+        own = main["training"].get("subjects", {}).get(subject, {}).get("render", {}).get("max_dist")
+        assert taken["render"]["max_dist"] == (own if own is not None else scene["decisions"]["render"]["max_dist"])
     # both training stages ran on every subject, resumable checkpoints beside their outputs
     for dataset, subject in (("synthetic", "loose"), ("peoplesnapshot", STANDIN)):
         for stage in (1, 2):
@@ -138,6 +149,7 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
     html = (work / "report.html").read_text(errors="replace")
     for category in ("Metrics", "Renders", "Training", "Videos"):
         assert category in html, category
+    assert "synthetic stand-ins" in html and "datasets.peoplesnapshot.root" in html  # said once, with the line
     # a rerun has nothing to do
     again = snakemake(work, "--configfile", ".test/config/ci.yaml", "--dry-run")
     assert "Nothing to be done" in again.stdout + again.stderr
@@ -313,16 +325,16 @@ def test_tradeoff_variants_reuse_the_main_run_and_name_their_subjects(tmp_path):
     cfg["tradeoff"] = {"variants": {"fast": {"stages": 1}, "few_rays": {"stages": 1, "subjects": [subjects[0]],
                                                                         "stage1": {"rays": 64}},
                                     "res_16": {"stages": 1, "subjects": [subjects[0]], "resolution": 16}},
-                       "evaluation": {"resolution": 32}}  # fmt: skip
+                       "evaluation": {"max_frames": 2}}  # fmt: skip
     (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
     res = snakemake(
         work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run", "--printshellcmds"
     )
     out = res.stdout + res.stderr
     assert res.returncode == 0, out[-3000:]
-    # every variant is scored at 32²: the one trained at 16² says so, the others are trained at 32²
+    # every variant is scored with the study's own evaluation settings (on whole frames, whatever it trains at)
     scored = {m.group(1): m.group(0) for m in re.finditer(r"delta evaluate --model results/synthetic/\w+/(?:tradeoff/(\w+)/)?stage1/model\.pt[^\n]*", out)}  # fmt: skip
-    assert '"resolution": 32' in scored["res_16"] and '"resolution": 0' in scored["few_rays"]
+    assert '"max_frames": 2' in scored["res_16"] and '"max_frames": 2' in scored["few_rays"]
     trained = set(re.findall(r"output: results/synthetic/(\w+)/tradeoff/(\w+)/stage1/model\.pt", out))
     assert {v for _, v in trained} >= {"few_rays"} and "fast" not in {v for _, v in trained}
     assert {s for s, v in trained if v == "few_rays"} == {subjects[0]}

@@ -13,7 +13,6 @@ import logging
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from delta import DeltaError
@@ -22,14 +21,15 @@ from delta.cameras.models import OrthographicCamera
 from delta.data.frames import FrameData, frame_times, load_frames
 from delta.io import atomic_path, load_state, save_json
 from delta.models.avatar import HybridAvatar, InitParams
+from delta.models.init import load_init
 from delta.render.occupancy import OccupancySettings
+from delta.scene.analysis import MIN_EXTERIOR_FRACTION, scene_settings
+from delta.scene.framing import detect_capture
 from delta.training.presets import TrainSettings, deep_merge, resolve
-from delta.training.scope import detect_capture, frozen_joints
+from delta.training.scope import frozen_joints
 from delta.training.trainer import file_digest, train_stage
 
 log = logging.getLogger(__name__)
-#: Below this fraction of exterior pixels (of the person, over the training frames) there is no NeRF.
-MIN_EXTERIOR_FRACTION = 0.01
 
 
 def pick_device(name: str) -> torch.device:
@@ -38,23 +38,6 @@ def pick_device(name: str) -> torch.device:
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     return torch.device(name)
-
-
-def load_init(path: str | Path, data: FrameData) -> InitParams:
-    """The init fit's parameters, checked against the frame record."""
-    with np.load(path, allow_pickle=False) as z:
-        p = {k: z[k] for k in z.files}
-    for key in ("betas", "poses", "transl", "frame_ids"):
-        if key not in p:
-            raise DeltaError(f"{path}: missing '{key}'; rerun the fit_init rule")
-    if not np.array_equal(p["frame_ids"], data.frame_ids):
-        raise DeltaError(f"{path}: its frames ({len(p['frame_ids'])}) differ from the frame record's "
-                         f"({len(data.frame_ids)}); rerun fit_init")  # fmt: skip
-    t = lambda k: torch.from_numpy(np.asarray(p[k], dtype=np.float32))  # noqa: E731
-    camera = data.camera
-    if str(p.get("camera_model", "pinhole")) == "orthographic":
-        camera = OrthographicCamera(t("ortho_scale"), t("ortho_trans"), data.resolution, data.resolution)
-    return InitParams(t("betas"), t("poses"), t("transl"), camera)
 
 
 def wants_exterior(st: TrainSettings, data: FrameData) -> bool:
@@ -105,9 +88,18 @@ def semantic_loss(st: TrainSettings, weights_dir: str | None, device):
 
 
 def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str, preset: str,
-              overrides: list[dict], device: str = "cpu", perceptual_dir: str | None = None) -> dict:  # fmt: skip
-    """Train one stage; ``start`` is init/params.npz (stage 1) or stage 1's model.pt (stage 2)."""
+              overrides: list[dict], device: str = "cpu", perceptual_dir: str | None = None,
+              scene: str | None = None, user_set: list[str] = ()) -> dict:  # fmt: skip
+    """Train one stage; ``start`` is init/params.npz (stage 1) or stage 1's model.pt (stage 2).
+
+    ``scene``: the subject's scene.json; its decisions apply to the keys not in ``user_set`` (the keys
+    the config sets itself)."""
     st = resolve(preset, *overrides)
+    if scene:
+        decided = scene_settings(scene, st.raw, list(user_set))
+        if decided:
+            log.info("from the scene analysis (%s): %s", scene, json.dumps(decided, sort_keys=True))
+            st = resolve(preset, *overrides, decided)
     dev = pick_device(device)
     data = load_frames(record, st.resolution, st.background, st.box_margin)
     body = load_body_model(body_path)  # on the CPU: the avatar's .to(dev) moves it

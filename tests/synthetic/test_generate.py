@@ -212,7 +212,7 @@ def test_an_upper_framing_shows_no_legs_and_the_capture_says_so(tmp_path, anny_f
     from delta.data.record import FrameRecord
     from delta.data.sources import synthetic_source
     from delta.preprocess.frames import prepare
-    from delta.training.scope import detect_capture
+    from delta.scene.framing import detect_capture
 
     raw = dict(seed=4, garments=["tshirt"], hair="long", camera="pinhole", framing="upper", resolution=96,
                turn_frames=3, novel_frames=1, test_view_every=2)  # fmt: skip

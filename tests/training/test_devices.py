@@ -13,11 +13,12 @@ import torch
 from delta import losses as L
 from delta.body.model import load_body_model
 from delta.data.frames import load_frames, sample_rays
+from delta.io import load_state
+from delta.models.init import load_init
 from delta.render.volume import stratified_samples
 from delta.training.presets import resolve
-from delta.training.run import build_avatar, load_init
+from delta.training.run import build_avatar
 from delta.training.trainer import _to, loss_terms
-from delta.io import load_state
 
 TINY = {"resolution": 32, "render": {"samples": 8}}
 

@@ -7,10 +7,11 @@ import torch
 from delta import DeltaError
 from delta.body.model import load_body_model
 from delta.data.frames import frame_times, load_frames, sample_rays
-from delta.training.presets import resolve
-from delta.training.run import build_avatar, load_init
-from delta.training.trainer import loss_terms
 from delta.io import load_state
+from delta.models.init import load_init
+from delta.training.presets import resolve
+from delta.training.run import build_avatar
+from delta.training.trainer import loss_terms
 
 
 def test_frame_times_by_hand():

@@ -10,11 +10,13 @@ from delta import DeltaError
 from delta.body.model import load_body_model
 from delta.body.parts import lower_body_joints, lower_body_vertices
 from delta.data.frames import load_frames
-from delta.training.presets import resolve
-from delta.training.run import build_avatar, load_init, resolve_scope
-from delta.training.scope import detect_capture, frozen_joints
-from delta.training.trainer import CHECKPOINT, train_stage
 from delta.io import load_state
+from delta.models.init import load_init
+from delta.scene.framing import detect_capture
+from delta.training.presets import resolve
+from delta.training.run import build_avatar, resolve_scope
+from delta.training.scope import frozen_joints
+from delta.training.trainer import CHECKPOINT, train_stage
 
 pytestmark = pytest.mark.slow
 

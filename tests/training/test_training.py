@@ -8,13 +8,14 @@ import pytest
 import torch
 
 from delta import DeltaError
+from delta import losses as L
 from delta.body.model import load_body_model
 from delta.data.frames import load_frames, sample_rays
 from delta.io import load_state
+from delta.models.init import load_init
 from delta.training.presets import resolve
-from delta.training.run import build_avatar, load_init, run_stage
+from delta.training.run import build_avatar, run_stage
 from delta.training.trainer import CHECKPOINT, loss_terms, nerf_only_terms, reproducible, train_stage
-from delta import losses as L
 
 pytestmark = pytest.mark.slow
 

@@ -9,9 +9,10 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_
 from delta import DeltaError
 from delta.body.model import load_body_model
 from delta.data.frames import load_frames, sample_rays
+from delta.models.init import load_init
 from delta.models.trajectory import hat_weights
 from delta.training.presets import resolve
-from delta.training.run import build_avatar, load_init
+from delta.training.run import build_avatar
 from delta.training.trainer import loss_terms
 
 

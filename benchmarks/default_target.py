@@ -1,0 +1,138 @@
+"""Time the workflow's own command, ``snakemake --cores 2 results/peoplesnapshot/metrics.csv``, as a user runs
+it on a fresh clone with the default config, and keep what it scored.
+
+The workflow's files are copied into a fresh folder (``--work``, a temporary one by default) and the
+command runs there, with the default config plus only what the options below change:
+
+- ``--subjects``: the People Snapshot subjects to run (default: the four the config declares; with no
+  copy of the dataset configured they are its synthetic stand-ins);
+- ``--preset``: the training preset (default: the config's, ``fast``);
+- ``--reuse-builds``: take Anny's build cache and the converted MediaPipe models from this clone's
+  ``resources/`` instead of building them in the copy (they are built once per machine: ~2 min and
+  ~2 min on 2 cores, timed in their own rows when not reused).
+
+One CSV row per job (``kind=job``: the rule, its wildcards, wall seconds and peak memory from the
+rule's Snakemake benchmark file), one per rule (``kind=rule``: jobs and seconds summed), and one
+``kind=total`` row: the command's wall time, the subjects, preset, cores, the machine, and the mean
+row of ``results/peoplesnapshot/metrics.csv`` (its full-frame scores and their convention). Run from
+the repository root::
+
+    PYTHONPATH=$PWD python3 benchmarks/default_target.py --reuse-builds                       # the default target
+    PYTHONPATH=$PWD python3 benchmarks/default_target.py --reuse-builds --subjects male-3-casual \\
+        --csv benchmarks/default_target_one_subject.csv
+    PYTHONPATH=$PWD python3 benchmarks/default_target.py --reuse-builds --preset balanced \\
+        --csv benchmarks/default_target_balanced.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pandas as pd
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+TARGET = "results/peoplesnapshot/metrics.csv"
+#: the columns of the metrics table's mean row kept in the total row
+SCORES = ("source", "preset", "image", "resolution", "train_resolution", "background", "refinement",
+          "test_view_psnr", "test_view_ssim", "test_view_stlpips_alex",
+          "test_view_psnr_refined", "test_view_ssim_refined", "test_view_stlpips_alex_refined",
+          "train_body_err_mm", "clothing_chamfer_mm")  # fmt: skip
+
+
+def workflow_copy(work: Path) -> None:
+    """The files a user's clone has that the workflow reads."""
+    for name in ("Snakefile", "rules", "workflow", "config"):
+        src = REPO / name
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, work / name)
+
+
+def extra_config(work: Path, subjects: list[str] | None, preset: str | None, reuse: bool) -> list[str]:
+    """``--configfile`` arguments for what the options change (none for the plain default)."""
+    extra: dict = {}
+    if subjects:
+        main = yaml.safe_load((work / "config/config.yaml").read_text())
+        declared = main["datasets"]["peoplesnapshot"]["subjects"]
+        unknown = sorted(set(subjects) - set(declared))
+        if unknown:
+            sys.exit(f"--subjects: {unknown} are not declared in config/config.yaml ({sorted(declared)})")
+        main["datasets"]["peoplesnapshot"]["subjects"] = {s: declared[s] for s in subjects}
+        (work / "config/config.yaml").write_text(yaml.safe_dump(main, sort_keys=False))
+    if preset:
+        extra["preset"] = preset
+    if reuse:
+        extra["body_model"] = {"anny": {"cache_dir": str(REPO / "resources" / "anny_cache")}}
+        extra["preprocess"] = {"models_dir": str(REPO / "resources" / "models")}
+    if not extra:
+        return []
+    (work / "benchmark.yaml").write_text(yaml.safe_dump(extra))
+    return ["--configfile", "config/config.yaml", "benchmark.yaml"]
+
+
+def job_rows(work: Path) -> list[dict]:
+    rows = []
+    for tsv in sorted((work / "results" / "benchmarks").rglob("*.tsv")):
+        df = pd.read_csv(tsv, sep="\t")
+        last = df.iloc[-1]
+        rel = tsv.relative_to(work / "results" / "benchmarks")
+        rows.append({"kind": "job", "rule": rel.parts[0], "job": str(rel.with_suffix("")),
+                     "seconds": round(float(last["s"]), 1), "max_rss_mb": float(last.get("max_rss", float("nan")))})  # fmt: skip
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--subjects", nargs="+", help="People Snapshot subjects (default: the config's four)")
+    ap.add_argument("--preset", help="training preset (default: the config's)")
+    ap.add_argument("--reuse-builds", action="store_true", help="reuse this clone's Anny cache and MediaPipe models")
+    ap.add_argument("--cores", type=int, default=2)
+    ap.add_argument("--work", type=Path, help="folder to run in (default: a temporary one, removed afterwards)")
+    ap.add_argument("--csv", type=Path, default=REPO / "benchmarks" / "default_target.csv")
+    a = ap.parse_args()
+    work = a.work or Path(tempfile.mkdtemp(prefix="delta-default-"))
+    work.mkdir(parents=True, exist_ok=True)
+    workflow_copy(work)
+    cmd = [sys.executable, "-m", "snakemake", "--cores", str(a.cores), TARGET,
+           *extra_config(work, a.subjects, a.preset, a.reuse_builds)]  # fmt: skip
+    print("running", " ".join(cmd), "in", work, flush=True)
+    t0 = time.perf_counter()
+    with open(work / "snakemake.log", "w") as log:
+        res = subprocess.run(cmd, cwd=work, stdout=log, stderr=subprocess.STDOUT,
+                             env={**os.environ, "PYTHONPATH": str(REPO)})  # fmt: skip
+    wall = time.perf_counter() - t0
+    if res.returncode != 0:
+        sys.exit(f"the command failed (exit {res.returncode}); see {work / 'snakemake.log'}")
+    rows = job_rows(work)
+    by_rule = pd.DataFrame(rows).groupby("rule")["seconds"].agg(["count", "sum"])
+    rows += [{"kind": "rule", "rule": r, "jobs": int(v["count"]), "seconds": round(float(v["sum"]), 1)}
+             for r, v in by_rule.iterrows()]  # fmt: skip
+    table = pd.read_csv(work / TARGET)
+    mean = table[table["subject"] == "mean"].iloc[0]
+    subjects = [s for s in table["subject"] if s != "mean"]
+    total = {"kind": "total", "rule": "all", "seconds": round(wall, 1), "minutes": round(wall / 60, 1),
+             "subjects": " ".join(subjects), "cores": a.cores, "reused_builds": a.reuse_builds,
+             "machine": f"{platform.machine()} {os.cpu_count()} CPUs", "python": platform.python_version()}  # fmt: skip
+    total |= {k: mean[k] for k in SCORES if k in mean.index}
+    rows.append(total)
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+    with open(a.csv, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields)
+        w.writeheader()
+        w.writerows(rows)
+    print(json.dumps(total, default=str, indent=1))
+    if a.work is None:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""What a capture requires modelled, decided from the capture itself (``results/{dataset}/{subject}/scene.json``)."""

@@ -1,0 +1,172 @@
+"""A subject's scene analysis: what its capture requires modelled, with the evidence for each decision.
+
+From the frame record (person, clothing and hair masks) and the init fit, before training:
+
+- ``exterior``: whether there is clothing or hair to model at all (a NeRF), from the share of the
+  person's pixels the parsing calls clothing or hair;
+- ``capture``: the framing, ``full`` or ``upper`` (head and shoulders), from how much of the fitted
+  lower body is ever inside the image (:mod:`delta.scene.framing`);
+- ``render.max_dist``: the room the exterior gets around the body, from how far the person's
+  silhouette reaches beyond the fitted body per body region (:mod:`delta.scene.reach`), with a margin;
+  never less than the preset's own;
+- ``render.samples``: the samples a ray needs to cross that room at the preset's sample spacing.
+
+Written to ``results/{dataset}/{subject}/scene.json`` and read by both training stages: a decision
+applies where the user's config does not set that key itself (``training.overrides`` or
+``training.subjects.{name}``); an ``auto`` ``exterior`` or ``capture`` takes the decision.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from delta import DeltaError
+from delta.body.lbs import lbs
+from delta.body.model import REGION_NAMES, load_body_model
+from delta.cameras.models import PinholeCamera
+from delta.data.frames import load_frames
+from delta.data.record import FrameRecord
+from delta.geometry.raymesh import ray_mesh_hits
+from delta.io import save_json
+from delta.models.image import pixel_grid
+from delta.models.init import load_init
+from delta.scene.framing import MAX_LOWER_IN_VIEW, frame_camera, lower_body_in_view
+from delta.scene.reach import Beyond, beyond_body, region_reach
+
+log = logging.getLogger(__name__)
+
+#: Image size (pixels a side) the analysis measures at, and how many training frames it looks at.
+SIZE, FRAMES = 256, 16
+#: The percentile of a region's beyond-the-body distances taken as its reach, and the smallest share
+#: of all beyond pixels a region must hold to count.
+PERCENTILE, MIN_REGION_SHARE = 98.0, 0.02
+#: The room given is the measured reach × (1 + MARGIN) + PAD (a silhouette shows the reach sideways
+#: only: the margin covers what faces the camera), at most MAX_ROOM metres.
+MARGIN, PAD, MAX_ROOM = 0.25, 0.02, 0.6
+#: At most this many times the preset's samples a ray.
+MAX_SAMPLE_FACTOR = 4
+#: Below this share of exterior pixels (of the person, over the analysed frames) there is no NeRF.
+MIN_EXTERIOR_FRACTION = 0.01
+#: The keys the analysis decides (dotted paths of the training settings).
+DECIDED = ("exterior", "capture", "render.max_dist", "render.samples")
+
+
+@torch.no_grad()
+def body_view(body, init, frame: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The fitted body of a frame ray-cast into an n×n image: silhouette (bool), region per pixel,
+    metres per pixel at the body's depth (pinhole: depth / focal length; orthographic: constant)."""
+    out = lbs(body, init.betas[None].float(), init.poses[frame : frame + 1].float(),
+              transl=init.transl[frame : frame + 1].float())  # fmt: skip
+    verts = out.vertices[0]
+    cam = frame_camera(init.camera, frame, n)
+    pixels = pixel_grid(n)
+    origins, dirs = cam.rays(pixels)
+    hits = ray_mesh_hits(verts, body.faces, origins.float(), dirs.float())
+    regions = body.regions[body.faces[hits.face.clamp_min(0), 0]]
+    if isinstance(cam, PinholeCamera):
+        points = origins + hits.t[:, None].clamp_min(0) * dirs
+        depth = (points.double() @ cam.R.T.double() + cam.t.double())[:, 2]
+        mpp = (depth / float(cam.K[0, 0])).float()
+    else:
+        mpp = torch.full((len(pixels),), 2.0 / (float(cam.scale) * n))
+    shape = (n, n)
+    return hits.hit.reshape(shape).numpy(), regions.reshape(shape).numpy(), mpp.reshape(shape).numpy()
+
+
+def exterior_shares(record: str | Path, frames: list[int]) -> dict[str, float]:
+    """Share of the person's pixels the record's clothing and hair masks cover, over ``frames``."""
+    with FrameRecord(record) as rec:
+        person = sum(float((rec.h5["person"][f] > 127).sum()) for f in frames)
+        return {m: round(sum(float(((rec.h5[m][f] > 0) & (rec.h5["person"][f] > 127)).sum()) for f in frames)
+                         / max(person, 1.0), 4)
+                for m in ("clothing", "hair") if m in rec.h5}  # fmt: skip
+
+
+def room_and_samples(reach: float, preset_room: float, preset_samples: int) -> tuple[float, int]:
+    """The exterior's room (m) for a measured reach, never below the preset's, and the samples a ray
+    needs at the preset's spacing (preset samples per preset room)."""
+    room = min(max(reach * (1 + MARGIN) + PAD, preset_room), MAX_ROOM)
+    samples = math.ceil(preset_samples * room / preset_room - 1e-9)
+    return round(room, 3), int(min(max(samples, preset_samples), MAX_SAMPLE_FACTOR * preset_samples))
+
+
+def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, preset_room: float,
+            preset_samples: int, size: int = SIZE, frames: int = FRAMES) -> dict:  # fmt: skip
+    """The scene of one subject: ``{"decisions": {...}, "evidence": {...}}``."""
+    if preset_room <= 0 or preset_samples < 1:
+        raise DeltaError(
+            f"scene analysis: the preset's max_dist {preset_room} and samples {preset_samples} must be > 0"
+        )
+    data = load_frames(record, size)
+    init = load_init(init_path, data)
+    body = load_body_model(body_path)
+    train = np.asarray(data.train)
+    picked = [int(f) for f in train[np.linspace(0, len(train) - 1, min(frames, len(train))).round().astype(int)]]
+    beyond: list[Beyond] = []
+    for f in picked:
+        sil, regions, mpp = body_view(body, init, f, size)
+        beyond.append(beyond_body(sil, regions, data.person[f].numpy() > 0.5, mpp))
+    per_region = region_reach(beyond, dict(enumerate(REGION_NAMES)), PERCENTILE, MIN_REGION_SHARE)
+    reach = max((r["reach_m"] for r in per_region.values()), default=0.0)
+    room, samples = room_and_samples(reach, preset_room, preset_samples)
+    shares = exterior_shares(record, picked)
+    exterior = "yes" if sum(shares.values()) >= MIN_EXTERIOR_FRACTION else "no"
+    lower = lower_body_in_view(body, init.betas, init.poses, init.transl, init.camera, picked, size)
+    capture = "upper" if lower is not None and lower <= MAX_LOWER_IN_VIEW else "full"
+    decisions = {"exterior": exterior, "capture": capture, "render": {"max_dist": room, "samples": samples}}
+    evidence = {
+        "frames": picked, "size": size,
+        "exterior": {"shares": shares, "min_share": MIN_EXTERIOR_FRACTION,
+                     "why": f"clothing + hair cover {100 * sum(shares.values()):.1f}% of the person "
+                            f"({'at least' if exterior == 'yes' else 'under'} {100 * MIN_EXTERIOR_FRACTION:g}%)"},
+        "capture": {"lower_body_in_view": None if lower is None else round(lower, 4), "max_for_upper": MAX_LOWER_IN_VIEW},
+        "reach": {"per_region": per_region, "reach_m": reach, "percentile": PERCENTILE,
+                  "beyond_pixels": int(sum(len(b.metres) for b in beyond)),
+                  "why": f"the silhouette reaches {100 * reach:.1f} cm beyond the fitted body; room "
+                         f"{reach:.3f} x {1 + MARGIN:g} + {PAD:g} m, at least the preset's {preset_room:g} m"},
+        "samples": {"preset": preset_samples, "preset_max_dist": preset_room,
+                    "why": f"{preset_samples} samples per {preset_room:g} m of room, at most {MAX_SAMPLE_FACTOR}x"},
+    }  # fmt: skip
+    log.info("scene: %s (%s; %s)", json.dumps(decisions), evidence["exterior"]["why"], evidence["reach"]["why"])
+    return {"decisions": decisions, "evidence": evidence}
+
+
+def write_scene(path: str | Path, scene: dict) -> None:
+    save_json(path, scene)
+
+
+def _get(d: dict, dotted: str):
+    for part in dotted.split("."):
+        if not isinstance(d, dict) or part not in d:
+            return None
+        d = d[part]
+    return d
+
+
+def scene_settings(scene_path: str | Path, resolved: dict, user_set: list[str]) -> dict:
+    """The training settings the scene decides, as an override: every decision of ``scene.json`` whose
+    key the user did not set (``user_set``: dotted keys of the config's overrides); ``exterior`` and
+    ``capture`` only where ``resolved`` leaves them ``auto``."""
+    try:
+        decisions = json.loads(Path(scene_path).read_text())["decisions"]
+    except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+        raise DeltaError(f"{scene_path}: not a scene analysis ({e}); rerun the analyze_scene rule") from None
+    out: dict = {}
+    for key in DECIDED:
+        value = _get(decisions, key)
+        if value is None or key in user_set:
+            continue
+        if key in ("exterior", "capture") and resolved.get(key) != "auto":
+            continue
+        *parents, leaf = key.split(".")
+        node = out
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[leaf] = value
+    return out

@@ -1,0 +1,115 @@
+"""The scene analysis: reach beyond the body (analytic silhouettes), the decisions, and what training takes."""
+
+import json
+import shutil
+
+import h5py
+import numpy as np
+import pytest
+
+from delta.scene.analysis import analyze, room_and_samples, scene_settings
+from delta.scene.reach import beyond_body, region_reach
+
+
+def test_reach_is_the_distance_to_the_silhouette_charged_to_the_nearest_region():
+    body = np.zeros((40, 60), bool)
+    body[10:30, 10:30] = True
+    regions = np.zeros((40, 60), np.int64)
+    regions[:, 20:] = 2  # the body's right half is region 2
+    person = body.copy()
+    person[15:25, 30:40] = True  # a flap 10 pixels wide to the right of the body
+    mpp = np.full((40, 60), 0.01)
+    mpp[:, 25:] = 0.02  # farther from the camera on that side: 2 cm a pixel
+    b = beyond_body(body, regions, person, mpp)
+    assert len(b.metres) == 100 and set(b.region.tolist()) == {2}
+    # the column 30 + k is k + 1 pixels from the body's last column (29), at 2 cm a pixel
+    np.testing.assert_allclose(np.sort(np.unique(np.round(b.metres, 6))), 0.02 * np.arange(1, 11))
+    reach = region_reach([b], {2: "hands"}, percentile=100, min_share=0.0)
+    assert reach == {"hands": {"reach_m": 0.2, "pixels": 100}}
+    # no body in view: nothing beyond it
+    assert len(beyond_body(np.zeros_like(body), regions, person, mpp).metres) == 0
+
+
+def test_a_region_with_a_stray_pixel_does_not_count():
+    body = np.zeros((40, 40), bool)
+    body[10:30, 10:20] = True
+    regions = np.where(np.arange(40)[:, None] < 11, 1, 0) * np.ones((1, 40), np.int64)
+    person = body.copy()
+    person[12:28, 20:25] = True  # 80 pixels beside region 0
+    person[9, 12] = True  # one stray pixel above region 1
+    frames = [beyond_body(body, regions, person, np.full((40, 40), 0.01))]
+    assert set(region_reach(frames, {0: "body", 1: "face"}, 98, min_share=0.02)) == {"body"}
+
+
+def test_room_and_samples_follow_the_reach_from_the_presets_floor():
+    assert room_and_samples(0.0, 0.1, 16) == (0.1, 16)  # nothing beyond the body: the preset's own
+    assert room_and_samples(0.2, 0.1, 16) == (0.27, 44)  # 0.2 x 1.25 + 0.02 m at the preset's spacing
+    assert room_and_samples(5.0, 0.1, 16) == (0.6, 64)  # capped room, at most 4x the samples
+
+
+def test_decisions_apply_only_where_the_config_is_silent(tmp_path):
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps({"decisions": {"exterior": "no", "capture": "upper",
+                                              "render": {"max_dist": 0.3, "samples": 40}}}))  # fmt: skip
+    auto = {"exterior": "auto", "capture": "auto"}
+    assert scene_settings(path, auto, []) == {"exterior": "no", "capture": "upper",
+                                              "render": {"max_dist": 0.3, "samples": 40}}  # fmt: skip
+    assert scene_settings(path, auto, ["render.samples", "capture"]) == {"exterior": "no", "render": {"max_dist": 0.3}}
+    assert scene_settings(path, {"exterior": "yes", "capture": "full"}, []) == {
+        "render": {"max_dist": 0.3, "samples": 40}
+    }
+    path.write_text("{}")
+    with pytest.raises(Exception, match="not a scene analysis"):
+        scene_settings(path, auto, [])
+
+
+@pytest.mark.slow
+def test_a_dress_reaches_farther_than_trousers_and_a_wider_silhouette_reaches_farther(tiny_training, tmp_path):
+    t, d = tiny_training["tight"], tiny_training["loose"]
+    tight = analyze(t["record"], t["init"], t["body"], 0.1, 16, size=64, frames=6)
+    dress = analyze(d["record"], d["init"], d["body"], 0.1, 16, size=64, frames=6)
+    r_tight, r_dress = tight["evidence"]["reach"]["reach_m"], dress["evidence"]["reach"]["reach_m"]
+    assert r_dress > r_tight + 0.03, (r_tight, r_dress)
+    assert dress["decisions"]["render"]["max_dist"] >= tight["decisions"]["render"]["max_dist"]
+    assert tight["decisions"]["exterior"] == dress["decisions"]["exterior"] == "yes"
+    assert tight["decisions"]["capture"] == "full"
+    # the same capture with every person mask grown by 3 pixels (about 9 cm at this size) reaches farther
+    wide = tmp_path / "wide.h5"
+    shutil.copy(t["record"], wide)
+    import cv2
+
+    with h5py.File(wide, "r+") as h5:
+        kernel = np.ones((7, 7), np.uint8)
+        h5["person"][...] = np.stack([cv2.dilate(m, kernel) for m in h5["person"][:]])
+    grown = analyze(wide, t["init"], t["body"], 0.1, 16, size=64, frames=6)
+    assert grown["evidence"]["reach"]["reach_m"] > r_tight + 0.03
+    # and with no clothing or hair parsed there is nothing to model beyond the body
+    bare = tmp_path / "bare.h5"
+    shutil.copy(t["record"], bare)
+    with h5py.File(bare, "r+") as h5:
+        for m in ("clothing", "hair"):
+            if m in h5:
+                h5[m][...] = 0
+    none = analyze(bare, t["init"], t["body"], 0.1, 16, size=64, frames=6)
+    assert none["decisions"]["exterior"] == "no" and "0.0%" in none["evidence"]["exterior"]["why"]
+
+
+@pytest.mark.slow
+def test_training_takes_the_scene_and_says_so(tiny_training, tmp_path, caplog):
+    from delta.training.run import run_stage
+
+    t = tiny_training["tight"]
+    scene = tmp_path / "scene.json"
+    scene.write_text(
+        json.dumps({"decisions": {"exterior": "no", "capture": "full", "render": {"max_dist": 0.3, "samples": 12}}})
+    )
+    tiny = {"resolution": 32, "render": {"samples": 8},
+            "stage1": {"iterations": 2, "rays": 64, "checkpoint_every": 2, "preview_every": 0}}  # fmt: skip
+    with caplog.at_level("INFO"):
+        run_stage(1, t["record"], t["body"], t["init"], str(tmp_path / "s1"), "fast", [tiny], scene=str(scene),
+                  user_set=["render.samples"])  # fmt: skip
+    settings = json.loads((tmp_path / "s1" / "settings.json").read_text())
+    assert settings["nerf"] is False  # the scene found no exterior: no NeRF
+    assert settings["settings"]["render"]["max_dist"] == 0.3  # decided by the scene
+    assert settings["settings"]["render"]["samples"] == 8  # the config set it: the config wins
+    assert "from the scene analysis" in caplog.text
