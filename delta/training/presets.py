@@ -11,6 +11,8 @@ import copy
 import dataclasses
 import math
 
+import numpy as np
+
 from delta import DeltaError
 from delta.fields.networks import FieldSpec
 from delta.losses import LossWeights
@@ -109,10 +111,46 @@ class StageSettings:
     NeRF at the rate ``lr["nerf_warmup"]`` (default: ``lr["nerf"]``)."""
     nerf_warmup_crop: float = 0.5
     """Rays of those steps come from this central fraction of the person box's sides (NeRF's precrop)."""
+    plateau_window: int = 0
+    """Training length from convergence (0: off, every one of ``iterations``): every this many steps the
+    mean training-ray PSNR of the last window is set against the window's before; once it gains less
+    than ``plateau_gain`` dB the stage has converged at its learning rate, and anneals: the rates decay to
+    ``lr_final`` over ``anneal`` × ``iterations`` more steps, and it stops (never past ``iterations``)."""
+    plateau_gain: float = 0.05
+    """dB a window must gain over the one before for training to go on at full length."""
+    anneal: float = 0.1
+    """The steps after a plateau, as a fraction of ``iterations``."""
 
-    def lr_factor(self, step: int) -> float:
-        """The learning rates' multiplier at a step (a function of the step alone: resumes stay exact)."""
-        return self.lr_final ** (step / max(self.iterations - 1, 1))
+    def lr_factor(self, step: int, plateau: int | None = None) -> float:
+        """The learning rates' multiplier at a step (a function of the step and the plateau, which the
+        loss rows give again on a resume: resumes stay exact): exponential decay to ``lr_final`` at the
+        last step; after a plateau, from where it stood to ``lr_final`` at :meth:`end`."""
+        base = self.lr_final ** (step / max(self.iterations - 1, 1))
+        if plateau is None or step < plateau:
+            return base
+        f0, end = self.lr_final ** (plateau / max(self.iterations - 1, 1)), self.end(plateau)
+        return f0 * (self.lr_final / f0) ** ((step - plateau) / max(end - 1 - plateau, 1))
+
+    def end(self, plateau: int | None = None) -> int:
+        """The stage's step count: ``iterations``, or the plateau's step plus the annealing steps."""
+        if plateau is None:
+            return self.iterations
+        return min(self.iterations, plateau + math.ceil(self.anneal * self.iterations))
+
+
+def find_plateau(psnr, window: int, gain: float, first: int = 0) -> int | None:
+    """The first step count s (a multiple of ``window``, s ≥ first + 2·window) at which the mean of
+    ``psnr[s-window:s]`` beats the mean of the window before by less than ``gain``; None when there is
+    none (yet). ``psnr[i]`` is the training-ray PSNR of step i + 1; ``first`` steps are not counted
+    (stage 1's NeRF-only warmup)."""
+    if window <= 0:
+        return None
+    x = np.asarray(psnr, dtype=np.float64)
+    start = first + 2 * window
+    for s in range(start + (-start) % window, len(x) + 1, window):
+        if x[s - window : s].mean() - x[s - 2 * window : s - window].mean() < gain:
+            return s
+    return None
 
 
 @dataclasses.dataclass
@@ -193,7 +231,8 @@ RANGES = {
     "render.occupancy.warmup": (0, None, _INT),
     "stage*.iterations": (1, 10_000_000, _INT), "stage*.rays": (1, 1_000_000, _INT), "stage*.patch": (0, 512, _INT),
     "stage*.checkpoint_every": (1, None, _INT), "stage*.preview_every": (0, None, _INT), "stage*.log_every": (1, None, _INT),
-    "stage*.lr.*": (1e-12, 10, _NUM), "weights.*": (0, None, _NUM),
+    "stage*.lr.*": (1e-12, 10, _NUM), "weights.*": (0, None, _NUM), "stage*.plateau_window": (0, None, _INT),
+    "stage*.plateau_gain": (None, None, _NUM), "stage*.anneal": (1e-6, 1, _NUM),
     **{f"{f}.{k}": v for f in ("nerf", "offsets", "albedo", "deformation") for k, v in _FIELD_RANGES.items()},
 }  # fmt: skip
 

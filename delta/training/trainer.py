@@ -29,7 +29,7 @@ from delta.io import atomic_path, load_state
 from delta.models.avatar import HybridAvatar
 from delta.models.image import render_image
 from delta.progress import Progress
-from delta.training.presets import StageSettings, TrainSettings, stage_view
+from delta.training.presets import StageSettings, TrainSettings, find_plateau, stage_view
 
 log = logging.getLogger(__name__)
 CHECKPOINT = "checkpoint.pt"
@@ -197,7 +197,6 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
     base_lr = [g["lr"] for g in optimizer.param_groups]  # before a resume loads the decayed ones
     start, rows = 0, []
     ckpt = out_dir / CHECKPOINT
-    end = cfg.iterations if max_steps is None else min(cfg.iterations, max_steps)
     key = fingerprint(stage, st, data, origin)
     state = load_checkpoint(out_dir, key, stage, device)
     if state is not None:
@@ -205,7 +204,10 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
         optimizer.load_state_dict(state["optimizer"])
         generator.set_state(state["generator"].cpu())  # map_location moved it
         start, rows = state["step"], state["rows"]
-        if start >= cfg.iterations:
+    warmup_end = cfg.nerf_warmup if stage == 1 and model.nerf is not None else 0  # steps before it: NeRF alone
+    plateau = find_plateau([r["psnr"] for r in rows[:start]], cfg.plateau_window, cfg.plateau_gain, warmup_end)
+    if state is not None:
+        if start >= cfg.end(plateau):
             log.info("stage %d: %s holds this run's last step (%d): the stage is finished; writing it out "
                      "without training (delete %s to train from scratch)", stage, ckpt, start, out_dir)  # fmt: skip
         else:
@@ -213,19 +215,21 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
     else:
         _start_occupancy(model, st, stage)
     skin_color = data.skin_color.to(device)
-    warmup_end = cfg.nerf_warmup if stage == 1 and model.nerf is not None else 0  # steps before it: NeRF alone
     if start < warmup_end:
         log.info("stage 1: steps %d-%d train the NeRF alone on the whole person (rays through the mesh, from the "
                  "central %.0f%% of the person box)", start + 1, warmup_end, 100 * cfg.nerf_warmup_crop)  # fmt: skip
     t0, seen = time.time(), 0
     before = rows[-1].get("seconds", 0.0) if rows else 0.0  # wall time of the runs this one resumes
-    progress = Progress(f"stage {stage}", cfg.iterations, start)
-    for step in range(start, end):
+    progress = Progress(f"stage {stage}", cfg.end(plateau), start)
+    limit = cfg.iterations if max_steps is None else max_steps
+    step = start
+    while step < min(cfg.end(plateau), limit):
+        end = min(cfg.end(plateau), limit)
         warm = step < warmup_end
         for g, lr in zip(optimizer.param_groups, base_lr):
             if warm and g.get("name") == "nerf":
                 lr = cfg.lr.get("nerf_warmup") or lr
-            g["lr"] = lr * cfg.lr_factor(step)
+            g["lr"] = lr * cfg.lr_factor(step, plateau)
         frame = int(data.train[torch.randint(len(data.train), (1,), generator=generator)])
         crop = cfg.nerf_warmup_crop if warm else 1.0
         batch = _to(sample_rays(data, frame, cfg.rays, generator, cfg.patch if semantic else 0, crop=crop), device)
@@ -257,14 +261,23 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
             )
         if (step + 1) % cfg.checkpoint_every == 0 or step + 1 == end:
             save_checkpoint(ckpt, model, optimizer, step + 1, generator, rows, key)
-        if cfg.preview_every and ((step + 1) % cfg.preview_every == 0 or step + 1 == cfg.iterations):
+        if cfg.preview_every and ((step + 1) % cfg.preview_every == 0 or step + 1 == cfg.end(plateau)):
             write_preview(model, data, int(data.train[0]), out_dir / "previews" / f"step_{step + 1:06d}.png")
+        step += 1
+        if plateau is None and cfg.plateau_window and step % cfg.plateau_window == 0:
+            plateau = find_plateau([r["psnr"] for r in rows], cfg.plateau_window, cfg.plateau_gain, warmup_end)
+            if plateau is not None:
+                progress.total = cfg.end(plateau)
+                log.info("stage %d: the training-ray PSNR gained less than %g dB over the last %d steps: converged "
+                         "at step %d; annealing the learning rates to %g x over %d steps (stops at step %d of %d)",
+                         stage, cfg.plateau_gain, cfg.plateau_window, plateau, cfg.lr_final, cfg.end(plateau) - plateau,
+                         cfg.end(plateau), cfg.iterations)  # fmt: skip
     if model.nerf is not None:
         model.nerf.set_noise(0.0)  # the trained model renders without noise
     losses = pd.DataFrame(rows)
     with atomic_path(out_dir / "losses.csv") as tmp:
         losses.to_csv(tmp, index=False)
-    return StageResult(end, time.time() - t0, losses)
+    return StageResult(step, time.time() - t0, losses)
 
 
 def _step_seed(st: TrainSettings, stage: int, step: int) -> int:

@@ -86,6 +86,27 @@ def test_interrupted_stage_resumes_to_the_same_parameters(tiny_training, tmp_pat
         torch.set_num_threads(threads)
 
 
+def test_a_converged_stage_anneals_stops_early_and_resumes_exactly(tiny_training, tmp_path):
+    """plateau_gain 1000 dB: converged at the first check (step 4 with windows of 2); the learning rates
+    then decay to lr_final over 10% of 40 steps: the stage stops at step 8, and a run killed at step 6
+    resumes to the same parameters (the plateau is found again from the checkpoint's loss rows)."""
+    over = {"stage1": {"iterations": 40, "plateau_window": 2, "plateau_gain": 1000.0, "anneal": 0.1}}
+    st = resolve("fast", TINY, over)
+    inputs = tiny_training["tight"]
+    model_a, data = _model(inputs, st)
+    res_a = train_stage(1, model_a, data, st, tmp_path / "a")
+    assert res_a.steps == 8 and list(res_a.losses["step"]) == list(range(1, 9))
+    groups = load_state(tmp_path / "a" / CHECKPOINT)["optimizer"]["param_groups"]
+    assert groups[0]["lr"] == pytest.approx(st.stage1.lr["fields"] * 0.1)  # annealed to lr_final at step 8
+    model_b, _ = _model(inputs, st)
+    train_stage(1, model_b, data, st, tmp_path / "b", max_steps=6)
+    model_c, _ = _model(inputs, st)
+    res_c = train_stage(1, model_c, data, st, tmp_path / "b")
+    assert res_c.steps == 8
+    for k, v in model_a.state_dict().items():
+        assert torch.equal(v, model_c.state_dict()[k]), f"{k} differs after resuming"
+
+
 def _resume_equivalence(tiny_training, tmp_path, over):
     st = resolve("fast", TINY, over)
     inputs = tiny_training["loose"]
