@@ -41,8 +41,15 @@ def exclusive(name: str):
 
 
 def pytest_collection_modifyitems(config, items):
-    """The end-to-end workflow run first: started last, it would run alone at the end."""
-    items.sort(key=lambda item: item.name != "test_tiny_configuration_end_to_end")
+    """The end-to-end workflow run first (started last, it would run alone at the end), then a test that
+    converts the MediaPipe models: the other worker converts them while the first builds Anny."""
+
+    def order(item) -> int:
+        if item.name == "test_tiny_configuration_end_to_end":
+            return 0
+        return 1 if "mediapipe_pose_model" in getattr(item, "fixturenames", ()) else 2
+
+    items.sort(key=order)
 
 
 def tree_model(dtype=torch.float64, num_shape: int = 2, seed: int = 0) -> BodyModel:
