@@ -228,7 +228,7 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
     st = settings.from_arguments(EvalSettings, args, "evaluation", perceptual_dir=args.perceptual)
     t0 = time.perf_counter()
     trained = load_trained(args.model, args.record, args.body, args.device)
-    df = evaluate(trained, args.record, st, args.gt_meshes, args.subject)
+    df = evaluate(trained, args.record, st, args.gt_meshes, args.subject, worst_dir=Path(args.out).parent / "worst")
     summary = {"subject": args.subject, "model": args.model, "stage": trained.stage, "preset": trained.preset,
                "settings": {"splits": list(st.splits), "max_frames": st.max_frames, "refine_steps": st.refine_steps,
                             "supersample": st.supersample},

@@ -70,6 +70,7 @@ PATHS = {
     "loss_plot": "results/{dataset}/{subject}/stage{stage}/losses.png",
     "eval_metrics": "results/{dataset}/{subject}/eval/metrics.csv",
     "eval_summary": "results/{dataset}/{subject}/eval/summary.json",
+    "eval_worst": "results/{dataset}/{subject}/eval/worst",
     "export_dir": "results/{dataset}/{subject}/export",
     "export_json": "results/{dataset}/{subject}/export/export.json",
     "export_glb": "results/{dataset}/{subject}/export/avatar.glb",

@@ -76,6 +76,14 @@ rule evaluate:
     output:
         metrics=PATHS["eval_metrics"],
         summary=PATHS["eval_summary"],
+        worst=report(
+            directory(PATHS["eval_worst"]),
+            patterns=["{name}.png"],
+            caption="../workflow/report/worst.rst",
+            category="Renders",
+            subcategory="{dataset} {subject}: lowest PSNR",
+            labels={"subject": "{subject}", "frame": "{name}"},
+        ),
     log:
         log_path("evaluate", "{dataset}_{subject}"),
     benchmark:

@@ -17,6 +17,7 @@ import logging
 from pathlib import Path
 from typing import Optional
 
+import cv2
 import h5py
 import numpy as np
 import pandas as pd
@@ -29,6 +30,7 @@ from delta.body.model import REGION
 from delta.data.frames import load_full_frames
 from delta.eval.geometry import mesh_distance, vertex_error
 from delta.eval.heldout import refine_frame
+from delta.export.video import side_by_side
 from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import atomic_path
 from delta.models.image import View, full_view, live_rays, pixel_grid, reach_box, render_image
@@ -70,6 +72,9 @@ class EvalSettings:
     """Rays a pixel along each axis, averaged: the frames are area-downsampled photographs whose
     edge pixels mix person and background; one centre ray a pixel cannot (tight subject, four
     test views: 1 → 2 → 4 raised PSNR 25.4 → 26.8 → 27.1 dB)."""
+    worst: int = _f(default=3, metadata={"minimum": 0, "maximum": 50})
+    """Per split, side-by-sides (reference | render | error, whole frames) of this many frames with the
+    lowest PSNR (after refinement when it is on), written to eval/worst/ and shown in the report."""
     lpips_alex: Optional[tuple[str, str]] = None
     """Standard LPIPS-Alex: [torchvision's alexnet-owt-7be5be79.pth, the lpips package's weights/v0.1/alex.pth]
     (the user's files); not given: ST-LPIPS only."""
@@ -141,8 +146,9 @@ def gt_body_vertices(meshes_h5: str | Path, frame_ids) -> dict[int, np.ndarray]:
 
 
 def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: str | Path | None = None,
-             subject: str = "") -> pd.DataFrame:  # fmt: skip
-    """One row per scored (frame, refined)."""
+             subject: str = "", worst_dir: str | Path | None = None) -> pd.DataFrame:  # fmt: skip
+    """One row per scored (frame, refined); with ``worst_dir``, the ``st.worst`` lowest-PSNR frames of each
+    split as side-by-side PNGs there (``{split}_frame_{id}.png``)."""
     model, data = trained.model, trained.data
     frames = pick_frames(data.split, st.splits, st.max_frames)
     if not frames:
@@ -156,6 +162,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
     bg = "white" if tuple(trained.settings.background) == (1.0, 1.0, 1.0) else str(tuple(trained.settings.background))
     keep = model.modelled.cpu().numpy()
     rows = []
+    worst = WorstFrames(st.worst)
     progress = Progress(f"evaluate ({view.width}x{view.height})", len(frames))
     for k, (f, split) in enumerate(frames):
         for refined in passes:
@@ -177,6 +184,8 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
                 M.iou(img["nerf_mask"] > 0.5, full.exterior[k] > 0.5) if model.nerf is not None else np.nan
             )
             row["mesh_iou"] = M.iou(img["silhouette"] > 0.5, full.person[k] > 0.5)
+            if refined == passes[-1]:
+                worst.offer(split, row["psnr"], int(data.frame_ids[f]), img["rgb"], full.images[k])
             if gt:
                 ref = gt[int(data.frame_ids[f])]
                 v = mesh.vertices.cpu().numpy()
@@ -184,7 +193,38 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
             rows.append(row)
         scores = " ".join(f"{k} {v:.3f}" for k, v in rows[-1].items() if k in ("psnr", "ssim", "stlpips_alex"))
         progress.report(k + 1, f"frame {f} ({split}) {scores}")
+    if worst_dir is not None:
+        worst.write(worst_dir)
     return pd.DataFrame(rows)
+
+
+class WorstFrames:
+    """The ``count`` lowest-PSNR renders of each split, kept while the frames are scored."""
+
+    def __init__(self, count: int):
+        self.count, self.kept = count, {}
+
+    def offer(self, split: str, psnr: float, frame_id: int, render: torch.Tensor, reference: torch.Tensor) -> None:
+        if self.count <= 0:
+            return
+        kept = self.kept.setdefault(split, [])
+        kept.append((psnr, frame_id, render.clamp(0, 1), reference))
+        kept.sort(key=lambda item: item[0])
+        del kept[self.count :]
+
+    def write(self, out_dir: str | Path) -> list[Path]:
+        """The kept frames as side-by-side PNGs (the folder is made even when there are none)."""
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        written = []
+        for split, kept in sorted(self.kept.items()):
+            for psnr, frame_id, render, reference in kept:
+                path = out / f"{split}_frame_{frame_id:05d}.png"
+                with atomic_path(path) as tmp:
+                    cv2.imwrite(str(tmp), side_by_side(reference, render))
+                written.append(path)
+            log.info("lowest PSNR (%s): %s", split, ", ".join(f"frame {i} {p:.2f} dB" for p, i, _, _ in kept))
+        return written
 
 
 def write_csv(df: pd.DataFrame, path: str | Path) -> None:

@@ -8,14 +8,23 @@ from __future__ import annotations
 
 import numpy as np
 
-#: key poses of the novel-pose segment: joint name -> axis-angle (left = +x side)
+#: key poses of the novel-pose segment: joint name -> axis-angle (left = +x side; +x about the x axis bends
+#: forward, +y about the y axis turns to the subject's left). Besides everyday poses, the large motions
+#: an animated avatar meets: arms overhead, arms crossed over the chest, a deep forward bend, a head turn.
 _KEY_POSES = [
     {"upperarm01.L": (0, 0, 0.9), "upperarm01.R": (0, 0, -0.9)},  # arms raised sideways
     {"upperleg01.L": (-0.5, 0, 0), "lowerleg01.L": (0.8, 0, 0), "upperarm01.R": (-0.6, 0, 0)},  # stepping
     {"lowerarm01.L": (0, -1.2, 0), "lowerarm01.R": (0, 1.2, 0), "spine02": (0, 0.35, 0)},  # bent elbows, twist
+    {"upperarm01.L": (0, 0, 2.3), "upperarm01.R": (0, 0, -2.3), "lowerarm01.L": (0, 0, 0.3),
+     "lowerarm01.R": (0, 0, -0.3)},  # arms overhead
+    {"upperarm01.L": (0, -0.9, -0.2), "lowerarm01.L": (0, -1.9, 0), "upperarm01.R": (0, 0.9, 0.2),
+     "lowerarm01.R": (0, 1.9, 0)},  # arms crossed over the chest
+    {"spine05": (0.35, 0, 0), "spine04": (0.35, 0, 0), "spine03": (0.3, 0, 0), "spine02": (0.25, 0, 0),
+     "neck01": (-0.3, 0, 0), "upperarm01.L": (0.6, 0, 0), "upperarm01.R": (0.6, 0, 0)},  # a deep forward bend
+    {"neck01": (0, 0.35, 0), "neck02": (0, 0.3, 0), "head": (0.1, 0.3, 0)},  # the head turned to the left
     {"upperleg01.R": (-0.6, 0, 0.15), "lowerleg01.R": (1.0, 0, 0), "upperarm01.L": (0.5, 0, 0.3)},
-    {"upperarm01.L": (0, 0, 1.3), "lowerarm01.L": (0, -0.6, 0), "neck01": (0.2, 0.3, 0)},
-]
+    {"upperarm01.L": (0, 0, 1.3), "lowerarm01.L": (0, -0.6, 0), "neck01": (0.2, -0.5, 0)},  # and to the right
+]  # fmt: skip
 
 
 def _set(pose: np.ndarray, names: list[str], joint: str, value) -> None:

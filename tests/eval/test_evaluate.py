@@ -30,10 +30,11 @@ def test_frames_per_split_are_evenly_spaced():
         pick_frames(split, ("val",), 0)
 
 
-def test_rows_scores_and_convention(trained):
+def test_rows_scores_and_convention(trained, tmp_path):
     tr, t = trained
-    st = EvalSettings(splits=("test_view", "test_pose"), refine_steps=2, refine_rays=64)
-    df = evaluate(tr, t["record"], st, gt_meshes=f"{t['capture']}/gt/meshes.h5", subject="tight")
+    st = EvalSettings(splits=("test_view", "test_pose"), refine_steps=2, refine_rays=64, worst=1)
+    df = evaluate(tr, t["record"], st, gt_meshes=f"{t['capture']}/gt/meshes.h5", subject="tight",
+                  worst_dir=tmp_path / "worst")  # fmt: skip
     frames = pick_frames(tr.data.split, st.splits, 0)
     assert len(df) == 2 * len(frames)  # before and after refinement
     assert list(df["refined"]) == [False, True] * len(frames)
@@ -46,6 +47,12 @@ def test_rows_scores_and_convention(trained):
     assert train_body_error_mm(tr, f"{t['capture']}/gt/meshes.h5") < 30
     # the mesh silhouette lines up with the person (at 32², arms and hair edges cost much of the IoU)
     assert (df["mesh_iou"] > 0.4).all()
+    # the lowest-PSNR frame of each split after refinement, as a side-by-side of whole frames
+    for split, rows in df[df["refined"]].groupby("split"):
+        worst = rows.loc[rows["psnr"].idxmin(), "frame_id"]
+        image = cv2.imread(str(tmp_path / "worst" / f"{split}_frame_{worst:05d}.png"))
+        assert image is not None and image.shape == (128, 3 * 128, 3)
+    assert len(list((tmp_path / "worst").iterdir())) == df["split"].nunique()
     s = summarize(df)
     assert set(s) == {split for _, split in frames}
     assert s["test_view"]["refined"]["frames"] == sum(1 for _, sp in frames if sp == "test_view")
