@@ -1,0 +1,159 @@
+"""Generalisation: a family of synthetic subjects the config does not hold, each run with the default
+config and no settings of its own, scored on held-out views and held-out poses at the capture's size.
+
+The script draws the family (``--count`` subjects, 8 by default, from ``--seed``): each crosses a top
+(T-shirt, long sleeves, a dress), a bottom (trousers, shorts, a skirt; none under a dress), a pattern,
+hair (none, short, long), a phenotype and a camera model (pinhole with lens distortion, or
+orthographic), with a generator seed of its own, cycling through the garment and camera choices so
+that every one appears. It copies the workflow into a fresh folder (``--work``), replaces the
+synthetic dataset's subjects with the family and drops every per-subject training setting (what a
+user's new subject gets), and runs ``snakemake --cores N results/synthetic/metrics.csv`` there.
+
+One CSV row per subject (its description, held-out-view and held-out-pose PSNR / SSIM / ST-LPIPS before
+and after test-time refinement, the scoring resolution, body error, clothing Chamfer, training seconds,
+and the scene analysis's decisions), then a ``summary`` row: the mean, the spread (best - worst) and the
+worst subject of each PSNR column, and how many subjects lie within 2 dB of the best. Run from the
+repository root::
+
+    PYTHONPATH=$PWD python3 benchmarks/generalization.py --reuse-builds                # ~20 min a subject on 2 cores
+    PYTHONPATH=$PWD python3 benchmarks/generalization.py --reuse-builds --tiny --count 2 \\
+        --csv /tmp/generalization_tiny.csv                                               # the script's own check
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import itertools
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+TOPS = ("tshirt", "longsleeve", "dress")
+BOTTOMS = ("trousers", "shorts", "skirt")
+PATTERNS = ("stripes", "checker", "dots", "plaid", "plain")
+HAIR = ("none", "short", "long")
+CAMERAS = ("pinhole", "orthographic")
+SCORES = ("test_view_psnr", "test_view_psnr_refined", "test_pose_psnr", "test_pose_psnr_refined",
+          "test_view_ssim", "test_view_stlpips_alex", "test_pose_ssim", "test_pose_stlpips_alex",
+          "train_body_err_mm", "clothing_chamfer_mm", "stage1_s", "stage2_s", "resolution")  # fmt: skip
+#: the tiny configuration's sizes (the script's own check, not a measurement)
+TINY = {"resolution": 64, "turn_frames": 8, "novel_frames": 2, "test_view_every": 4}
+TINY_TRAINING = {"resolution": 32, "render": {"samples": 8},
+                 "stage1": {"iterations": 6, "rays": 128, "checkpoint_every": 3, "preview_every": 0},
+                 "stage2": {"iterations": 4, "rays": 128, "patch": 16, "checkpoint_every": 2, "preview_every": 0}}  # fmt: skip
+
+
+def family(count: int, seed: int) -> dict[str, dict]:
+    """``count`` subject specs, named ``gen{k}``: every top, bottom and camera appears (they cycle), the
+    rest is drawn."""
+    rng = np.random.default_rng(seed)
+    outfits = [(t, None if t == "dress" else b) for t, b in itertools.product(TOPS, BOTTOMS)]
+    outfits = list(dict.fromkeys(outfits))  # a dress has no bottom: one entry
+    rng.shuffle(outfits)
+    out = {}
+    for k in range(count):
+        top, bottom = outfits[k % len(outfits)]
+        garments = [{"kind": top, "pattern": str(rng.choice(PATTERNS))}]
+        if bottom:
+            garments.append({"kind": bottom, "pattern": str(rng.choice(PATTERNS))})
+        camera = CAMERAS[k % len(CAMERAS)]
+        spec = {"seed": int(rng.integers(100, 10_000)), "garments": garments, "hair": str(rng.choice(HAIR)),
+                "camera": camera,
+                "phenotype": {"gender": round(float(rng.uniform(0, 1)), 2), "age": round(float(rng.uniform(0.2, 0.6)), 2),
+                              "weight": round(float(rng.uniform(0.3, 0.7)), 2), "height": round(float(rng.uniform(0.3, 0.7)), 2)}}  # fmt: skip
+        if camera == "pinhole":
+            spec["distortion"] = [round(float(rng.uniform(-0.06, 0.0)), 3), 0.01, 0.0, 0.0, 0.0]
+        out[f"gen{k}"] = spec
+    return out
+
+
+def describe(spec: dict) -> str:
+    clothes = " + ".join(f"{g['kind']} ({g['pattern']})" for g in spec["garments"])
+    return f"{clothes}, hair {spec['hair']}, {spec['camera']}"
+
+
+def prepare_workflow(work: Path, subjects: dict[str, dict], tiny: bool, reuse: bool) -> list[str]:
+    for name in ("Snakefile", "rules", "workflow", "config"):
+        src = REPO / name
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, work / name)
+    main = yaml.safe_load((work / "config/config.yaml").read_text())
+    main["datasets"] = {"synthetic": {"subjects": {n: (s | TINY if tiny else s) for n, s in subjects.items()}}}
+    main.setdefault("training", {})["subjects"] = {}  # a new subject has no settings of its own
+    main.setdefault("fitting", {}).pop("subjects", None)
+    if tiny:
+        main["training"]["overrides"] = TINY_TRAINING
+        main["preprocess"]["resolution"] = 64
+        main["body_model"]["anny"].update({"num_shape": 8, "num_samples": 64})
+        main["fitting"]["settings"] = {"iterations": [20, 30, 20]}
+    if reuse:
+        main["body_model"]["anny"]["cache_dir"] = str(REPO / "resources" / "anny_cache")
+        main["preprocess"]["models_dir"] = str(REPO / "resources" / "models")
+    (work / "config/config.yaml").write_text(yaml.safe_dump(main, sort_keys=False))
+    return []
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--count", type=int, default=8)
+    ap.add_argument("--seed", type=int, default=2026)
+    ap.add_argument("--cores", type=int, default=2)
+    ap.add_argument("--tiny", action="store_true", help="tiny sizes: checks the script, measures nothing")
+    ap.add_argument("--reuse-builds", action="store_true", help="reuse this clone's Anny cache and MediaPipe models")
+    ap.add_argument("--work", type=Path, help="folder to run in (default: a temporary one, removed afterwards)")
+    ap.add_argument("--csv", type=Path, default=REPO / "benchmarks" / "generalization.csv")
+    a = ap.parse_args()
+    subjects = family(a.count, a.seed)
+    work = a.work or Path(tempfile.mkdtemp(prefix="delta-generalization-"))
+    work.mkdir(parents=True, exist_ok=True)
+    prepare_workflow(work, subjects, a.tiny, a.reuse_builds)
+    cmd = [sys.executable, "-m", "snakemake", "--cores", str(a.cores), "results/synthetic/metrics.csv"]
+    print(f"{len(subjects)} subjects:", json.dumps({n: describe(s) for n, s in subjects.items()}, indent=1), flush=True)
+    t0 = time.perf_counter()
+    with open(work / "snakemake.log", "w") as log:
+        res = subprocess.run(cmd, cwd=work, stdout=log, stderr=subprocess.STDOUT,
+                             env={**os.environ, "PYTHONPATH": str(REPO)})  # fmt: skip
+    if res.returncode != 0:
+        sys.exit(f"the workflow failed (exit {res.returncode}); see {work / 'snakemake.log'}")
+    table = pd.read_csv(work / "results/synthetic/metrics.csv").set_index("subject")
+    rows = []
+    for name, spec in subjects.items():
+        row = {"subject": name, "description": describe(spec), "seed": spec["seed"], "camera": spec["camera"],
+               "hair": spec["hair"], "tiny": a.tiny}  # fmt: skip
+        row |= {k: table.loc[name, k] for k in SCORES if k in table.columns}
+        scene = json.loads((work / "results/synthetic" / name / "scene.json").read_text())["decisions"]
+        row |= {"scene_max_dist": scene["render"]["max_dist"], "scene_samples": scene["render"]["samples"],
+                "scene_exterior": scene["exterior"], "scene_capture": scene["capture"]}  # fmt: skip
+        rows.append(row)
+    df = pd.DataFrame(rows)
+    summary: dict = {"subject": "summary", "description": f"{len(df)} subjects, seed {a.seed}",
+                     "tiny": a.tiny, "wall_s": round(time.perf_counter() - t0, 1)}  # fmt: skip
+    for col in ("test_view_psnr", "test_view_psnr_refined", "test_pose_psnr", "test_pose_psnr_refined"):
+        if col in df:
+            summary[f"{col}_mean"] = round(float(df[col].mean()), 2)
+            summary[f"{col}_spread"] = round(float(df[col].max() - df[col].min()), 2)
+            summary[f"{col}_worst"] = f"{df.loc[df[col].idxmin(), 'subject']} {df[col].min():.2f}"
+            summary[f"{col}_within_2db_of_best"] = int((df[col] >= df[col].max() - 2).sum())
+    rows.append(summary)
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+    with open(a.csv, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields)
+        w.writeheader()
+        w.writerows(rows)
+    print(json.dumps(summary, indent=1, default=str))
+    if a.work is None:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
