@@ -170,7 +170,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
                 refine_frame(model, data, f, st.refine_steps, rays=st.refine_rays, lr=st.refine_lr, seed=f)
             with torch.no_grad():
                 mesh, offsets, out = model.posed_mesh(f)
-            img = render_image(model, f, supersample=st.supersample, view=view)
+            img = render_image(model, f, supersample=st.supersample, view=view, soft_silhouette=False)
             body = full.interior[k] > 0.5
             masks = {"body": body, "face": face_pixels(model, f, mesh.vertices, view) & body}
             masks |= {name: m[k] for name, m in full.parts.items()}

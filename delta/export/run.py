@@ -38,10 +38,14 @@ def report_frames(split: np.ndarray, count: int) -> list[int]:
     return sorted({int(pool[i]) for i in np.linspace(0, len(pool) - 1, min(count, len(pool))).round().astype(int)})
 
 
-def novel_pose_frames(split: np.ndarray) -> list[int]:
-    """The test-pose frames (split 2), or every frame when the capture has none."""
+def novel_pose_frames(split: np.ndarray, at_most: int = 0) -> list[int]:
+    """The test-pose frames (split 2), or every frame when the capture has none; ``at_most`` > 0 keeps
+    that many, evenly spaced."""
     pose = np.flatnonzero(split == 2)
-    return [int(i) for i in (pose if len(pose) else np.arange(len(split)))]
+    frames = pose if len(pose) else np.arange(len(split))
+    if at_most and len(frames) > at_most:
+        frames = frames[np.linspace(0, len(frames) - 1, at_most).round().astype(int)]
+    return [int(i) for i in frames]
 
 
 def silhouette(model: HybridAvatar, frame: int, parts: list[MeshPart]) -> np.ndarray:
@@ -152,13 +156,14 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
     t = time.perf_counter()
     rows = []
     (out / "sidebyside").mkdir(exist_ok=True)
-    novel = novel_pose_frames(data.split)
+    novel = novel_pose_frames(data.split, settings.novel_frames)
     size = f"{view.width}x{view.height}" if view else f"{model.resolution}x{model.resolution}"
     progress = Progress(f"export renders ({size})", len(frames) + settings.turntable_frames + len(novel))
     for k, f in enumerate(frames):
         img = render_image(model, f)  # the line-up check compares with the model's own crop
         if k < settings.sidebyside:  # (the line-up check uses at least one frame)
-            shown, reference = (render_image(model, f, view=view), full.images[k]) if full else (img, data.images[f])
+            shown = render_image(model, f, view=view, soft_silhouette=False) if full else img
+            reference = full.images[k] if full else data.images[f]
             with atomic_path(out / "sidebyside" / f"frame_{int(data.frame_ids[f]):05d}.png") as tmp:
                 cv2.imwrite(str(tmp), side_by_side(reference, shown["rgb"]))
         rows.append({**check_frame(model, f, clothing, img), "psnr": round(psnr(img["rgb"].clamp(0, 1), data.images[f]), 2),

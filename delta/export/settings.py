@@ -30,6 +30,9 @@ class ExportSettings:
     """Frames of the turntable video (one full turn)."""
     fps: int = _f(default=12, metadata={"minimum": 1, "maximum": 120})
     """Frame rate of the videos."""
+    novel_frames: int = _f(default=48, metadata={"minimum": 1, "maximum": 10000})
+    """At most this many frames of novel_pose.mp4 (the test-pose frames, or the capture's frames when it
+    has none), evenly spaced."""
     sidebyside: int = _f(default=4, metadata={"minimum": 0, "maximum": 50})
     """Test frames written as reference | render | error images."""
     chunk: int = _f(default=65536, metadata={"minimum": 1})

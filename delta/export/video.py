@@ -126,12 +126,12 @@ def _turntable(model: HybridAvatar, frame: int, count: int, view: View | None) -
     for k in range(count):
         new_pose, new_t = turned_params(pose, transl, root_joint, centre, 2 * math.pi * k / count)
         with frame_params(model, frame, new_pose, new_t):
-            yield to_bgr(render_image(model, frame, view=view)["rgb"])
+            yield to_bgr(render_image(model, frame, view=view, soft_silhouette=False)["rgb"])
 
 
 def render_frames(model: HybridAvatar, frames: Iterable[int], view: View | None = None) -> Iterator[np.ndarray]:
     for f in frames:
-        yield to_bgr(render_image(model, int(f), view=view)["rgb"])
+        yield to_bgr(render_image(model, int(f), view=view, soft_silhouette=False)["rgb"])
 
 
 def error_map(reference: torch.Tensor, render: torch.Tensor) -> np.ndarray:

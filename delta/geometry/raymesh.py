@@ -14,6 +14,7 @@ inputs.
 from __future__ import annotations
 
 import dataclasses
+import weakref
 
 import numpy as np
 import torch
@@ -145,17 +146,39 @@ def _search_torch(vertices, faces, origins, dirs) -> torch.Tensor:
     return torch.cat([_search_chunk(o[s : s + step], d[s : s + step], ft, tol, tri) for s in range(0, R, step)])
 
 
+class _SceneCache:
+    """The Embree scene of the last mesh cast against, reused while the same vertex and face tensors
+    (the same objects, unmodified: their ``_version`` unchanged) come back: a whole-image render casts
+    its rays in chunks against one posed mesh. Weak references: a freed tensor never matches a new one
+    that reuses its memory."""
+
+    def __init__(self):
+        self.key, self.intersector = None, None
+
+    def get(self, vertices: torch.Tensor, faces: torch.Tensor):
+        import trimesh
+        from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+        if self.key is not None:
+            v_ref, v_ver, f_ref, f_ver = self.key
+            if v_ref() is vertices and f_ref() is faces and v_ver == vertices._version and f_ver == faces._version:
+                return self.intersector
+        mesh = trimesh.Trimesh(vertices.detach().cpu().double().numpy(), faces.detach().cpu().numpy(), process=False)
+        self.intersector = RayMeshIntersector(mesh)
+        self.key = (weakref.ref(vertices), vertices._version, weakref.ref(faces), faces._version)
+        return self.intersector
+
+
+_SCENES = _SceneCache()
+
+
 def _search_embree(vertices, faces, origins, dirs) -> torch.Tensor:
     """(R,) first-hit face from Embree (float32 internally; -1: none)."""
-    import trimesh
-    from trimesh.ray.ray_pyembree import RayMeshIntersector
-
     R = origins.shape[0]
     face = np.full(R, -1, dtype=np.int64)
     if R and faces.shape[0]:
-        mesh = trimesh.Trimesh(vertices.detach().cpu().double().numpy(), faces.detach().cpu().numpy(), process=False)
         # No locations: they are recomputed in torch, and trimesh's location step drops near-parallel rays.
-        tri, ray = RayMeshIntersector(mesh).intersects_id(
+        tri, ray = _SCENES.get(vertices, faces).intersects_id(
             origins.detach().cpu().double().numpy(),
             dirs.detach().cpu().double().numpy(),
             multiple_hits=False,

@@ -206,9 +206,11 @@ class HybridAvatar(nn.Module):
         return time_features(self.frame_time[frame], self.spec.time_freqs)
 
     def render(self, frame: int, pixels: torch.Tensor, generator: torch.Generator | None = None,
-               mesh: Optional[PosedMesh] = None, timeless: bool = False, through_mesh: bool = False) -> RayRender:  # fmt: skip
+               mesh: Optional[PosedMesh] = None, timeless: bool = False, through_mesh: bool = False,
+               soft: bool = True) -> RayRender:  # fmt: skip
         """Render pixel centres (R, 2) of a frame (``timeless``: F_e without the frame's time;
-        ``through_mesh``: the NeRF alone, rays not stopping at the mesh)."""
+        ``through_mesh``: the NeRF alone, rays not stopping at the mesh; ``soft`` False: the hits as
+        the silhouette)."""
         if mesh is None:
             mesh = self.posed_mesh(frame)[0]
         origins, dirs = self.camera(frame).rays(pixels)
@@ -219,7 +221,7 @@ class HybridAvatar(nn.Module):
         if code is not None:
             nonrigid = functools.partial(self.deformation, time=code)
         return render_rays(mesh, origins, dirs, pixels, self.background, self.spec.render, self.nerf,
-                           nonrigid, generator, occupied, through_mesh)  # fmt: skip
+                           nonrigid, generator, occupied, through_mesh, soft)  # fmt: skip
 
     def update_occupancy(self, seed: int) -> None:
         """Re-evaluate the occupancy grid's densities (a training step calls this every few steps)."""

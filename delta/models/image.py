@@ -72,7 +72,8 @@ def reach_box(model: HybridAvatar, frame: int, vertices: torch.Tensor) -> torch.
     """(4,) (u_min, u_max, v_min, v_max) in the model's pixels bounding everything a ray of the frame
     can meet: the posed mesh's box, grown by the exterior's margin when there is a NeRF. None when
     a corner lies behind a pinhole camera (no bound then)."""
-    margin = model.spec.render.box_margin if model.nerf is not None else 0.0
+    rs = model.spec.render  # the exterior's samples lie within max_dist (+ the probes' cell) of the body
+    margin = min(rs.box_margin, rs.max_dist + 2 * rs.probe_cell) if model.nerf is not None else 0.0
     lo, hi = vertices.amin(0) - margin, vertices.amax(0) + margin
     corners = torch.stack([torch.stack([(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]])
                            for i, j, k in itertools.product((0, 1), repeat=3)])  # fmt: skip
@@ -91,13 +92,14 @@ def live_rays(pixels: torch.Tensor, box: torch.Tensor | None) -> torch.Tensor:
 
 
 @torch.no_grad()
-def render_image(model: HybridAvatar, frame: int, chunk: int = 4096, supersample: int = 1,
-                 view: View | None = None) -> dict[str, torch.Tensor]:  # fmt: skip
+def render_image(model: HybridAvatar, frame: int, chunk: int = 8192, supersample: int = 1,
+                 view: View | None = None, soft_silhouette: bool = True) -> dict[str, torch.Tensor]:  # fmt: skip
     """Composite, mesh-only, NeRF-only images, NeRF mask and silhouette, (H, W, ·) each.
 
     The image is the model's n×n crop, or ``view``. ``supersample`` s renders s² rays a pixel and
     averages them (anti-aliased edges). Rays outside the projection of the box that holds the
     posed mesh and the exterior's reach meet nothing: they get the background without being cast.
+    ``soft_silhouette`` False: the silhouette is the mesh hits' coverage (cheaper; no soft edges).
     """
     view = view or View(model.resolution, model.resolution)
     H, W, s2 = view.height, view.width, int(supersample) ** 2
@@ -114,7 +116,7 @@ def render_image(model: HybridAvatar, frame: int, chunk: int = 4096, supersample
     try:
         for s in range(0, len(live), chunk):
             idx = live[s : s + chunk]
-            r = model.render(frame, pixels[idx], mesh=mesh)
+            r = model.render(frame, pixels[idx], mesh=mesh, soft=soft_silhouette)
             for k, v in zip(full, (r.rgb, r.mesh_rgb, r.nerf_rgb, r.nerf_mask, r.silhouette)):
                 full[k][idx] = v.to(full[k].dtype)
     finally:

@@ -107,17 +107,21 @@ the same test in the occupied set grown by that many cells."""
 def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixels: torch.Tensor,
                 background: torch.Tensor, settings: RenderSettings, nerf: Optional[NeRF] = None,
                 nonrigid: Optional[Deform] = None, generator: torch.Generator | None = None,
-                occupied: Optional[Occupied] = None, through_mesh: bool = False) -> RayRender:  # fmt: skip
+                occupied: Optional[Occupied] = None, through_mesh: bool = False, soft: bool = True) -> RayRender:  # fmt: skip
     """Render rays (R, 3) through pixels (R, 2) of one frame; ``occupied`` skips samples in empty canonical space.
 
     ``through_mesh``: the rays do not stop at the mesh (the NeRF alone over the background, SCARF's
-    NeRF-only stage); the mesh's colour and silhouette are still returned.
+    NeRF-only stage); the mesh's colour and silhouette are still returned. ``soft`` False: the
+    silhouette is the hits alone (no soft rasterisation: nothing to differentiate, an image to show).
     """
     hits = ray_mesh_hits(mesh.vertices, mesh.faces, origins, dirs)
     mesh_rgb = torch.where(hits.hit[:, None], interpolate(hits, mesh.faces, mesh.albedo), background)
-    sil = soft_silhouette(mesh.uv, mesh.faces, pixels, sigma=settings.sil_sigma, k=settings.sil_k)
-    if settings.sil_hard_value:
-        sil = hits.hit.to(sil.dtype) + (sil - sil.detach())
+    if soft:
+        sil = soft_silhouette(mesh.uv, mesh.faces, pixels, sigma=settings.sil_sigma, k=settings.sil_k)
+        if settings.sil_hard_value:
+            sil = hits.hit.to(sil.dtype) + (sil - sil.detach())
+    else:
+        sil = hits.hit.to(mesh_rgb.dtype)
     if nerf is None or mesh.skinning is None:
         zero = torch.zeros_like(sil)
         return RayRender(mesh_rgb, zero, background.expand_as(mesh_rgb), mesh_rgb, hits.hit, sil, 0)

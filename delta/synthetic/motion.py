@@ -17,13 +17,13 @@ _KEY_POSES = [
     {"lowerarm01.L": (0, -1.2, 0), "lowerarm01.R": (0, 1.2, 0), "spine02": (0, 0.35, 0)},  # bent elbows, twist
     {"upperarm01.L": (0, 0, 2.3), "upperarm01.R": (0, 0, -2.3), "lowerarm01.L": (0, 0, 0.3),
      "lowerarm01.R": (0, 0, -0.3)},  # arms overhead
-    {"upperarm01.L": (0, -0.9, -0.2), "lowerarm01.L": (0, -1.9, 0), "upperarm01.R": (0, 0.9, 0.2),
-     "lowerarm01.R": (0, 1.9, 0)},  # arms crossed over the chest
+    {"upperarm01.L": (-1.0, 0, -0.9), "lowerarm01.L": (0, -2.3, 0), "upperarm01.R": (-1.0, 0, 0.9),
+     "lowerarm01.R": (0, 2.3, 0)},  # arms crossed over the chest
     {"spine05": (0.35, 0, 0), "spine04": (0.35, 0, 0), "spine03": (0.3, 0, 0), "spine02": (0.25, 0, 0),
      "neck01": (-0.3, 0, 0), "upperarm01.L": (0.6, 0, 0), "upperarm01.R": (0.6, 0, 0)},  # a deep forward bend
-    {"neck01": (0, 0.35, 0), "neck02": (0, 0.3, 0), "head": (0.1, 0.3, 0)},  # the head turned to the left
+    {"neck01": (0, 0.45, 0), "neck02": (0, 0.4, 0), "head": (0.1, 0.4, 0)},  # the head turned to the left
     {"upperleg01.R": (-0.6, 0, 0.15), "lowerleg01.R": (1.0, 0, 0), "upperarm01.L": (0.5, 0, 0.3)},
-    {"upperarm01.L": (0, 0, 1.3), "lowerarm01.L": (0, -0.6, 0), "neck01": (0.2, -0.5, 0)},  # and to the right
+    {"upperarm01.L": (0, 0, 1.3), "lowerarm01.L": (0, -0.6, 0), "neck01": (0.2, -0.5, 0), "neck02": (0, -0.4, 0)},  # and right
 ]  # fmt: skip
 
 

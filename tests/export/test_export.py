@@ -168,6 +168,7 @@ def test_frame_choice():
     assert report_frames(split, 2) == [2, 6] and report_frames(split, 10) == [2, 4, 5, 6]
     assert report_frames(np.zeros(3, int), 2) == [0, 2]
     assert novel_pose_frames(split) == [4, 5] and novel_pose_frames(np.zeros(3, int)) == [0, 1, 2]
+    assert novel_pose_frames(np.zeros(9, int), at_most=3) == [0, 4, 8] and novel_pose_frames(split, at_most=5) == [4, 5]
 
 
 # ------------------------------------------------------------------ the CLI

@@ -204,3 +204,28 @@ def test_torch_search_matches_exact_arithmetic_on_near_parallel_rays(shift):
         checked += 1
         assert bool(hits.hit[i]) == (margin < 0), (i, margin, float(t))
     assert checked > 0.9 * n
+
+
+@pytest.mark.skipif(not embree_available(), reason="Embree is not installed")
+def test_the_embree_scene_is_reused_only_for_the_same_unmodified_mesh():
+    """A whole-image render casts its chunks against one mesh: the scene is built once. A mesh moved in
+    place, or a new tensor (even one that reuses freed memory), is cast against afresh."""
+    from delta.geometry import raymesh
+
+    v = torch.tensor([[-1.0, -1, 0], [1, -1, 0], [0, 1, 0]], dtype=torch.float64)
+    f = torch.tensor([[0, 1, 2]])
+    o = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.5, 1.0]], dtype=torch.float64)
+    d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]], dtype=torch.float64)
+    first = ray_mesh_hits(v, f, o, d, backend="embree")
+    scene = raymesh._SCENES.intersector
+    again = ray_mesh_hits(v, f, o, d, backend="embree")
+    assert raymesh._SCENES.intersector is scene and torch.equal(first.hit, again.hit)
+    v[:, 1] -= 0.6  # moved in place: the top ray now passes above the triangle
+    moved = ray_mesh_hits(v, f, o, d, backend="embree")
+    assert raymesh._SCENES.intersector is not scene
+    assert moved.hit.tolist() == [True, False]
+    for shift in (0.0, 5.0):  # fresh tensors each time: never the scene of another mesh
+        w = torch.tensor([[-1.0, -1, 0], [1, -1, 0], [0, 1, 0]], dtype=torch.float64) + torch.tensor([shift, 0, 0])
+        assert ray_mesh_hits(w, f, o, d, backend="embree").hit.tolist() == (
+            [True, True] if shift == 0 else [False, False]
+        )
