@@ -8,6 +8,7 @@ from delta.config import subject_training as _subject_training
 from delta.config import validate_workflow_config
 from delta.config import variant_training as _variant_training
 from delta.data.sources import PROVIDES
+from delta.scene.settings import user_decided
 from delta.synthetic.spec import parse_subject
 from delta.training.presets import resolve as resolve_training, stage_view
 
@@ -289,14 +290,15 @@ def set_keys(overrides, prefix=""):
 
 def stage_training(wildcards):
     """A training job's whole configuration, as JSON: the preset, the resolved settings the stage reads,
-    and which keys the config sets itself (the scene analysis decides the others it covers).
+    and which of the keys the scene analysis decides the config sets itself (only those: a key
+    the scene never decides, say stage 2's, must not rerun stage 1).
     """
     preset, overrides = wildcard_training(wildcards)
     raw = resolve_training(preset, *overrides).raw
     return json.dumps(
         {
             "preset": preset,
-            "user_set": set_keys(overrides),
+            "user_set": user_decided(set_keys(overrides)),
             **stage_view(raw, int(wildcards.stage)),
         },
         sort_keys=True,

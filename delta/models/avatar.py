@@ -22,7 +22,7 @@ from delta.deformers import knn as deformer
 from delta.fields.networks import DeformationField, FieldSpec, NeRFField, VertexField, time_features
 from delta.geometry.distance_grid import GRID_REACH
 from delta.losses import mesh_edges
-from delta.render.hybrid import PosedMesh, RayRender, RenderSettings, render_rays
+from delta.render.hybrid import PosedMesh, RayRender, RenderSettings, render_rays, room_margin
 from delta.models.trajectory import Trajectory
 from delta.render.occupancy import OccupancyGrid
 
@@ -117,7 +117,8 @@ class HybridAvatar(nn.Module):
         tbox = _box(template, 0.05)
         self.offset_field = VertexField(spec.offsets, tbox, "offset", spec.offset_scale)
         self.albedo_field = VertexField(spec.albedo, tbox, "albedo", init=skin_color)
-        nbox = _box(self.canonical_vertices[modelled], spec.nerf_margin)
+        # the canonical fields' box holds the exterior's whole room (a decided max_dist may exceed the margin)
+        nbox = _box(self.canonical_vertices[modelled], room_margin(spec.nerf_margin, spec.render.max_dist))
         self.nerf = NeRFField(spec.nerf, nbox) if spec.nerf is not None else None
         self.deformation = None
         if spec.deformation is not None:

@@ -19,6 +19,7 @@ import torch
 
 from delta.data.frames import FullFrames
 from delta.models.avatar import HybridAvatar
+from delta.render.hybrid import room_margin
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,7 +74,9 @@ def reach_box(model: HybridAvatar, frame: int, vertices: torch.Tensor) -> torch.
     can meet: the posed mesh's box, grown by the exterior's margin when there is a NeRF. None when
     a corner lies behind a pinhole camera (no bound then)."""
     rs = model.spec.render  # the exterior's samples lie within max_dist (+ the probes' cell) of the body
-    margin = min(rs.box_margin, rs.max_dist + 2 * rs.probe_cell) if model.nerf is not None else 0.0
+    margin = (
+        min(room_margin(rs.box_margin, rs.max_dist), rs.max_dist + 2 * rs.probe_cell) if model.nerf is not None else 0.0
+    )
     lo, hi = vertices.amin(0) - margin, vertices.amax(0) + margin
     corners = torch.stack([torch.stack([(lo, hi)[i][0], (lo, hi)[j][1], (lo, hi)[k][2]])
                            for i, j, k in itertools.product((0, 1), repeat=3)])  # fmt: skip

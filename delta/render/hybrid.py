@@ -46,7 +46,8 @@ class RenderSettings:
     samples: int = 24
     """Samples per ray, the last at the mesh or far bound."""
     box_margin: float = 0.25
-    """How far around the posed body's box the exterior may exist (m)."""
+    """How far around the posed body's box the exterior may exist (m); never less than a ``max_dist``
+    that bounds the exterior (:func:`room_margin`)."""
     k: int = 6
     sigma: float = 0.1
     max_dist: float = 0.2
@@ -97,6 +98,15 @@ class RayRender:
 #: the kNN blend's on a trained avatar (99th percentile 0.9 cm), under one 3.2-cm occupancy cell
 EARLY_GROW = 1
 
+
+def room_margin(margin: float, max_dist: float) -> float:
+    """A box margin (m) that holds the exterior's room: at least ``max_dist`` where that bounds the
+    exterior (culling by distance: ``max_dist`` ≤ ``GRID_REACH``), else ``margin`` alone (the paper's
+    10-m room, where the box is the bound). A room decided from the capture (a hem 0.3 m from the legs)
+    is then never cut by a box margin set for another scene."""
+    return max(margin, max_dist) if max_dist <= distance_grid.GRID_REACH else margin
+
+
 NeRF = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 Deform = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 Occupied = Callable[[torch.Tensor], torch.Tensor]
@@ -125,8 +135,9 @@ def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixe
     if nerf is None or mesh.skinning is None:
         zero = torch.zeros_like(sil)
         return RayRender(mesh_rgb, zero, background.expand_as(mesh_rgb), mesh_rgb, hits.hit, sil, 0)
-    lo = mesh.vertices.detach().amin(0) - settings.box_margin
-    hi = mesh.vertices.detach().amax(0) + settings.box_margin
+    margin = room_margin(settings.box_margin, settings.max_dist)
+    lo = mesh.vertices.detach().amin(0) - margin
+    hi = mesh.vertices.detach().amax(0) + margin
     t_in, t_out, in_box = ray_box(origins, dirs, lo, hi)
     stop = hits.hit & (not through_mesh)
     t_far = torch.where(stop, torch.minimum(hits.t, t_out), t_out)

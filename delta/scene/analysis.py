@@ -53,8 +53,6 @@ MARGIN, PAD, MAX_ROOM = 0.25, 0.02, 0.6
 MAX_SAMPLE_FACTOR = 4
 #: Below this share of exterior pixels (of the person, over the analysed frames) there is no NeRF.
 MIN_EXTERIOR_FRACTION = 0.01
-#: The keys the analysis decides (dotted paths of the training settings).
-DECIDED = ("exterior", "capture", "render.max_dist", "render.samples")
 
 
 @torch.no_grad()
@@ -139,34 +137,3 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
 
 def write_scene(path: str | Path, scene: dict) -> None:
     save_json(path, scene)
-
-
-def _get(d: dict, dotted: str):
-    for part in dotted.split("."):
-        if not isinstance(d, dict) or part not in d:
-            return None
-        d = d[part]
-    return d
-
-
-def scene_settings(scene_path: str | Path, resolved: dict, user_set: list[str]) -> dict:
-    """The training settings the scene decides, as an override: every decision of ``scene.json`` whose
-    key the user did not set (``user_set``: dotted keys of the config's overrides); ``exterior`` and
-    ``capture`` only where ``resolved`` leaves them ``auto``."""
-    try:
-        decisions = json.loads(Path(scene_path).read_text())["decisions"]
-    except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
-        raise DeltaError(f"{scene_path}: not a scene analysis ({e}); rerun the analyze_scene rule") from None
-    out: dict = {}
-    for key in DECIDED:
-        value = _get(decisions, key)
-        if value is None or key in user_set:
-            continue
-        if key in ("exterior", "capture") and resolved.get(key) != "auto":
-            continue
-        *parents, leaf = key.split(".")
-        node = out
-        for p in parents:
-            node = node.setdefault(p, {})
-        node[leaf] = value
-    return out

@@ -23,7 +23,8 @@ from delta.io import atomic_path, load_state, save_json
 from delta.models.avatar import HybridAvatar, InitParams
 from delta.models.init import load_init
 from delta.render.occupancy import OccupancySettings
-from delta.scene.analysis import MIN_EXTERIOR_FRACTION, scene_settings
+from delta.scene.analysis import MIN_EXTERIOR_FRACTION
+from delta.scene.settings import scene_settings
 from delta.scene.framing import detect_capture
 from delta.training.presets import TrainSettings, deep_merge, resolve
 from delta.training.scope import frozen_joints

@@ -7,7 +7,8 @@ import h5py
 import numpy as np
 import pytest
 
-from delta.scene.analysis import analyze, room_and_samples, scene_settings
+from delta.scene.analysis import analyze, room_and_samples
+from delta.scene.settings import scene_settings, user_decided
 from delta.scene.reach import beyond_body, region_reach
 
 
@@ -113,3 +114,9 @@ def test_training_takes_the_scene_and_says_so(tiny_training, tmp_path, caplog):
     assert settings["settings"]["render"]["max_dist"] == 0.3  # decided by the scene
     assert settings["settings"]["render"]["samples"] == 8  # the config set it: the config wins
     assert "from the scene analysis" in caplog.text
+
+
+def test_only_the_keys_the_scene_decides_are_passed_to_training():
+    set_by_config = ["stage2.lr_final", "render.samples", "render.sil_sigma", "exterior", "stage1.iterations"]
+    assert user_decided(set_by_config) == ["exterior", "render.samples"]
+    assert user_decided([]) == []
