@@ -5,8 +5,9 @@ training resolution, supersampling, data range, perceptual metric, test-time ref
 wall time and peak memory of each training stage (from the rules' benchmark files), the
 mean of every score per test split — ``{split}_{score}`` before test-time refinement and
 ``{split}_{score}_refined`` after it — the body error over the training frames, and the
-export's numbers (``export_*``: mesh sizes, line-up IoUs, clothing Chamfer / normal
-consistency against ground truth where there is one).
+export's numbers (``export_*``: mesh sizes, line-up IoUs), and the clothing surface against ground
+truth where there is one (``clothing_*``: Chamfer / normal consistency, sample to sample, and the exact
+point-to-surface distance ``clothing_p2s_*``).
 """
 
 from __future__ import annotations

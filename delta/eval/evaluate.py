@@ -28,7 +28,7 @@ from delta import DeltaError
 from delta import metrics as M
 from delta.body.model import REGION
 from delta.data.frames import load_full_frames
-from delta.eval.geometry import mesh_distance, vertex_error
+from delta.eval.geometry import mesh_distance, point_to_surface, vertex_error
 from delta.eval.heldout import refine_frame
 from delta.export.video import side_by_side
 from delta.geometry.raymesh import ray_mesh_hits
@@ -261,7 +261,8 @@ def gt_exterior(meshes_h5: str | Path, frame_id: int) -> trimesh.Trimesh | None:
 
 def clothing_distance(trained: Trained, nerf_space_mesh: str | Path, gt_meshes: str | Path, frames: list[int],
                       samples: int = 20000) -> dict:  # fmt: skip
-    """Chamfer distance (mm) and normal consistency of the exported clothing surface, posed as each
+    """Chamfer distance (mm, sample to sample), point-to-surface distance (mm, samples to the other
+    mesh's triangles, exact) and normal consistency of the exported clothing surface, posed as each
     frame by forward skinning, against the GT clothing and hair of that frame. Both are moved by the
     offset that aligns the fitted body's centroid with the GT body's (as the body error is)."""
     from delta.export.meshes import MeshPart, pose_clothing
@@ -272,7 +273,7 @@ def clothing_distance(trained: Trained, nerf_space_mesh: str | Path, gt_meshes: 
         return {}
     part = MeshPart(np.asarray(surface.vertices), np.asarray(surface.faces), np.zeros((len(surface.vertices), 3)))
     gt_body = gt_body_vertices(gt_meshes, data.frame_ids[frames])
-    rows = []
+    rows, exact = [], []
     with torch.no_grad():
         offsets = model.offsets()
         for f in frames:
@@ -285,10 +286,14 @@ def clothing_distance(trained: Trained, nerf_space_mesh: str | Path, gt_meshes: 
             shift = gt_body[fid].mean(0) - out.vertices[0].cpu().numpy().mean(0)
             pred = trimesh.Trimesh(posed.vertices + shift, posed.faces, process=False)
             rows.append(mesh_distance(pred, ref, samples, seed=f))
+            exact.append(point_to_surface(pred, ref, samples, seed=f))
     return {"clothing_chamfer_mm": 1000 * float(np.mean([r.chamfer for r in rows])),
             "clothing_accuracy_mm": 1000 * float(np.mean([r.accuracy for r in rows])),
             "clothing_completeness_mm": 1000 * float(np.mean([r.completeness for r in rows])),
             "clothing_normal_consistency": float(np.mean([r.normal_consistency for r in rows])),
+            "clothing_p2s_mm": 1000 * float(np.mean([r.mean for r in exact])),
+            "clothing_p2s_accuracy_mm": 1000 * float(np.mean([r.accuracy for r in exact])),
+            "clothing_p2s_completeness_mm": 1000 * float(np.mean([r.completeness for r in exact])),
             "clothing_frames": len(rows)}  # fmt: skip
 
 

@@ -1,13 +1,22 @@
-"""Geometry against ground truth: vertex error of the body, Chamfer distance and normal consistency.
+"""Geometry against ground truth: vertex error of the body, surface distances and normal consistency.
 
-Pure functions over arrays in metres. Point sets are compared both ways; ``chamfer`` is
-the mean of the two mean nearest-neighbour distances (not squared), ``normal_consistency``
-the mean |cos| between each point's normal and its nearest neighbour's, both ways.
+Pure functions over arrays in metres. Two surface distances, both taken both ways between a
+prediction and a reference mesh:
+
+- sample to sample (``mesh_distance``): area-uniform samples of each mesh against the other's samples.
+  ``chamfer`` is the mean of the two mean nearest-neighbour distances (not squared),
+  ``normal_consistency`` the mean |cos| between each point's normal and its nearest neighbour's.
+  It has a floor set by the sampling's spacing, not by the surfaces: two identical body-sized meshes
+  score 4-5 mm at 20 000 samples (two independent samplings), which hides the last millimetres.
+- point to surface (``point_to_surface``): the samples of each mesh against the other's triangles,
+  the exact Euclidean distance to the nearest triangle (``point_mesh_distance``), so two identical
+  meshes score 0 and the figure keeps going down below the sampling's spacing.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import numpy as np
 import trimesh
@@ -48,6 +57,135 @@ def surface_distance(pred: tuple[np.ndarray, np.ndarray], ref: tuple[np.ndarray,
 
 def mesh_distance(pred: trimesh.Trimesh, ref: trimesh.Trimesh, count: int = 20000, seed: int = 0) -> SurfaceDistance:
     return surface_distance(sample_surface(pred, count, seed), sample_surface(ref, count, seed + 1))
+
+
+@dataclasses.dataclass
+class PointToSurface:
+    mean: float
+    """(accuracy + completeness) / 2, metres."""
+    accuracy: float
+    """Mean distance from the prediction's samples to the reference's triangles, metres."""
+    completeness: float
+    """Mean distance from the reference's samples to the prediction's triangles, metres."""
+
+
+def closest_point_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The closest point to each p (M, 3) on triangle (a, b, c) (each (M, 3)), row by row.
+
+    Ericson's region tests (Real-Time Collision Detection, 5.1.5), vectorised: the first of vertex A,
+    B, edge AB, vertex C, edge AC, edge BC whose test holds, else the face's interior. A degenerate
+    (zero-area) triangle is the union of its edges: the nearest point of its three segments.
+    """
+    ab, ac, ap = b - a, c - a, p - a
+    bp, cp = p - b, p - c
+    dot = lambda u, v: np.einsum("ij,ij->i", u, v)
+    d1, d2 = dot(ab, ap), dot(ac, ap)
+    d3, d4 = dot(ab, bp), dot(ac, bp)
+    d5, d6 = dot(ab, cp), dot(ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    safe = lambda x: np.where(x == 0, 1.0, x)
+    t_ab = d1 / safe(d1 - d3)
+    t_ac = d2 / safe(d2 - d6)
+    t_bc = (d4 - d3) / safe((d4 - d3) + (d5 - d6))
+    den = safe(va + vb + vc)
+    v, w = vb / den, vc / den
+    regions = [
+        (d1 <= 0) & (d2 <= 0),  # vertex A
+        (d3 >= 0) & (d4 <= d3),  # vertex B
+        (vc <= 0) & (d1 >= 0) & (d3 <= 0),  # edge AB
+        (d6 >= 0) & (d5 <= d6),  # vertex C
+        (vb <= 0) & (d2 >= 0) & (d6 <= 0),  # edge AC
+        (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),  # edge BC
+    ]
+    points = [a, b, a + t_ab[:, None] * ab, c, a + t_ac[:, None] * ac, b + t_bc[:, None] * (c - b)]
+    out = a + v[:, None] * ab + w[:, None] * ac  # the face's interior
+    for region, q in zip(regions[::-1], points[::-1]):  # the first region that holds wins
+        out = np.where(region[:, None], q, out)
+    n = np.cross(ab, ac)
+    flat = (n * n).sum(1) <= 1e-24 * (ab * ab).sum(1) * (ac * ac).sum(1)
+    flat |= ~np.isfinite(out).all(1)
+    if flat.any():
+        out[flat] = _closest_on_edges(p[flat], a[flat], b[flat], c[flat])
+    return out
+
+
+def _closest_on_edges(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The closest point to each p on the segments AB, BC, CA (for degenerate triangles)."""
+    best, best_d2 = None, None
+    for s, e in ((a, b), (b, c), (c, a)):
+        se = e - s
+        t = np.clip(np.einsum("ij,ij->i", p - s, se) / np.maximum((se * se).sum(1), 1e-300), 0.0, 1.0)
+        q = s + t[:, None] * se
+        d2 = ((p - q) ** 2).sum(1)
+        if best is None:
+            best, best_d2 = q, d2
+        else:
+            closer = d2 < best_d2
+            best, best_d2 = np.where(closer[:, None], q, best), np.where(closer, d2, best_d2)
+    return best
+
+
+def point_mesh_distance(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, chunk: int = 2048) -> np.ndarray:
+    """The exact Euclidean distance (N,) from each point (N, 3) to the nearest triangle of a mesh
+    (vertices (V, 3), faces (F, 3)); +inf for every point when the mesh has no faces.
+
+    Exact, not approximate: the distance d0 to the nearest vertex of a face is an upper bound, and a
+    triangle whose vertices lie within R of its centroid can only be closer when its centroid is within
+    d0 + R of the point. The triangles are grouped by R (powers of two), each group's centroids in a
+    KD-tree queried with d0 + (the group's largest R); the closest point on each candidate triangle
+    is ``closest_point_on_triangles``. Points go in chunks of ``chunk`` to bound the memory.
+    """
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    vertices = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    faces = np.asarray(faces, dtype=np.intp).reshape(-1, 3)
+    if len(faces) == 0:
+        return np.full(len(points), np.inf)
+    if len(points) == 0:
+        return np.zeros(0)
+    tri = vertices[faces]
+    centroid = tri.mean(1)
+    radius = np.linalg.norm(tri - centroid[:, None], axis=2).max(1)
+    # groups of triangles of like size: a few large triangles do not widen every query
+    largest = radius.max()
+    level = np.floor(np.log2(np.maximum(radius, largest * 2.0**-12) / largest)) if largest > 0 else np.zeros(len(faces))
+    groups = []
+    for lv in np.unique(level):
+        members = np.flatnonzero(level == lv)
+        groups.append((members, cKDTree(centroid[members]), float(radius[members].max())))
+    d0 = cKDTree(vertices[np.unique(faces)]).query(points)[0]
+    best = np.full(len(points), np.inf)
+    for start in range(0, len(points), chunk):
+        p = points[start : start + chunk]
+        reach = d0[start : start + chunk]
+        d2 = np.full(len(p), np.inf)
+        for members, tree, r in groups:
+            near = tree.query_ball_point(p, (reach + r) * (1 + 1e-9) + 1e-12)
+            counts = np.fromiter(map(len, near), dtype=np.intp, count=len(near))
+            total = int(counts.sum())
+            if total == 0:
+                continue
+            face = members[np.fromiter(itertools.chain.from_iterable(near), dtype=np.intp, count=total)]
+            which = np.repeat(np.arange(len(p)), counts)
+            q = closest_point_on_triangles(p[which], tri[face, 0], tri[face, 1], tri[face, 2])
+            pair = ((p[which] - q) ** 2).sum(1)
+            have = np.flatnonzero(counts)
+            starts = np.concatenate([[0], np.cumsum(counts[have])[:-1]])
+            d2[have] = np.minimum(d2[have], np.minimum.reduceat(pair, starts))
+        best[start : start + chunk] = np.sqrt(d2)
+    return best
+
+
+def point_to_surface(pred: trimesh.Trimesh, ref: trimesh.Trimesh, count: int = 20000, seed: int = 0) -> PointToSurface:
+    """Exact point-to-surface distances both ways: ``count`` samples of each mesh (the seeds of
+    ``mesh_distance``) against the other's triangles. NaN when either mesh has no faces."""
+    if len(pred.faces) == 0 or len(ref.faces) == 0:
+        nan = float("nan")
+        return PointToSurface(nan, nan, nan)
+    pa, _ = sample_surface(pred, count, seed)
+    pb, _ = sample_surface(ref, count, seed + 1)
+    acc = float(point_mesh_distance(pa, ref.vertices, ref.faces).mean())
+    comp = float(point_mesh_distance(pb, pred.vertices, pred.faces).mean())
+    return PointToSurface((acc + comp) / 2, acc, comp)
 
 
 def vertex_error(pred: np.ndarray, ref: np.ndarray, align: str = "centroid") -> float:

@@ -21,7 +21,7 @@ def write_summary(path, psnr, refined_psnr, body):
                 "settings": {"refine_steps": 5},
                 "seconds": 12.0,
                 "train_body_err_mm": body,
-                "geometry": {"clothing_chamfer_mm": body / 10, "clothing_frames": 2},
+                "geometry": {"clothing_chamfer_mm": body / 10, "clothing_p2s_mm": body / 20, "clothing_frames": 2},
                 "scores": {
                     "test_view": {
                         "unrefined": {"psnr": psnr, "ssim": 0.9, "frames": 2},
@@ -74,6 +74,7 @@ def test_one_row_per_subject_and_a_mean_row(tmp_path):
     assert mean["stage1_s"] == pytest.approx(20.0) and mean["stage2_s"] == pytest.approx(10.0)
     assert mean["export_lineup_body_iou"] == pytest.approx(0.85)
     assert mean["train_body_err_mm"] == pytest.approx(60.0) and mean["clothing_chamfer_mm"] == pytest.approx(6.0)
+    assert mean["clothing_p2s_mm"] == pytest.approx(3.0)
     assert mean["preset"] == "fast" and int(mean["stage"]) == 2
     assert np.isnan(table["test_view_ssim_refined"]).all()  # None in a summary: no value
     assert mean["export_clothing_faces"] == pytest.approx(200) and mean["export_s"] == pytest.approx(4.0)
