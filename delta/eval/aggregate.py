@@ -4,7 +4,8 @@ Columns: the convention (preset, stage, background, image — the full frame —
 training resolution, supersampling, data range, perceptual metric, test-time refinement),
 wall time and peak memory of each training stage (from the rules' benchmark files), the
 mean of every score per test split — ``{split}_{score}`` before test-time refinement and
-``{split}_{score}_refined`` after it — the body error over the training frames, and the
+``{split}_{score}_refined`` after it, with the refinement's steps taken and its loss before and after
+(``{split}_refine_steps_refined``, ``{split}_refine_loss_start_refined``, ``..._end_refined``) — the body error over the training frames, and the
 export's numbers (``export_*``: mesh sizes, line-up IoUs), and the clothing surface against ground
 truth where there is one (``clothing_*``: Chamfer / normal consistency, sample to sample, and the exact
 point-to-surface distance ``clothing_p2s_*``).

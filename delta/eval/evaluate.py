@@ -68,6 +68,9 @@ class EvalSettings:
     """Rays a refinement step draws from the test frame."""
     refine_lr: float = _f(default=5e-4, metadata={"exclusive_minimum": 0, "maximum": 1})
     """Learning rate of the test-time refinement."""
+    refine_tol: float = _f(default=0.0, metadata={"minimum": 0, "maximum": 1})
+    """Stop a frame's refinement once its windowed loss falls by less than this fraction (0: always
+    ``refine_steps``). The steps taken and the loss before and after are in each refined row."""
     supersample: int = _f(default=2, metadata={"minimum": 1, "maximum": 8})
     """Rays a pixel along each axis, averaged: the frames are area-downsampled photographs whose
     edge pixels mix person and background; one centre ray a pixel cannot (tight subject, four
@@ -166,8 +169,10 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
     progress = Progress(f"evaluate ({view.width}x{view.height})", len(frames))
     for k, (f, split) in enumerate(frames):
         for refined in passes:
+            fit = None
             if refined:
-                refine_frame(model, data, f, st.refine_steps, rays=st.refine_rays, lr=st.refine_lr, seed=f)
+                fit = refine_frame(model, data, f, st.refine_steps, rays=st.refine_rays, lr=st.refine_lr, seed=f,
+                                   tol=st.refine_tol)  # fmt: skip
             with torch.no_grad():
                 mesh, offsets, out = model.posed_mesh(f)
             img = render_image(model, f, supersample=st.supersample, view=view, soft_silhouette=False)
@@ -175,10 +180,13 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
             masks = {"body": body, "face": face_pixels(model, f, mesh.vertices, view) & body}
             masks |= {name: m[k] for name, m in full.parts.items()}
             row = {"subject": subject, "frame": f, "frame_id": int(data.frame_ids[f]), "split": split,
-                   "refined": refined, "refine_steps": st.refine_steps if refined else 0, "stage": trained.stage,
+                   "refined": refined, "refine_steps": fit.steps if fit else 0, "stage": trained.stage,
                    "preset": trained.preset, "background": bg, "image": "full",
                    "resolution": "{}x{}".format(*full.size), "train_resolution": trained.settings.resolution,
                    "supersample": st.supersample}  # fmt: skip
+            if fit:  # the refinement's residual: its loss before and after (training-ray loss, see refine_frame)
+                row |= {"refine_loss_start": fit.loss_start, "refine_loss_end": fit.loss_end,
+                        "refine_converged": fit.converged}  # fmt: skip
             row |= score_image(img, full.images[k], masks, perceptual)
             row["nerf_iou"] = (
                 M.iou(img["nerf_mask"] > 0.5, full.exterior[k] > 0.5) if model.nerf is not None else np.nan
@@ -308,7 +316,7 @@ def convention(df: pd.DataFrame, st: EvalSettings) -> dict:
 
 def summarize(df: pd.DataFrame) -> dict:
     """Mean of every score per (split, refined), e.g. ``{"test_view": {"refined": {...}, "unrefined": {...}}}``."""
-    scores = [c for c in df.columns if df[c].dtype.kind == "f"]
+    scores = [c for c in df.columns if df[c].dtype.kind == "f" or c == "refine_steps"]  # steps: taken, on average
     out: dict = {}
     for (split, refined), g in df.groupby(["split", "refined"]):
         out.setdefault(split, {})["refined" if refined else "unrefined"] = {

@@ -29,9 +29,28 @@ class FrameScore:
     """IoU of the mesh silhouette (> 0.5) with the person mask."""
 
 
+@dataclasses.dataclass
+class Refinement:
+    """What a test-time refinement did: how long it ran and the loss it left (its residual)."""
+
+    steps: int
+    loss_start: float
+    """The loss on a fixed probe draw of rays before the first step (the pose as given)."""
+    loss_end: float
+    """The loss on the same rays after the last step (the residual)."""
+    converged: bool
+    """The loss flattened (``tol`` > 0) before the step budget ran out."""
+
+
 def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, rays: int = 4096,
-                 lr: float = 5e-4, seed: int = 0) -> None:  # fmt: skip
+                 lr: float = 5e-4, seed: int = 0, tol: float = 0.0, window: int = 5) -> Refinement:  # fmt: skip
     """Fit one frame's pose, translation and camera with everything else frozen.
+
+    At most ``steps`` steps; with ``tol`` > 0 it stops once the mean loss of the last ``window`` steps
+    is less than ``tol`` (a fraction) below the mean of the ``window`` before. The loss is the pixel
+    loss plus 0.1 × the silhouette loss on ``rays`` rays a step, drawn afresh each step. One draw's loss
+    is noisier than a step's gain, so the loss before and after (the residual) is taken on one fixed
+    probe draw of ``rays`` rays, rendered with the same sample jitter both times.
 
     lr 5e-4 with 4096 rays a step (the training's pose rate): on four held-out views of the tight
     subject 30 steps raised PSNR from 25.5 to 26.3 dB, while 2e-3 with 1024 rays lowered it to 24.9.
@@ -42,22 +61,46 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
         p.requires_grad_(any(p is q for q in params))
     opt = torch.optim.Adam(params, lr=lr)
     g = torch.Generator().manual_seed(seed)
+    losses: list[float] = []
+    converged = False
+    probe = sample_rays(data, frame, rays, torch.Generator().manual_seed(seed + 1))
+    with torch.no_grad():
+        start = _loss(model, frame, probe, seed + 2)
     try:
         for _ in range(steps):
-            b = sample_rays(data, frame, rays, g)
-            r = model.render(frame, b.pixels.to(model.background.device), g)
-            loss = L.pixel(r.rgb, b.rgb.to(r.rgb.device)) + 0.1 * L.silhouette(r.silhouette, b.person.to(r.rgb.device))
+            loss = _loss(model, frame, sample_rays(data, frame, rays, g), g)
             opt.zero_grad(set_to_none=True)
             loss.backward()
+            losses.append(float(loss.detach()))
             model.mask_frozen_pose_gradient()  # joints training froze stay frozen
             for p in params:  # only this frame moves
                 mask = torch.zeros_like(p.grad)
                 mask[frame] = 1
                 p.grad.mul_(mask)
             opt.step()
+            if tol > 0 and len(losses) >= 2 * window:
+                last, before = _mean(losses[-window:]), _mean(losses[-2 * window : -window])
+                if last > (1 - tol) * before:
+                    converged = True
+                    break
     finally:
         for p, flag in frozen.items():
             p.requires_grad_(flag)
+    with torch.no_grad():
+        end = _loss(model, frame, probe, seed + 2)
+    return Refinement(len(losses), float(start), float(end), converged)
+
+
+def _loss(model: HybridAvatar, frame: int, batch, jitter: torch.Generator | int) -> torch.Tensor:
+    """Refinement's loss on a batch of rays (``jitter``: the samples' generator, or a seed for a fresh one)."""
+    g = torch.Generator().manual_seed(jitter) if isinstance(jitter, int) else jitter
+    r = model.render(frame, batch.pixels.to(model.background.device), g)
+    dev = r.rgb.device
+    return L.pixel(r.rgb, batch.rgb.to(dev)) + 0.1 * L.silhouette(r.silhouette, batch.person.to(dev))
+
+
+def _mean(x: list[float]) -> float:
+    return sum(x) / len(x)
 
 
 def score_frames(model: HybridAvatar, data: FrameData, frames, refine_steps: int = 0) -> list[FrameScore]:

@@ -9,6 +9,7 @@ import torch
 
 from delta import DeltaError
 from delta.eval.evaluate import EvalSettings, evaluate, face_pixels, pick_frames, summarize, train_body_error_mm
+from delta.eval.heldout import refine_frame
 from delta.models.image import View, render_image
 from delta.training.run import load_trained
 
@@ -93,6 +94,17 @@ def test_psnr_rises_with_refinement_from_a_perturbed_pose(trained):
     df = evaluate(tr, t["record"], st)
     before, after = df["psnr"].tolist()
     assert after > before + 0.5 and not math.isnan(after)
+    # the refined row states what the refinement did: the whole budget, and a residual below the start
+    fit = df[df["refined"]].iloc[0]
+    assert fit["refine_steps"] == 40 and not fit["refine_converged"]
+    assert fit["refine_loss_end"] < 0.98 * fit["refine_loss_start"], (fit["refine_loss_start"], fit["refine_loss_end"])
+    assert math.isnan(df[~df["refined"]].iloc[0]["refine_loss_end"])
+    # with a tolerance it stops where the windowed loss flattens, within the budget
+    with torch.no_grad():
+        model.transl[f] += torch.tensor([0.03, 0.0, 0.0])
+    stopped = refine_frame(model, data, f, 40, rays=256, lr=2e-3, seed=f, tol=0.5)
+    assert stopped.converged and 10 <= stopped.steps < 40
+    assert summarize(df)["test_view"]["refined"]["refine_steps"] == 40
 
 
 @pytest.mark.parametrize("subject", ["tight", "loose"])
