@@ -27,34 +27,26 @@ the repository root::
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import platform
 import shutil
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import pandas as pd
 import yaml
 
-REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from workflow_run import REPO, run_snakemake, workflow_copy, write_rows  # noqa: E402
+
 TARGET = "results/peoplesnapshot/metrics.csv"
 #: the columns of the metrics table's mean row kept in the total row
 SCORES = ("source", "preset", "image", "resolution", "train_resolution", "background", "refinement",
           "test_view_psnr", "test_view_ssim", "test_view_stlpips_alex",
           "test_view_psnr_refined", "test_view_ssim_refined", "test_view_stlpips_alex_refined",
           "train_body_err_mm", "clothing_chamfer_mm")  # fmt: skip
-
-
-def workflow_copy(work: Path) -> None:
-    """The files a user's clone has that the workflow reads."""
-    for name in ("Snakefile", "rules", "workflow", "config"):
-        src = REPO / name
-        (shutil.copytree if src.is_dir() else shutil.copy)(src, work / name)
 
 
 def extra_config(work: Path, subjects: list[str] | None, preset: str | None, reuse: bool) -> list[str]:
@@ -102,16 +94,7 @@ def main() -> None:
     work = a.work or Path(tempfile.mkdtemp(prefix="delta-default-"))
     work.mkdir(parents=True, exist_ok=True)
     workflow_copy(work)
-    cmd = [sys.executable, "-m", "snakemake", "--cores", str(a.cores), TARGET,
-           *extra_config(work, a.subjects, a.preset, a.reuse_builds)]  # fmt: skip
-    print("running", " ".join(cmd), "in", work, flush=True)
-    t0 = time.perf_counter()
-    with open(work / "snakemake.log", "w") as log:
-        res = subprocess.run(cmd, cwd=work, stdout=log, stderr=subprocess.STDOUT,
-                             env={**os.environ, "PYTHONPATH": str(REPO)})  # fmt: skip
-    wall = time.perf_counter() - t0
-    if res.returncode != 0:
-        sys.exit(f"the command failed (exit {res.returncode}); see {work / 'snakemake.log'}")
+    wall = run_snakemake(work, TARGET, *extra_config(work, a.subjects, a.preset, a.reuse_builds), cores=a.cores)
     rows = job_rows(work)
     by_rule = pd.DataFrame(rows).groupby("rule")["seconds"].agg(["count", "sum"])
     rows += [{"kind": "rule", "rule": r, "jobs": int(v["count"]), "seconds": round(float(v["sum"]), 1)}
@@ -124,11 +107,7 @@ def main() -> None:
              "machine": f"{platform.machine()} {os.cpu_count()} CPUs", "python": platform.python_version()}  # fmt: skip
     total |= {k: mean[k] for k in SCORES if k in mean.index}
     rows.append(total)
-    fields = list(dict.fromkeys(k for r in rows for k in r))
-    with open(a.csv, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=fields)
-        w.writeheader()
-        w.writerows(rows)
+    write_rows(a.csv, rows)
     print(json.dumps(total, default=str, indent=1))
     if a.work is None:
         shutil.rmtree(work, ignore_errors=True)

@@ -23,22 +23,20 @@ repository root::
 from __future__ import annotations
 
 import argparse
-import csv
 import itertools
 import json
-import os
 import shutil
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import yaml
 
-REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from workflow_run import REPO, run_snakemake, workflow_copy, write_rows  # noqa: E402
+
 TOPS = ("tshirt", "longsleeve", "dress")
 BOTTOMS = ("trousers", "shorts", "skirt")
 PATTERNS = ("stripes", "checker", "dots", "plaid", "plain")
@@ -84,9 +82,7 @@ def describe(spec: dict) -> str:
 
 
 def prepare_workflow(work: Path, subjects: dict[str, dict], tiny: bool, reuse: bool) -> list[str]:
-    for name in ("Snakefile", "rules", "workflow", "config"):
-        src = REPO / name
-        (shutil.copytree if src.is_dir() else shutil.copy)(src, work / name)
+    workflow_copy(work)
     main = yaml.safe_load((work / "config/config.yaml").read_text())
     main["datasets"] = {"synthetic": {"subjects": {n: (s | TINY if tiny else s) for n, s in subjects.items()}}}
     main.setdefault("training", {})["subjects"] = {}  # a new subject has no settings of its own
@@ -117,14 +113,8 @@ def main() -> None:
     work = a.work or Path(tempfile.mkdtemp(prefix="delta-generalization-"))
     work.mkdir(parents=True, exist_ok=True)
     prepare_workflow(work, subjects, a.tiny, a.reuse_builds)
-    cmd = [sys.executable, "-m", "snakemake", "--cores", str(a.cores), "results/synthetic/metrics.csv"]
     print(f"{len(subjects)} subjects:", json.dumps({n: describe(s) for n, s in subjects.items()}, indent=1), flush=True)
-    t0 = time.perf_counter()
-    with open(work / "snakemake.log", "w") as log:
-        res = subprocess.run(cmd, cwd=work, stdout=log, stderr=subprocess.STDOUT,
-                             env={**os.environ, "PYTHONPATH": str(REPO)})  # fmt: skip
-    if res.returncode != 0:
-        sys.exit(f"the workflow failed (exit {res.returncode}); see {work / 'snakemake.log'}")
+    wall = run_snakemake(work, "results/synthetic/metrics.csv", cores=a.cores)
     table = pd.read_csv(work / "results/synthetic/metrics.csv").set_index("subject")
     rows = []
     for name, spec in subjects.items():
@@ -137,7 +127,7 @@ def main() -> None:
         rows.append(row)
     df = pd.DataFrame(rows)
     summary: dict = {"subject": "summary", "description": f"{len(df)} subjects, seed {a.seed}",
-                     "tiny": a.tiny, "wall_s": round(time.perf_counter() - t0, 1)}  # fmt: skip
+                     "tiny": a.tiny, "wall_s": round(wall, 1)}  # fmt: skip
     for col in ("test_view_psnr", "test_view_psnr_refined", "test_pose_psnr", "test_pose_psnr_refined"):
         if col in df:
             summary[f"{col}_mean"] = round(float(df[col].mean()), 2)
@@ -145,11 +135,7 @@ def main() -> None:
             summary[f"{col}_worst"] = f"{df.loc[df[col].idxmin(), 'subject']} {df[col].min():.2f}"
             summary[f"{col}_within_2db_of_best"] = int((df[col] >= df[col].max() - 2).sum())
     rows.append(summary)
-    fields = list(dict.fromkeys(k for r in rows for k in r))
-    with open(a.csv, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=fields)
-        w.writeheader()
-        w.writerows(rows)
+    write_rows(a.csv, rows)
     print(json.dumps(summary, indent=1, default=str))
     if a.work is None:
         shutil.rmtree(work, ignore_errors=True)

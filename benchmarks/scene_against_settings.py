@@ -14,18 +14,16 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import pandas as pd
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from generalization import REPO, SCORES, prepare_workflow  # noqa: E402
+from generalization import SCORES, prepare_workflow  # noqa: E402
+from workflow_run import REPO, run_snakemake  # noqa: E402
 
 
 def main() -> None:
@@ -51,13 +49,7 @@ def main() -> None:
     cfg = yaml.safe_load(cfg_path.read_text())
     cfg["training"]["subjects"] = {n: own[n] for n in names if n in own}  # the configured runs keep theirs
     cfg_path.write_text(yaml.safe_dump(cfg, sort_keys=False))
-    t0 = time.perf_counter()
-    cmd = [sys.executable, "-m", "snakemake", "--cores", str(a.cores), "results/synthetic/metrics.csv"]
-    with open(work / "snakemake.log", "w") as log:
-        res = subprocess.run(cmd, cwd=work, stdout=log, stderr=subprocess.STDOUT,
-                             env={**os.environ, "PYTHONPATH": str(REPO)})  # fmt: skip
-    if res.returncode != 0:
-        sys.exit(f"the workflow failed (exit {res.returncode}); see {work / 'snakemake.log'}")
+    wall = run_snakemake(work, "results/synthetic/metrics.csv", cores=a.cores)
     table = pd.read_csv(work / "results/synthetic/metrics.csv").set_index("subject")
     rows = []
     for name in subjects:
@@ -69,7 +61,7 @@ def main() -> None:
         row |= {k: table.loc[name, k] for k in SCORES if k in table.columns}
         rows.append(row)
     df = pd.DataFrame(rows)
-    df["wall_s"] = round(time.perf_counter() - t0, 1)
+    df["wall_s"] = round(wall, 1)
     df.to_csv(a.csv, index=False)
     print(df.to_string())
 

@@ -1,0 +1,45 @@
+"""What the whole-workflow benchmarks share: a fresh copy of the workflow, one Snakemake command run in it
+with this clone's package, and the CSV they write (``default_target.py``, ``generalization.py``,
+``scene_against_settings.py``)."""
+
+from __future__ import annotations
+
+import csv
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def workflow_copy(work: Path) -> None:
+    """The files a user's clone has that the workflow reads."""
+    for name in ("Snakefile", "rules", "workflow", "config"):
+        src = REPO / name
+        (shutil.copytree if src.is_dir() else shutil.copy)(src, work / name)
+
+
+def run_snakemake(work: Path, *args: str, cores: int = 2) -> float:
+    """``snakemake --cores N ARGS`` in ``work`` (log: ``work/snakemake.log``); its wall seconds. Exits with
+    a message naming the log when the command fails."""
+    cmd = [sys.executable, "-m", "snakemake", "--cores", str(cores), *args]
+    print("running", " ".join(cmd), "in", work, flush=True)
+    t0 = time.perf_counter()
+    with open(work / "snakemake.log", "w") as log:
+        res = subprocess.run(cmd, cwd=work, stdout=log, stderr=subprocess.STDOUT,
+                             env={**os.environ, "PYTHONPATH": str(REPO)})  # fmt: skip
+    if res.returncode != 0:
+        sys.exit(f"the workflow failed (exit {res.returncode}); see {work / 'snakemake.log'}")
+    return time.perf_counter() - t0
+
+
+def write_rows(path: Path, rows: list[dict]) -> None:
+    """Rows of differing keys as one CSV (the union of the keys, in first-seen order)."""
+    fields = list(dict.fromkeys(k for r in rows for k in r))
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields)
+        w.writeheader()
+        w.writerows(rows)
