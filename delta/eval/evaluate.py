@@ -28,7 +28,7 @@ from delta import DeltaError
 from delta import metrics as M
 from delta.body.model import REGION
 from delta.data.frames import load_full_frames
-from delta.eval.geometry import mesh_distance, point_to_surface, vertex_error
+from delta.eval.geometry import mesh_distance, point_to_surface, vertex_error, vertex_errors, visible_vertices
 from delta.eval.heldout import refine_frame
 from delta.export.video import side_by_side
 from delta.geometry.raymesh import ray_mesh_hits
@@ -148,6 +148,19 @@ def gt_body_vertices(meshes_h5: str | Path, frame_ids) -> dict[int, np.ndarray]:
         return {int(i): f["body_vertices"][int(i)] for i in frame_ids}
 
 
+def body_errors(mesh, ref: np.ndarray, keep: np.ndarray, camera) -> dict:
+    """Body vertex error (mm) against the true vertices over the modelled ones (``keep``), and apart over
+    those the frame's camera sees and those it does not (hidden behind the body or outside the image:
+    a view says nothing of them), all under the one centroid alignment of the modelled vertices."""
+    v = mesh.vertices.detach().cpu().numpy()
+    if ref.shape != v.shape:
+        return {"body_err_mm": np.nan, "body_err_visible_mm": np.nan, "body_err_hidden_mm": np.nan}
+    err = 1000 * vertex_errors(v[keep], ref[keep])
+    seen = visible_vertices(mesh.vertices, mesh.faces, camera).numpy()[keep]
+    part = lambda m: float(err[m].mean()) if m.any() else np.nan  # noqa: E731
+    return {"body_err_mm": float(err.mean()), "body_err_visible_mm": part(seen), "body_err_hidden_mm": part(~seen)}
+
+
 def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: str | Path | None = None,
              subject: str = "", worst_dir: str | Path | None = None) -> pd.DataFrame:  # fmt: skip
     """One row per scored (frame, refined); with ``worst_dir``, the ``st.worst`` lowest-PSNR frames of each
@@ -195,9 +208,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
             if refined == passes[-1]:
                 worst.offer(split, row["psnr"], int(data.frame_ids[f]), img["rgb"], full.images[k])
             if gt:
-                ref = gt[int(data.frame_ids[f])]
-                v = mesh.vertices.cpu().numpy()
-                row["body_err_mm"] = 1000 * vertex_error(v[keep], ref[keep]) if ref.shape == v.shape else np.nan
+                row |= body_errors(mesh, gt[int(data.frame_ids[f])], keep, model.camera(f))
             rows.append(row)
         scores = " ".join(f"{k} {v:.3f}" for k, v in rows[-1].items() if k in ("psnr", "ssim", "stlpips_alex"))
         progress.report(k + 1, f"frame {f} ({split}) {scores}")

@@ -19,8 +19,11 @@ import dataclasses
 import itertools
 
 import numpy as np
+import torch
 import trimesh
 from scipy.spatial import cKDTree
+
+from delta.geometry.raymesh import ray_mesh_hits
 
 
 @dataclasses.dataclass
@@ -188,12 +191,12 @@ def point_to_surface(pred: trimesh.Trimesh, ref: trimesh.Trimesh, count: int = 2
     return PointToSurface((acc + comp) / 2, acc, comp)
 
 
-def vertex_error(pred: np.ndarray, ref: np.ndarray, align: str = "centroid") -> float:
-    """Mean per-vertex distance (metres) of two (V, 3) meshes with one topology.
+def vertex_errors(pred: np.ndarray, ref: np.ndarray, align: str = "centroid") -> np.ndarray:
+    """(V,) per-vertex distance (metres) of two (V, 3) meshes with one topology.
 
     ``align``: "none", or "centroid" (translate the prediction's centroid onto the reference's:
     an orthographic camera does not observe depth, and a pinhole camera's depth is only as good
-    as the fitted scale).
+    as the fitted scale). A subset's mean is then taken under the whole body's alignment.
     """
     if pred.shape != ref.shape:
         raise ValueError(f"vertex_error: shapes {pred.shape} and {ref.shape} differ (different topologies)")
@@ -201,4 +204,36 @@ def vertex_error(pred: np.ndarray, ref: np.ndarray, align: str = "centroid") -> 
         pred = pred - pred.mean(0) + ref.mean(0)
     elif align != "none":
         raise ValueError(f"align: {align!r} (expected 'none' or 'centroid')")
-    return float(np.linalg.norm(pred - ref, axis=1).mean())
+    return np.linalg.norm(pred - ref, axis=1)
+
+
+def vertex_error(pred: np.ndarray, ref: np.ndarray, align: str = "centroid") -> float:
+    """Mean per-vertex distance (metres) of two (V, 3) meshes with one topology (:func:`vertex_errors`)."""
+    return float(vertex_errors(pred, ref, align).mean())
+
+
+@torch.no_grad()
+def visible_vertices(vertices: torch.Tensor, faces: torch.Tensor, camera, tol: float = 0.005) -> torch.Tensor:
+    """(V,) bool: the vertices a camera sees: inside its image and first on the ray from the camera to
+    them (no face of the mesh closer than ``tol`` metres before them).
+
+    The ray is the physical one (pinhole: from the camera's centre through the vertex; orthographic:
+    along -z), so lens distortion does not enter.
+    """
+    v = vertices.detach().double()
+    uv, _ = camera.project(v)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
+    if hasattr(camera, "center"):
+        origins = camera.center.double().expand_as(v)
+        dirs = v - origins
+        reach = dirs.norm(dim=-1)
+        dirs = dirs / reach.clamp_min(1e-12)[:, None]
+    else:
+        start = float(v[:, 2].max()) + 1.0
+        origins = torch.cat([v[:, :2], torch.full_like(v[:, :1], start)], dim=-1)
+        dirs = torch.zeros_like(v)
+        dirs[:, 2] = -1.0
+        reach = start - v[:, 2]
+    hits = ray_mesh_hits(v, faces, origins, dirs)
+    first = ~hits.hit | (hits.t >= reach - tol)
+    return (inside & first).cpu()

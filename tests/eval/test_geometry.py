@@ -2,9 +2,11 @@
 
 import numpy as np
 import pytest
+import torch
 import trimesh
 
-from delta.eval.geometry import mesh_distance, vertex_error
+from delta.cameras.models import OrthographicCamera, PinholeCamera, look_at
+from delta.eval.geometry import mesh_distance, vertex_error, vertex_errors, visible_vertices
 
 
 def plane(z, size=1.0, n=20):
@@ -53,3 +55,73 @@ def test_vertex_error_alignment():
     assert vertex_error(moved, v) == pytest.approx(0.0, abs=1e-12)
     with pytest.raises(ValueError, match="topologies"):
         vertex_error(v[:10], v)
+
+
+def _sphere():
+    s = trimesh.creation.icosphere(subdivisions=3)
+    return torch.tensor(s.vertices, dtype=torch.float64), torch.tensor(s.faces, dtype=torch.int64)
+
+
+def test_visible_vertices_of_a_sphere_from_an_orthographic_camera():
+    """Seen along -z, a unit sphere shows its z > 0 half (the rim, |z| < 0.1, is left undecided: the
+    faceted sphere's outline passes through vertices a little behind the equator)."""
+    v, f = _sphere()
+    cam = OrthographicCamera(torch.tensor(0.8), torch.zeros(2), 64, 64)
+    seen = visible_vertices(v, f, cam).numpy()
+    z = v[:, 2].numpy()
+    clear = np.abs(z) > 0.1
+    np.testing.assert_array_equal(seen[clear], z[clear] > 0)
+    # out of the image: nothing is seen
+    far = OrthographicCamera(torch.tensor(0.8), torch.tensor([10.0, 0.0]), 64, 64)
+    assert not visible_vertices(v, f, far).any()
+
+
+def test_visible_vertices_of_a_sphere_from_a_pinhole_camera():
+    """From a centre 5 m along +z, a unit sphere's visible cap is z > 1/5 (the tangent cone's rim)."""
+    v, f = _sphere()
+    R, t = look_at(torch.tensor([0.0, 0, 5]), torch.zeros(3), torch.tensor([0.0, 1, 0]))
+    K = torch.tensor([[200.0, 0, 64], [0, 200, 64], [0, 0, 1]])
+    cam = PinholeCamera(K.double(), R.double(), t.double(), torch.zeros(5, dtype=torch.float64), 128, 128)
+    seen = visible_vertices(v, f, cam).numpy()
+    z = v[:, 2].numpy()
+    clear = np.abs(z - 0.2) > 0.1
+    np.testing.assert_array_equal(seen[clear], z[clear] > 0.2)
+
+
+def test_vertex_errors_of_a_subset_keep_the_whole_alignment():
+    v, _ = _sphere()
+    ref = v.numpy()
+    pred = ref.copy()
+    pred[ref[:, 2] > 0] += [0.0, 0.0, 0.01]  # the front half 1 cm forward
+    e = vertex_errors(pred, ref)
+    front = ref[:, 2] > 0
+    shift = front.mean() * 0.01  # the centroid alignment moves everything back by this much
+    np.testing.assert_allclose(e[front], 0.01 - shift, atol=1e-12)
+    np.testing.assert_allclose(e[~front], shift, atol=1e-12)
+    assert vertex_error(pred, ref) == pytest.approx(e.mean())
+
+
+def test_body_error_apart_over_what_the_view_sees():
+    """A cap of a sphere facing the camera 1 cm off: the error sits on the part the camera sees."""
+    from types import SimpleNamespace
+
+    from delta.eval.evaluate import body_errors
+
+    v, f = _sphere()
+    ref = v.numpy()
+    pred = ref.copy()
+    cap = ref[:, 2] > 0.5
+    pred[cap] += [0.01, 0.0, 0.0]
+    cam = OrthographicCamera(torch.tensor(0.8), torch.zeros(2), 64, 64)
+    out = body_errors(SimpleNamespace(vertices=torch.tensor(pred), faces=f), ref, np.ones(len(ref), bool), cam)
+    # independently: each vertex's error under the centroid alignment, split by the sphere's front (z > 0)
+    err = 1000 * np.linalg.norm(pred - pred.mean(0) + ref.mean(0) - ref, axis=1)
+    assert out["body_err_mm"] == pytest.approx(err.mean())
+    front = ref[:, 2] > 0
+    assert out["body_err_visible_mm"] == pytest.approx(err[front].mean(), abs=0.3)  # the rim may go either way
+    assert out["body_err_hidden_mm"] == pytest.approx(err[~front].mean(), abs=0.3)
+    assert err[front].mean() > err[~front].mean() + 2  # the split matters
+    # an upper-body capture: only the modelled vertices count
+    upper = ref[:, 1] > 0
+    part = body_errors(SimpleNamespace(vertices=torch.tensor(pred), faces=f), ref, upper, cam)
+    assert part["body_err_mm"] == pytest.approx(1000 * vertex_error(pred[upper], ref[upper]))
