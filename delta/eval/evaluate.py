@@ -197,7 +197,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
                    "preset": trained.preset, "background": bg, "image": "full",
                    "resolution": "{}x{}".format(*full.size), "train_resolution": trained.settings.resolution,
                    "supersample": st.supersample}  # fmt: skip
-            if fit:  # the refinement's residual: its loss before and after (training-ray loss, see refine_frame)
+            if fit:  # the refinement's residual: its loss on one fixed probe draw of rays before and after
                 row |= {"refine_loss_start": fit.loss_start, "refine_loss_end": fit.loss_end,
                         "refine_converged": fit.converged}  # fmt: skip
             row |= score_image(img, full.images[k], masks, perceptual)
