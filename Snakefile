@@ -19,6 +19,7 @@ include: "rules/preprocess.smk"
 include: "rules/fitting.smk"
 include: "rules/training.smk"
 include: "rules/eval.smk"
+include: "rules/applications.smk"
 
 
 # the speed/accuracy study, on request: --configfile config/tradeoff.yaml

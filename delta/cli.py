@@ -211,6 +211,15 @@ def cmd_export(args: argparse.Namespace) -> None:
     export_avatar(args.model, args.record, args.body, args.out, st, args.device)
 
 
+def cmd_animate(args: argparse.Namespace) -> None:
+    from delta.applications.animate import animate_avatar
+    from delta.applications.settings import AnimateSettings
+
+    _threads(args.threads)
+    st = settings.from_arguments(AnimateSettings, args, "applications.animate.settings")
+    animate_avatar(args.model, args.record, args.body, args.motion, args.out, st, args.clothing, args.device)
+
+
 def cmd_evaluate(args: argparse.Namespace) -> None:
     from delta.eval.evaluate import (
         EvalSettings,
@@ -460,6 +469,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     p.add_argument("--threads", type=int, default=1)
     p.set_defaults(func=cmd_export)
+
+    from delta.applications.settings import AnimateSettings
+
+    p = sub.add_parser("animate", help="drive a trained avatar with another motion: animation.mp4 (and meshes)")
+    p.add_argument("--model", required=True, help="a stage's model.pt")
+    p.add_argument("--record", required=True, help="the frame record it was trained on")
+    p.add_argument("--body", required=True)
+    p.add_argument(
+        "--motion",
+        required=True,
+        help="an npz: the body model's poses (e.g. another subject's "
+        "init/params.npz) or an AMASS-style SMPL / SMPL+H / SMPL-X archive (docs/applications.md)",
+    )
+    p.add_argument(
+        "--clothing", default=None, help="the export's clothing_nerf_space.ply (posed per frame with --meshes)"
+    )
+    p.add_argument("--out", required=True, help="folder for animation.mp4, animation.json and meshes/")
+    settings.add_arguments(p, AnimateSettings)
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
+    p.add_argument("--threads", type=int, default=1)
+    p.set_defaults(func=cmd_animate)
 
     p = sub.add_parser("evaluate", help="score a trained avatar on the test frames (eval/metrics.csv)")
     p.add_argument("--model", required=True, help="a stage's model.pt")

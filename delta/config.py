@@ -315,6 +315,53 @@ def expand_standins(config: dict) -> dict:
     return config
 
 
+def subject_ref(config: dict, ref: str) -> tuple[str, str] | None:
+    """(dataset, subject) that ``"dataset/subject"`` names, as the workflow knows them (a People Snapshot
+    subject run on its stand-in is ``standin-<name>``); None when it names no configured subject."""
+    dataset, _, subject = str(ref).partition("/")
+    spec = config["datasets"].get(dataset)
+    if spec is None or not subject:
+        return None
+    if subject in spec["subjects"]:
+        return dataset, subject
+    renamed = {real: name for name, real in spec.get("standin_of", {}).items()}
+    return (dataset, renamed[subject]) if subject in renamed else None
+
+
+def motion_source(config: dict, name: str) -> tuple[str, str] | str:
+    """Where the configured motion ``name`` comes from: (dataset, subject) of a subject whose fitted motion
+    it is, or the path of a motion file."""
+    source = config["applications"]["motions"][name]
+    return subject_ref(config, source) or source
+
+
+def animations(config: dict) -> list[tuple[str, str, str]]:
+    """(dataset, subject, motion) of every configured animation."""
+    out = []
+    for avatar, motions in config["applications"]["animate"]["avatars"].items():
+        dataset, subject = subject_ref(config, avatar)
+        out += [(dataset, subject, m) for m in motions]
+    return out
+
+
+def _check_applications(config: dict, base: Path) -> list[str]:
+    apps, out = config["applications"], []
+    for name, source in apps["motions"].items():
+        key = f"config key 'applications.motions.{name}'"
+        if not SAFE_NAME.match(name):
+            out.append(f"{key}: motion name {name!r} is not allowed (it names a folder: letters, digits, '_' and '-')")
+        elif subject_ref(config, source) is None and not (base / source).is_file():
+            out.append(f"{key}: {source!r} is neither a configured 'dataset/subject' nor a motion file (npz)")
+    for avatar, motions in apps["animate"]["avatars"].items():
+        key = f"config key 'applications.animate.avatars.{avatar}'"
+        if subject_ref(config, avatar) is None:
+            out.append(f"{key}: {avatar!r} names no configured subject (expected 'dataset/subject')")
+        unknown = [m for m in motions if m not in apps["motions"]]
+        if unknown:
+            out.append(f"{key}: motion(s) {unknown} are not in applications.motions ({sorted(apps['motions'])})")
+    return out
+
+
 def data_source(config: dict, dataset: str) -> str:
     """What a dataset's figures were measured on, for the ``source`` column of its metrics."""
     spec = config["datasets"][dataset]
@@ -342,6 +389,7 @@ def validate_workflow_config(config: dict, schema_path: str | os.PathLike = DEFA
         problems += _check_settings(config)
         generated = set(generated_roots) | ({SYNTHETIC_PEOPLESNAPSHOT_ROOT} if config["standins"] else set())
         problems += _check_frame_ranges(config, Path(base_dir), generated)
+        problems += _check_applications(config, Path(base_dir))
     if device:
         try:
             check_device(config["device"])

@@ -4,6 +4,7 @@ import shlex
 from pathlib import Path
 
 from delta.config import SYNTHETIC_PEOPLESNAPSHOT_ROOT, check_device, data_source
+from delta.config import animations, motion_source
 from delta.config import subject_training as _subject_training
 from delta.config import validate_workflow_config
 from delta.config import variant_training as _variant_training
@@ -37,6 +38,7 @@ wildcard_constraints:
     dataset="[A-Za-z0-9_-]+",
     stage="[12]",
     variant="[A-Za-z0-9_.-]+",
+    motion="[A-Za-z0-9_-]+",
 
 
 # ------------------------------------------------------------------ paths
@@ -79,6 +81,9 @@ PATHS = {
     "novel_pose": "results/{dataset}/{subject}/export/novel_pose.mp4",
     "sidebyside": "results/{dataset}/{subject}/export/sidebyside",
     "dataset_metrics": "results/{dataset}/metrics.csv",
+    "animate_dir": "results/{dataset}/{subject}/animate/{motion}",
+    "animation": "results/{dataset}/{subject}/animate/{motion}/animation.mp4",
+    "animation_json": "results/{dataset}/{subject}/animate/{motion}/animation.json",
     "perceptual_vgg": f"{config['training']['perceptual_dir']}/vgg_shift_tolerant.pth",
     "perceptual_alex": f"{config['training']['perceptual_dir']}/alex_shift_tolerant.pth",
     "log": "logs/{rule}/{name}.log",
@@ -356,6 +361,7 @@ def all_targets():
         + synthetic_targets()
         + record_targets()
         + dataset_metrics_targets()
+        + animation_targets()
     )
 
 
@@ -482,6 +488,38 @@ def aggregate_benchmarks(wildcards, input):
     pairs = [f"{s}/stage1={b}" for s, b in zip(subjects, input.bench1)]
     pairs += [f"{s}/stage2={b}" for s, b in zip(subjects, input.bench2)]
     return pairs
+
+
+def animation_targets():
+    return [
+        PATHS["animation"].format(dataset=d, subject=s, motion=m)
+        for d, s, m in animations(config)
+    ]
+
+
+ANIMATE = config["applications"]["animate"]["settings"]
+
+
+def animate_inputs(wildcards):
+    """The avatar, the motion (a file, or another subject's fit) and, when meshes are written, the export
+    whose clothing surface is posed."""
+    files = trained_inputs(wildcards)
+    source = motion_source(config, wildcards.motion)
+    if isinstance(source, tuple):
+        files["motion"] = PATHS["init_params"].format(
+            dataset=source[0], subject=source[1]
+        )
+    else:
+        files["motion"] = source
+    if ANIMATE["meshes"]:
+        files["export"] = PATHS["export_json"].format(**wildcards)
+    return files
+
+
+def animate_clothing(wildcards, input):
+    if "export" not in input.keys():
+        return []
+    return ["--clothing", str(Path(input.export).parent / "clothing_nerf_space.ply")]
 
 
 def dataset_metrics_targets():

@@ -28,6 +28,7 @@ REPO = Path(__file__).resolve().parents[1]
 #: * the stages follow the workflow: a capture's frame record is made (``preprocess``, or the
 #:   ``synthetic`` generator), the body is fitted, the avatar trained, exported, then evaluated
 #:   (evaluation scores the exported clothing mesh, and loads the trained model as training left it);
+#:   the applications use the trained avatar (and its exports);
 #: * on top, the entry points: the workflow configuration's validation (it resolves presets and fit
 #:   settings), then the configuration reference generated from its schema, and the command line.
 LAYERS: tuple[tuple[str, ...], ...] = (
@@ -43,6 +44,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("delta.training",),
     ("delta.export",),
     ("delta.eval",),
+    ("delta.applications",),  # the trained avatar in use: driven by new motion
     ("delta.config",),
     ("delta.config_reference", "delta.cli"),
 )

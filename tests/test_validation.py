@@ -49,6 +49,11 @@ def video(path: Path, frames: int, size: int = 32) -> Path:
     ({"evaluation": {"supersample": 100}}, "'evaluation.supersample': 100 is greater than the maximum"),
     ({"fitting": {"subjects": {"nobody": {}}}}, "'fitting.subjects.nobody': not a configured subject"),
     ({"tradeoff": {"variants": {"v": {"stage1": {"rays": -1}}}}}, "tradeoff.variants.v (subject 'tight')"),
+    ({"applications": {"motions": {"m": "synthetic/bob"}}}, "'synthetic/bob' is neither a configured 'dataset/subject' nor a motion file"),
+    ({"applications": {"motions": {"a/b": "synthetic/tight"}}}, "motion name 'a/b' is not allowed"),
+    ({"applications": {"animate": {"avatars": {"synthetic/bob": []}}}}, "'synthetic/bob' names no configured subject"),
+    ({"applications": {"animate": {"avatars": {"synthetic/tight": ["walk"]}}}}, "motion(s) ['walk'] are not in applications.motions"),
+    ({"applications": {"animate": {"settings": {"fps": 0}}}}, "applications.animate.settings.fps"),
 ])  # fmt: skip
 def test_each_mistake_is_named(cfg, expected):
     cfg = {"datasets": SYN, **cfg} if "datasets" not in cfg else cfg
@@ -100,6 +105,22 @@ def test_a_partial_people_snapshot_copy_names_the_missing_file_and_where(tmp_pat
     msg = problems(cfg, tmp_path)
     assert f"People Snapshot subject 'male-3-casual' lacks ['{skip}'] in {tmp_path / 'ps' / 'male-3-casual'}" in msg
     assert "leave root empty for the synthetic stand-in" in msg
+
+
+def test_animations_name_subjects_by_their_configured_names(tmp_path):
+    """A People Snapshot subject run on its stand-in is still named by its real name; a motion file is a path."""
+    from delta.config import animations, motion_source
+
+    (tmp_path / "walk.npz").write_bytes(b"")
+    cfg = validate_workflow_config({"datasets": {**SYN, "peoplesnapshot": {"kind": "peoplesnapshot", "subjects": {"male-3-casual": {}}}},
+                                    "applications": {"motions": {"theirs": "peoplesnapshot/male-3-casual", "walk": "walk.npz"},
+                                                     "animate": {"avatars": {"synthetic/tight": ["theirs", "walk"],
+                                                                             "peoplesnapshot/male-3-casual": ["walk"]}}}},
+                                   SCHEMA, base_dir=tmp_path)  # fmt: skip
+    assert motion_source(cfg, "theirs") == ("peoplesnapshot", "standin-male-3-casual")
+    assert motion_source(cfg, "walk") == "walk.npz"
+    assert animations(cfg) == [("synthetic", "tight", "theirs"), ("synthetic", "tight", "walk"),
+                               ("peoplesnapshot", "standin-male-3-casual", "walk")]  # fmt: skip
 
 
 def test_without_a_copy_people_snapshot_is_its_stand_in():

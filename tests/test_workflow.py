@@ -50,6 +50,10 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
     main["datasets"]["peoplesnapshot"]["subjects"] = {"male-3-casual": {}}
     for name in ("upper", "tight"):
         del main["datasets"]["synthetic"]["subjects"][name]
+    # the stand-in's avatar driven by the synthetic subject's fitted motion (across datasets, by the real name)
+    main["applications"] = {"motions": {"loose-motion": "synthetic/loose"},
+                            "animate": {"avatars": {"peoplesnapshot/male-3-casual": ["loose-motion"]},
+                                        "settings": {"max_frames": 3, "meshes": True}}}  # fmt: skip
     (work / "config/config.yaml").write_text(yaml.safe_dump(main))
     cfg = yaml.safe_load((work / ".test/config/config.yaml").read_text())
     for name in ("upper", "tight"):
@@ -135,6 +139,15 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
             assert (video.get(cv2.CAP_PROP_FRAME_WIDTH), video.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (size, size)
             video.release()
             assert (out / "stage1" / "losses.png").is_file() and (out / "stage2" / "losses.png").is_file()
+    # the application: the stand-in's avatar in the loose subject's motion, whole frames, posed meshes
+    animated = work / "results/peoplesnapshot" / STANDIN / "animate/loose-motion"
+    about = json.loads((animated / "animation.json").read_text())
+    assert about["frames"] == 3 and about["motion_kind"] == "body model" and about["resolution"] == "32x32"
+    video = cv2.VideoCapture(str(animated / "animation.mp4"))
+    assert video.get(cv2.CAP_PROP_FRAME_COUNT) == 3 and video.get(cv2.CAP_PROP_FRAME_WIDTH) == 32
+    video.release()
+    assert len(list((animated / "meshes").glob("body_*.ply"))) == 3
+    assert (work / "logs/animate" / f"peoplesnapshot_{STANDIN}_loose-motion.log").is_file()
     synthetic = pd.read_csv(work / "results/synthetic/metrics.csv")
     assert synthetic["train_body_err_mm"].notna().all()  # ground truth: geometry columns
     ps = pd.read_csv(work / "results/peoplesnapshot/metrics.csv")
@@ -147,7 +160,7 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
     report = snakemake(work, "--configfile", ".test/config/ci.yaml", "--report", "report.html")
     assert report.returncode == 0, report.stdout[-3000:] + report.stderr[-3000:]
     html = (work / "report.html").read_text(errors="replace")
-    for category in ("Metrics", "Renders", "Training", "Videos"):
+    for category in ("Metrics", "Renders", "Training", "Videos", "Applications"):
         assert category in html, category
     assert "synthetic stand-ins" in html and "datasets.peoplesnapshot.root" in html  # said once, with the line
     # a rerun has nothing to do

@@ -41,16 +41,20 @@ def turned_params(root_pose: torch.Tensor, transl: torch.Tensor, root_joint: tor
 
 
 @contextlib.contextmanager
-def frame_params(model: HybridAvatar, frame: int, root_pose: torch.Tensor, transl: torch.Tensor) -> Iterator[None]:
-    """Temporarily give ``frame`` another root rotation and translation (restored on exit)."""
-    old_pose, old_t = model.poses.data[frame, 0].clone(), model.transl.data[frame].clone()
+def posed_as(model: HybridAvatar, frame: int, pose: torch.Tensor, transl: torch.Tensor,
+             timeless: bool = False) -> Iterator[None]:  # fmt: skip
+    """Temporarily give ``frame`` another pose (J, 3) and translation (3,) (restored on exit);
+    ``timeless``: the frame also leaves the training sequence, so stage 2's F_e gets no time code
+    (a pose the capture never held)."""
+    old = model.poses.data[frame].clone(), model.transl.data[frame].clone(), model.frame_time[frame].clone()
     try:
-        model.poses.data[frame, 0] = root_pose
+        model.poses.data[frame] = pose
         model.transl.data[frame] = transl
+        if timeless:
+            model.frame_time[frame] = float("nan")
         yield
     finally:
-        model.poses.data[frame, 0] = old_pose
-        model.transl.data[frame] = old_t
+        model.poses.data[frame], model.transl.data[frame], model.frame_time[frame] = old
 
 
 @contextlib.contextmanager
@@ -125,7 +129,7 @@ def _turntable(model: HybridAvatar, frame: int, count: int, view: View | None) -
     pose, transl = model.poses[frame, root], model.transl[frame]
     for k in range(count):
         new_pose, new_t = turned_params(pose, transl, root_joint, centre, 2 * math.pi * k / count)
-        with frame_params(model, frame, new_pose, new_t):
+        with posed_as(model, frame, torch.cat([new_pose[None], model.poses[frame, 1:]]), new_t):
             yield to_bgr(render_image(model, frame, view=view, soft_silhouette=False)["rgb"])
 
 

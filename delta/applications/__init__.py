@@ -1,0 +1,1 @@
+"""The trained avatar in use: driven by new motion (docs/applications.md)."""

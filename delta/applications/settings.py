@@ -1,0 +1,31 @@
+"""How a trained avatar is driven by a motion (config group ``applications.animate.settings``)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+from delta.settings import check
+
+_f = dataclasses.field
+
+
+@dataclasses.dataclass
+class AnimateSettings:
+    """An avatar driven by another motion (results/{dataset}/{subject}/animate/{motion}/).
+
+    The config section ``applications.animate.settings`` and the options of ``delta animate`` are
+    generated from these fields.
+    """
+
+    fps: float = _f(default=12.0, metadata={"exclusive_minimum": 0})
+    """Frame rate of the video: the motion is sampled at this rate (never faster than its own)."""
+    max_frames: int = _f(default=48, metadata={"minimum": 0})
+    """At most this many frames of the motion, from its start (0: all of it)."""
+    anchor: int = _f(default=-1, metadata={"minimum": -1})
+    """The capture's frame (a row of its record) whose camera, place and heading the motion starts from
+    (-1: the first training frame)."""
+    meshes: bool = False
+    """Also write the posed body and clothing meshes of every frame (meshes/body_00000.ply, ...)."""
+
+    def __post_init__(self) -> None:
+        check(self, "applications.animate.settings")

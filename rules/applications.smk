@@ -1,0 +1,34 @@
+# The trained avatars in use (docs/applications.md): driven by another motion.
+
+
+rule animate:
+    input:
+        unpack(animate_inputs),
+    output:
+        video=report(
+            PATHS["animation"],
+            caption="../workflow/report/animation.rst",
+            category="Applications",
+            subcategory="{dataset} {subject}",
+            labels={"subject": "{subject}", "motion": "{motion}"},
+        ),
+        summary=PATHS["animation_json"],
+    log:
+        log_path("animate", "{dataset}_{subject}_{motion}"),
+    benchmark:
+        benchmark_path("animate", "{dataset}_{subject}_{motion}")
+    conda:
+        "../workflow/envs/delta.yaml"
+    threads: 2
+    resources:
+        mem_mb=lambda w, attempt: _grow(3000, attempt),
+        runtime=lambda w, attempt: 30 * attempt,
+    params:
+        out=lambda w: PATHS["animate_dir"].format(**w),
+        clothing=animate_clothing,
+        settings=json.dumps(ANIMATE, sort_keys=True),
+        device=config["device"],
+    shell:
+        "delta animate --model {input.model:q} --record {input.record:q} --body {input.body:q}"
+        " --motion {input.motion:q} {params.clothing:q} --out {params.out:q} --settings {params.settings:q}"
+        " --device {params.device:q} --threads {threads} > {log:q} 2>&1"
