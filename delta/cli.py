@@ -220,6 +220,15 @@ def cmd_animate(args: argparse.Namespace) -> None:
     animate_avatar(args.model, args.record, args.body, args.motion, args.out, st, args.clothing, args.device)
 
 
+def cmd_dress(args: argparse.Namespace) -> None:
+    from delta.applications.dress import dress_avatar
+    from delta.applications.settings import DressSettings
+
+    _threads(args.threads)
+    st = settings.from_arguments(DressSettings, args, "applications.dress.settings")
+    dress_avatar(args.model, args.record, args.wearer_model, args.wearer_record, args.body, args.out, st, args.device)
+
+
 def cmd_evaluate(args: argparse.Namespace) -> None:
     from delta.eval.evaluate import (
         EvalSettings,
@@ -470,7 +479,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=1)
     p.set_defaults(func=cmd_export)
 
-    from delta.applications.settings import AnimateSettings
+    from delta.applications.settings import AnimateSettings, DressSettings
 
     p = sub.add_parser("animate", help="drive a trained avatar with another motion: animation.mp4 (and meshes)")
     p.add_argument("--model", required=True, help="a stage's model.pt")
@@ -490,6 +499,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     p.add_argument("--threads", type=int, default=1)
     p.set_defaults(func=cmd_animate)
+
+    p = sub.add_parser("dress", help="put one avatar's exterior (clothing, hair) on another avatar's body")
+    p.add_argument("--model", required=True, help="the body avatar: a stage's model.pt")
+    p.add_argument("--record", required=True, help="the frame record the body avatar was trained on")
+    p.add_argument("--wearer-model", required=True, help="the avatar whose exterior is put on: a stage's model.pt")
+    p.add_argument("--wearer-record", required=True, help="the frame record the wearer was trained on")
+    p.add_argument("--body", required=True, help="the body model both avatars are built on")
+    p.add_argument("--out", required=True, help="folder for dressed.png, turntable.mp4 and dress.json")
+    settings.add_arguments(p, DressSettings)
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
+    p.add_argument("--threads", type=int, default=1)
+    p.set_defaults(func=cmd_dress)
 
     p = sub.add_parser("evaluate", help="score a trained avatar on the test frames (eval/metrics.csv)")
     p.add_argument("--model", required=True, help="a stage's model.pt")

@@ -335,12 +335,22 @@ def motion_source(config: dict, name: str) -> tuple[str, str] | str:
     return subject_ref(config, source) or source
 
 
-def animations(config: dict) -> list[tuple[str, str, str]]:
-    """(dataset, subject, motion) of every configured animation."""
+def exterior_source(config: dict, name: str) -> tuple[str, str]:
+    """(dataset, subject) of the avatar whose exterior the configured exterior ``name`` is."""
+    return subject_ref(config, config["applications"]["exteriors"][name])
+
+
+#: Each application: the config key of the names its avatars take (motions, exteriors).
+APPLICATIONS = {"animate": "motions", "dress": "exteriors"}
+
+
+def application_jobs(config: dict, application: str) -> list[tuple[str, str, str]]:
+    """(dataset, subject, name) of every configured job of ``application`` ("animate": name is a motion,
+    "dress": an exterior)."""
     out = []
-    for avatar, motions in config["applications"]["animate"]["avatars"].items():
+    for avatar, names in config["applications"][application]["avatars"].items():
         dataset, subject = subject_ref(config, avatar)
-        out += [(dataset, subject, m) for m in motions]
+        out += [(dataset, subject, m) for m in names]
     return out
 
 
@@ -352,13 +362,20 @@ def _check_applications(config: dict, base: Path) -> list[str]:
             out.append(f"{key}: motion name {name!r} is not allowed (it names a folder: letters, digits, '_' and '-')")
         elif subject_ref(config, source) is None and not (base / source).is_file():
             out.append(f"{key}: {source!r} is neither a configured 'dataset/subject' nor a motion file (npz)")
-    for avatar, motions in apps["animate"]["avatars"].items():
-        key = f"config key 'applications.animate.avatars.{avatar}'"
-        if subject_ref(config, avatar) is None:
-            out.append(f"{key}: {avatar!r} names no configured subject (expected 'dataset/subject')")
-        unknown = [m for m in motions if m not in apps["motions"]]
-        if unknown:
-            out.append(f"{key}: motion(s) {unknown} are not in applications.motions ({sorted(apps['motions'])})")
+    for name, source in apps["exteriors"].items():
+        key = f"config key 'applications.exteriors.{name}'"
+        if not SAFE_NAME.match(name):
+            out.append(f"{key}: exterior name {name!r} is not allowed (it names a folder: letters, digits, '_' and '-')")
+        elif subject_ref(config, source) is None:
+            out.append(f"{key}: {source!r} names no configured subject (expected 'dataset/subject')")
+    for app, names_key in APPLICATIONS.items():
+        for avatar, names in apps[app]["avatars"].items():
+            key = f"config key 'applications.{app}.avatars.{avatar}'"
+            if subject_ref(config, avatar) is None:
+                out.append(f"{key}: {avatar!r} names no configured subject (expected 'dataset/subject')")
+            unknown = [m for m in names if m not in apps[names_key]]
+            if unknown:
+                out.append(f"{key}: {names_key} {unknown} are not in applications.{names_key} ({sorted(apps[names_key])})")
     return out
 
 

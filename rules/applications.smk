@@ -32,3 +32,46 @@ rule animate:
         "delta animate --model {input.model:q} --record {input.record:q} --body {input.body:q}"
         " --motion {input.motion:q} {params.clothing:q} --out {params.out:q} --settings {params.settings:q}"
         " --device {params.device:q} --threads {threads} > {log:q} 2>&1"
+
+
+rule dress:
+    input:
+        unpack(dress_inputs),
+    output:
+        dressed=report(
+            PATHS["dressed"],
+            caption="../workflow/report/dressed.rst",
+            category="Applications",
+            subcategory="{dataset} {subject}",
+            labels={"subject": "{subject}", "wears": "{exterior}", "view": "frame"},
+        ),
+        turntable=report(
+            PATHS["dressed_turntable"],
+            caption="../workflow/report/dressed.rst",
+            category="Applications",
+            subcategory="{dataset} {subject}",
+            labels={
+                "subject": "{subject}",
+                "wears": "{exterior}",
+                "view": "turntable",
+            },
+        ),
+        summary=PATHS["dress_json"],
+    log:
+        log_path("dress", "{dataset}_{subject}_{exterior}"),
+    benchmark:
+        benchmark_path("dress", "{dataset}_{subject}_{exterior}")
+    conda:
+        "../workflow/envs/delta.yaml"
+    threads: 2
+    resources:
+        mem_mb=lambda w, attempt: _grow(4000, attempt),
+        runtime=lambda w, attempt: 20 * attempt,
+    params:
+        out=lambda w: PATHS["dress_dir"].format(**w),
+        settings=json.dumps(DRESS, sort_keys=True),
+        device=config["device"],
+    shell:
+        "delta dress --model {input.model:q} --record {input.record:q} --wearer-model {input.wearer_model:q}"
+        " --wearer-record {input.wearer_record:q} --body {input.body:q} --out {params.out:q}"
+        " --settings {params.settings:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"

@@ -4,7 +4,7 @@ import shlex
 from pathlib import Path
 
 from delta.config import SYNTHETIC_PEOPLESNAPSHOT_ROOT, check_device, data_source
-from delta.config import animations, motion_source
+from delta.config import application_jobs, exterior_source, motion_source
 from delta.config import subject_training as _subject_training
 from delta.config import validate_workflow_config
 from delta.config import variant_training as _variant_training
@@ -39,6 +39,7 @@ wildcard_constraints:
     stage="[12]",
     variant="[A-Za-z0-9_.-]+",
     motion="[A-Za-z0-9_-]+",
+    exterior="[A-Za-z0-9_-]+",
 
 
 # ------------------------------------------------------------------ paths
@@ -84,6 +85,10 @@ PATHS = {
     "animate_dir": "results/{dataset}/{subject}/animate/{motion}",
     "animation": "results/{dataset}/{subject}/animate/{motion}/animation.mp4",
     "animation_json": "results/{dataset}/{subject}/animate/{motion}/animation.json",
+    "dress_dir": "results/{dataset}/{subject}/dress/{exterior}",
+    "dressed": "results/{dataset}/{subject}/dress/{exterior}/dressed.png",
+    "dressed_turntable": "results/{dataset}/{subject}/dress/{exterior}/turntable.mp4",
+    "dress_json": "results/{dataset}/{subject}/dress/{exterior}/dress.json",
     "perceptual_vgg": f"{config['training']['perceptual_dir']}/vgg_shift_tolerant.pth",
     "perceptual_alex": f"{config['training']['perceptual_dir']}/alex_shift_tolerant.pth",
     "log": "logs/{rule}/{name}.log",
@@ -361,7 +366,7 @@ def all_targets():
         + synthetic_targets()
         + record_targets()
         + dataset_metrics_targets()
-        + animation_targets()
+        + application_targets()
     )
 
 
@@ -490,10 +495,13 @@ def aggregate_benchmarks(wildcards, input):
     return pairs
 
 
-def animation_targets():
+def application_targets():
     return [
         PATHS["animation"].format(dataset=d, subject=s, motion=m)
-        for d, s, m in animations(config)
+        for d, s, m in application_jobs(config, "animate")
+    ] + [
+        PATHS["dressed"].format(dataset=d, subject=s, exterior=e)
+        for d, s, e in application_jobs(config, "dress")
     ]
 
 
@@ -514,6 +522,19 @@ def animate_inputs(wildcards):
     if ANIMATE["meshes"]:
         files["export"] = PATHS["export_json"].format(**wildcards)
     return files
+
+
+DRESS = config["applications"]["dress"]["settings"]
+
+
+def dress_inputs(wildcards):
+    """The body avatar and the avatar whose exterior it wears."""
+    dataset, subject = exterior_source(config, wildcards.exterior)
+    theirs = {"dataset": dataset, "subject": subject}
+    return trained_inputs(wildcards) | {
+        "wearer_model": PATHS["stage_model"].format(stage=EVAL["stage"], **theirs),
+        "wearer_record": PATHS["record"].format(**theirs),
+    }
 
 
 def animate_clothing(wildcards, input):

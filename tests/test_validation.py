@@ -52,8 +52,10 @@ def video(path: Path, frames: int, size: int = 32) -> Path:
     ({"applications": {"motions": {"m": "synthetic/bob"}}}, "'synthetic/bob' is neither a configured 'dataset/subject' nor a motion file"),
     ({"applications": {"motions": {"a/b": "synthetic/tight"}}}, "motion name 'a/b' is not allowed"),
     ({"applications": {"animate": {"avatars": {"synthetic/bob": []}}}}, "'synthetic/bob' names no configured subject"),
-    ({"applications": {"animate": {"avatars": {"synthetic/tight": ["walk"]}}}}, "motion(s) ['walk'] are not in applications.motions"),
+    ({"applications": {"animate": {"avatars": {"synthetic/tight": ["walk"]}}}}, "motions ['walk'] are not in applications.motions"),
     ({"applications": {"animate": {"settings": {"fps": 0}}}}, "applications.animate.settings.fps"),
+    ({"applications": {"exteriors": {"e": "synthetic/bob"}}}, "'applications.exteriors.e': 'synthetic/bob' names no configured subject"),
+    ({"applications": {"dress": {"avatars": {"synthetic/tight": ["e"]}}}}, "exteriors ['e'] are not in applications.exteriors"),
 ])  # fmt: skip
 def test_each_mistake_is_named(cfg, expected):
     cfg = {"datasets": SYN, **cfg} if "datasets" not in cfg else cfg
@@ -109,18 +111,22 @@ def test_a_partial_people_snapshot_copy_names_the_missing_file_and_where(tmp_pat
 
 def test_animations_name_subjects_by_their_configured_names(tmp_path):
     """A People Snapshot subject run on its stand-in is still named by its real name; a motion file is a path."""
-    from delta.config import animations, motion_source
+    from delta.config import application_jobs, exterior_source, motion_source
 
     (tmp_path / "walk.npz").write_bytes(b"")
     cfg = validate_workflow_config({"datasets": {**SYN, "peoplesnapshot": {"kind": "peoplesnapshot", "subjects": {"male-3-casual": {}}}},
                                     "applications": {"motions": {"theirs": "peoplesnapshot/male-3-casual", "walk": "walk.npz"},
                                                      "animate": {"avatars": {"synthetic/tight": ["theirs", "walk"],
-                                                                             "peoplesnapshot/male-3-casual": ["walk"]}}}},
+                                                                             "peoplesnapshot/male-3-casual": ["walk"]}},
+                                                     "exteriors": {"jeans": "peoplesnapshot/male-3-casual"},
+                                                     "dress": {"avatars": {"synthetic/tight": ["jeans"]}}}},
                                    SCHEMA, base_dir=tmp_path)  # fmt: skip
     assert motion_source(cfg, "theirs") == ("peoplesnapshot", "standin-male-3-casual")
     assert motion_source(cfg, "walk") == "walk.npz"
-    assert animations(cfg) == [("synthetic", "tight", "theirs"), ("synthetic", "tight", "walk"),
-                               ("peoplesnapshot", "standin-male-3-casual", "walk")]  # fmt: skip
+    assert application_jobs(cfg, "animate") == [("synthetic", "tight", "theirs"), ("synthetic", "tight", "walk"),
+                                                ("peoplesnapshot", "standin-male-3-casual", "walk")]  # fmt: skip
+    assert exterior_source(cfg, "jeans") == ("peoplesnapshot", "standin-male-3-casual")
+    assert application_jobs(cfg, "dress") == [("synthetic", "tight", "jeans")]
 
 
 def test_without_a_copy_people_snapshot_is_its_stand_in():

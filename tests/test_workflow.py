@@ -50,10 +50,14 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
     main["datasets"]["peoplesnapshot"]["subjects"] = {"male-3-casual": {}}
     for name in ("upper", "tight"):
         del main["datasets"]["synthetic"]["subjects"][name]
-    # the stand-in's avatar driven by the synthetic subject's fitted motion (across datasets, by the real name)
+    # the stand-in's avatar driven by the synthetic subject's fitted motion and wearing its dress and hair
+    # (across datasets, by the real name)
     main["applications"] = {"motions": {"loose-motion": "synthetic/loose"},
                             "animate": {"avatars": {"peoplesnapshot/male-3-casual": ["loose-motion"]},
-                                        "settings": {"max_frames": 3, "meshes": True}}}  # fmt: skip
+                                        "settings": {"max_frames": 3, "meshes": True}},
+                            "exteriors": {"loose-dress": "synthetic/loose"},
+                            "dress": {"avatars": {"peoplesnapshot/male-3-casual": ["loose-dress"]},
+                                      "settings": {"turntable_frames": 2}}}  # fmt: skip
     (work / "config/config.yaml").write_text(yaml.safe_dump(main))
     cfg = yaml.safe_load((work / ".test/config/config.yaml").read_text())
     for name in ("upper", "tight"):
@@ -148,6 +152,9 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
     video.release()
     assert len(list((animated / "meshes").glob("body_*.ply"))) == 3
     assert (work / "logs/animate" / f"peoplesnapshot_{STANDIN}_loose-motion.log").is_file()
+    dressed = work / "results/peoplesnapshot" / STANDIN / "dress/loose-dress"
+    assert cv2.imread(str(dressed / "dressed.png")).shape == (32, 3 * 32, 3)
+    assert json.loads((dressed / "dress.json").read_text())["turntable_frames"] == 2
     synthetic = pd.read_csv(work / "results/synthetic/metrics.csv")
     assert synthetic["train_body_err_mm"].notna().all()  # ground truth: geometry columns
     ps = pd.read_csv(work / "results/peoplesnapshot/metrics.csv")

@@ -29,3 +29,20 @@ class AnimateSettings:
 
     def __post_init__(self) -> None:
         check(self, "applications.animate.settings")
+
+
+@dataclasses.dataclass
+class DressSettings:
+    """An avatar wearing another avatar's exterior (results/{dataset}/{subject}/dress/{exterior}/).
+
+    The config section ``applications.dress.settings`` and the options of ``delta dress`` are generated
+    from these fields.
+    """
+
+    turntable_frames: int = _f(default=12, metadata={"minimum": 2, "maximum": 720})
+    """Frames of the dressed avatar's turntable (one full turn)."""
+    fps: int = _f(default=12, metadata={"minimum": 1, "maximum": 120})
+    """Frame rate of the turntable."""
+
+    def __post_init__(self) -> None:
+        check(self, "applications.dress.settings")

@@ -1,0 +1,109 @@
+"""Entry point of ``delta dress``: one avatar's exterior (clothing or hair) put on another avatar's body.
+
+Why this works without a correspondence step: both avatars are built on the same body model, and each
+exterior NeRF lives in that model's canonical space at mean shape. A posed avatar reaches it by
+backward skinning over its *own* posed vertices: a point near the body takes the skinning of its
+nearest body vertices and undoes their shape displacement (``delta.deformers.knn``). Give avatar B the
+exterior of avatar A and B's renderer carries A's garment through B's shape and B's pose: a broader
+body moves the garment's canonical points outward with the body vertices under them, so the garment
+neither tears nor floats. What the body model's template does not explain (A's garment shaped around
+A's own offsets) travels as it is.
+
+What can be carried: A's exterior must lie within what B models. An upper-body capture's exterior
+(hair, a shirt) goes onto a full body; a full-body exterior onto an upper-body avatar is refused (its
+hips and legs have nothing to follow). A without an exterior has nothing to give; B without one
+simply gains A's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from delta import DeltaError
+from delta.applications.settings import DressSettings
+from delta.data.frames import load_full_frames
+from delta.export.video import to_bgr, turntable, write_video
+from delta.io import atomic_path, save_json
+from delta.models.avatar import HybridAvatar
+from delta.models.image import full_view, render_image
+from delta.progress import Progress
+from delta.training.run import load_trained
+
+log = logging.getLogger(__name__)
+
+
+def check_wearable(body: HybridAvatar, wearer: HybridAvatar) -> None:
+    """Raise a DeltaError naming why ``wearer``'s exterior cannot go onto ``body``."""
+    if wearer.nerf is None:
+        raise DeltaError("the wearer avatar has no exterior (no clothing or hair was modelled): nothing to put on")
+    if body.body.num_vertices != wearer.body.num_vertices or not torch.equal(body.body.faces.cpu(), wearer.body.faces.cpu()):
+        raise DeltaError(f"the avatars are built on different body models ({body.body.name}, {wearer.body.name}): "
+                         "an exterior moves between avatars of the same body model only")  # fmt: skip
+    uncovered = wearer.modelled & ~body.modelled
+    if bool(uncovered.any()):
+        raise DeltaError(f"the wearer's exterior covers a '{wearer.spec.capture}' capture, the body models only "
+                         f"'{body.spec.capture}': {int(uncovered.sum())} body vertices the exterior follows are not "
+                         "modelled on it (an upper-body exterior goes onto a full body, not the reverse)")  # fmt: skip
+
+
+def put_on(body: HybridAvatar, wearer: HybridAvatar) -> None:
+    """Give ``body`` the exterior of ``wearer`` in place: its NeRF, its F_e and occupancy grid, and the render
+    settings that reach them. ``body``'s frames leave the training sequence of F_e (no time code)."""
+    check_wearable(body, wearer)
+    dev = body.canonical_vertices.device
+    body.nerf = wearer.nerf.to(dev)
+    body.deformation = wearer.deformation.to(dev) if wearer.deformation is not None else None
+    body.occupancy = wearer.occupancy.to(dev) if wearer.occupancy is not None else None
+    w = wearer.spec
+    body.spec = dataclasses.replace(body.spec, nerf=w.nerf, deformation=w.deformation, nerf_margin=w.nerf_margin,
+                                    deformation_scale=w.deformation_scale, time_freqs=w.time_freqs,
+                                    render=dataclasses.replace(w.render, knn_vertices=body.spec.render.knn_vertices))  # fmt: skip
+    body.frame_time.fill_(float("nan"))
+
+
+def dress_avatar(body_model: str | Path, body_record: str | Path, wearer_model: str | Path,
+                 wearer_record: str | Path, body_path: str | Path, out_dir: str | Path,
+                 settings: DressSettings | None = None, device: str = "cpu") -> dict:  # fmt: skip
+    """Write ``dressed.png`` ([the body's capture frame | the body avatar as trained | wearing the other's
+    exterior]), ``turntable.mp4`` of the dressed avatar and ``dress.json``; returns the summary."""
+    t_start = time.perf_counter()
+    settings = settings or DressSettings()
+    for what, p in (("body avatar's model", body_model), ("body avatar's record", body_record),
+                    ("wearer's model", wearer_model), ("wearer's record", wearer_record), ("body model", body_path)):  # fmt: skip
+        if not Path(p).is_file():
+            raise DeltaError(f"{p}: no such {what} file")
+    body = load_trained(body_model, body_record, body_path, device)
+    wearer = load_trained(wearer_model, wearer_record, body_path, device)
+    check_wearable(body.model, wearer.model)
+    frame = int(body.data.train[0])
+    full = load_full_frames(body_record, [frame], body.settings.background)
+    view = full_view(full, body.model.resolution)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    progress = Progress(f"dress ({view.width}x{view.height})", 2 + settings.turntable_frames)
+    with torch.no_grad():
+        own = render_image(body.model, frame, view=view, soft_silhouette=False)["rgb"]
+        progress.tick("as trained")
+        put_on(body.model, wearer.model)
+        dressed = render_image(body.model, frame, view=view, soft_silhouette=False)["rgb"]
+        progress.tick("dressed")
+    with atomic_path(out / "dressed.png") as tmp:
+        cv2.imwrite(str(tmp), np.concatenate([to_bgr(full.images[0]), to_bgr(own), to_bgr(dressed)], axis=1))
+    turn = turntable(body.model, frame, settings.turntable_frames, view)
+    count = write_video(out / "turntable.mp4", progress.counted(turn, "turntable"), settings.fps)
+    summary = {"body_model": str(body_model), "wearer_model": str(wearer_model), "frame": frame,
+               "frame_id": int(body.data.frame_ids[frame]), "body_capture": body.model.spec.capture,
+               "wearer_capture": wearer.model.spec.capture, "turntable_frames": count, "settings": vars(settings).copy(),
+               "resolution": "{}x{}".format(*full.size), "changed_pixels": round(float(
+                   ((own - dressed).abs().amax(-1) > 0.05).float().mean()), 4),
+               "seconds": round(time.perf_counter() - t_start, 2)}  # fmt: skip
+    save_json(out / "dress.json", summary)
+    log.info("%s wears %s's exterior: %s", body_model, wearer_model, out)
+    return summary
