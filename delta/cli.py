@@ -222,11 +222,25 @@ def cmd_animate(args: argparse.Namespace) -> None:
 
 def cmd_dress(args: argparse.Namespace) -> None:
     from delta.applications.dress import dress_avatar
-    from delta.applications.settings import DressSettings
+    from delta.applications.settings import ShowSettings
 
     _threads(args.threads)
-    st = settings.from_arguments(DressSettings, args, "applications.dress.settings")
+    st = settings.from_arguments(ShowSettings, args, "applications.dress.settings")
     dress_avatar(args.model, args.record, args.wearer_model, args.wearer_record, args.body, args.out, st, args.device)
+
+
+def cmd_reshape(args: argparse.Namespace) -> None:
+    from delta.applications.reshape import reshape_avatar
+    from delta.applications.settings import ShowSettings
+
+    _threads(args.threads)
+    st = settings.from_arguments(ShowSettings, args, "applications.reshape.settings")
+    edit = json_or_file(args.edit, "--edit")
+    if not isinstance(edit, dict):
+        raise DeltaError('--edit: expected a JSON object of labels and values, e.g. {"weight": 0.8}')
+    reshape_avatar(
+        args.model, args.record, args.body, edit, args.out, args.shape_space, args.anny_cache, st, args.device
+    )
 
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
@@ -479,7 +493,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=1)
     p.set_defaults(func=cmd_export)
 
-    from delta.applications.settings import AnimateSettings, DressSettings
+    from delta.applications.settings import AnimateSettings, ShowSettings
 
     p = sub.add_parser("animate", help="drive a trained avatar with another motion: animation.mp4 (and meshes)")
     p.add_argument("--model", required=True, help="a stage's model.pt")
@@ -507,10 +521,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wearer-record", required=True, help="the frame record the wearer was trained on")
     p.add_argument("--body", required=True, help="the body model both avatars are built on")
     p.add_argument("--out", required=True, help="folder for dressed.png, turntable.mp4 and dress.json")
-    settings.add_arguments(p, DressSettings)
+    settings.add_arguments(p, ShowSettings)
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     p.add_argument("--threads", type=int, default=1)
     p.set_defaults(func=cmd_dress)
+
+    p = sub.add_parser("reshape", help="change a trained avatar's body shape; it keeps its own exterior")
+    p.add_argument("--model", required=True, help="a stage's model.pt")
+    p.add_argument("--record", required=True, help="the frame record it was trained on")
+    p.add_argument("--body", required=True)
+    p.add_argument(
+        "--edit", required=True, help='JSON: Anny phenotype labels and/or betaK -> value, e.g. {"weight": 0.8}'
+    )
+    p.add_argument("--shape-space", default=None, help="Anny's shape space (anny_pca.npz), for phenotype labels")
+    p.add_argument("--anny-cache", default=None, help="Anny's build cache folder")
+    p.add_argument(
+        "--out", required=True, help="folder for reshaped.png, turntable.mp4, body_canonical.ply, reshape.json"
+    )
+    settings.add_arguments(p, ShowSettings)
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
+    p.add_argument("--threads", type=int, default=1)
+    p.set_defaults(func=cmd_reshape)
 
     p = sub.add_parser("evaluate", help="score a trained avatar on the test frames (eval/metrics.csv)")
     p.add_argument("--model", required=True, help="a stage's model.pt")

@@ -341,12 +341,12 @@ def exterior_source(config: dict, name: str) -> tuple[str, str]:
 
 
 #: Each application: the config key of the names its avatars take (motions, exteriors).
-APPLICATIONS = {"animate": "motions", "dress": "exteriors"}
+APPLICATIONS = {"animate": "motions", "dress": "exteriors", "reshape": "shapes"}
 
 
 def application_jobs(config: dict, application: str) -> list[tuple[str, str, str]]:
     """(dataset, subject, name) of every configured job of ``application`` ("animate": name is a motion,
-    "dress": an exterior)."""
+    "dress": an exterior, "reshape": a shape edit)."""
     out = []
     for avatar, names in config["applications"][application]["avatars"].items():
         dataset, subject = subject_ref(config, avatar)
@@ -365,9 +365,15 @@ def _check_applications(config: dict, base: Path) -> list[str]:
     for name, source in apps["exteriors"].items():
         key = f"config key 'applications.exteriors.{name}'"
         if not SAFE_NAME.match(name):
-            out.append(f"{key}: exterior name {name!r} is not allowed (it names a folder: letters, digits, '_' and '-')")
+            out.append(
+                f"{key}: exterior name {name!r} is not allowed (it names a folder: letters, digits, '_' and '-')"
+            )
         elif subject_ref(config, source) is None:
             out.append(f"{key}: {source!r} names no configured subject (expected 'dataset/subject')")
+    for name in apps["shapes"]:
+        if not SAFE_NAME.match(name):
+            out.append(f"config key 'applications.shapes.{name}': shape name {name!r} is not allowed (it names a "
+                       "folder: letters, digits, '_' and '-')")  # fmt: skip
     for app, names_key in APPLICATIONS.items():
         for avatar, names in apps[app]["avatars"].items():
             key = f"config key 'applications.{app}.avatars.{avatar}'"
@@ -375,7 +381,9 @@ def _check_applications(config: dict, base: Path) -> list[str]:
                 out.append(f"{key}: {avatar!r} names no configured subject (expected 'dataset/subject')")
             unknown = [m for m in names if m not in apps[names_key]]
             if unknown:
-                out.append(f"{key}: {names_key} {unknown} are not in applications.{names_key} ({sorted(apps[names_key])})")
+                out.append(
+                    f"{key}: {names_key} {unknown} are not in applications.{names_key} ({sorted(apps[names_key])})"
+                )
     return out
 
 

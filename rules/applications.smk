@@ -75,3 +75,43 @@ rule dress:
         "delta dress --model {input.model:q} --record {input.record:q} --wearer-model {input.wearer_model:q}"
         " --wearer-record {input.wearer_record:q} --body {input.body:q} --out {params.out:q}"
         " --settings {params.settings:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"
+
+
+rule reshape:
+    input:
+        unpack(reshape_inputs),
+    output:
+        reshaped=report(
+            PATHS["reshaped"],
+            caption="../workflow/report/reshaped.rst",
+            category="Applications",
+            subcategory="{dataset} {subject}",
+            labels={"subject": "{subject}", "shape": "{shape}", "view": "frame"},
+        ),
+        turntable=report(
+            PATHS["reshaped_turntable"],
+            caption="../workflow/report/reshaped.rst",
+            category="Applications",
+            subcategory="{dataset} {subject}",
+            labels={"subject": "{subject}", "shape": "{shape}", "view": "turntable"},
+        ),
+        summary=PATHS["reshape_json"],
+    log:
+        log_path("reshape", "{dataset}_{subject}_{shape}"),
+    benchmark:
+        benchmark_path("reshape", "{dataset}_{subject}_{shape}")
+    conda:
+        "../workflow/envs/delta.yaml"
+    threads: 2
+    resources:
+        mem_mb=lambda w, attempt: _grow(4000, attempt),
+        runtime=lambda w, attempt: 20 * attempt,
+    params:
+        out=lambda w: PATHS["reshape_dir"].format(**w),
+        edit=reshape_args,
+        settings=json.dumps(RESHAPE, sort_keys=True),
+        device=config["device"],
+    shell:
+        "delta reshape --model {input.model:q} --record {input.record:q} --body {input.body:q} {params.edit:q}"
+        " --out {params.out:q} --settings {params.settings:q} --device {params.device:q} --threads {threads}"
+        " > {log:q} 2>&1"

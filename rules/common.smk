@@ -40,6 +40,7 @@ wildcard_constraints:
     variant="[A-Za-z0-9_.-]+",
     motion="[A-Za-z0-9_-]+",
     exterior="[A-Za-z0-9_-]+",
+    shape="[A-Za-z0-9_-]+",
 
 
 # ------------------------------------------------------------------ paths
@@ -89,6 +90,10 @@ PATHS = {
     "dressed": "results/{dataset}/{subject}/dress/{exterior}/dressed.png",
     "dressed_turntable": "results/{dataset}/{subject}/dress/{exterior}/turntable.mp4",
     "dress_json": "results/{dataset}/{subject}/dress/{exterior}/dress.json",
+    "reshape_dir": "results/{dataset}/{subject}/reshape/{shape}",
+    "reshaped": "results/{dataset}/{subject}/reshape/{shape}/reshaped.png",
+    "reshaped_turntable": "results/{dataset}/{subject}/reshape/{shape}/turntable.mp4",
+    "reshape_json": "results/{dataset}/{subject}/reshape/{shape}/reshape.json",
     "perceptual_vgg": f"{config['training']['perceptual_dir']}/vgg_shift_tolerant.pth",
     "perceptual_alex": f"{config['training']['perceptual_dir']}/alex_shift_tolerant.pth",
     "log": "logs/{rule}/{name}.log",
@@ -496,13 +501,20 @@ def aggregate_benchmarks(wildcards, input):
 
 
 def application_targets():
-    return [
-        PATHS["animation"].format(dataset=d, subject=s, motion=m)
-        for d, s, m in application_jobs(config, "animate")
-    ] + [
-        PATHS["dressed"].format(dataset=d, subject=s, exterior=e)
-        for d, s, e in application_jobs(config, "dress")
-    ]
+    return (
+        [
+            PATHS["animation"].format(dataset=d, subject=s, motion=m)
+            for d, s, m in application_jobs(config, "animate")
+        ]
+        + [
+            PATHS["dressed"].format(dataset=d, subject=s, exterior=e)
+            for d, s, e in application_jobs(config, "dress")
+        ]
+        + [
+            PATHS["reshaped"].format(dataset=d, subject=s, shape=e)
+            for d, s, e in application_jobs(config, "reshape")
+        ]
+    )
 
 
 ANIMATE = config["applications"]["animate"]["settings"]
@@ -535,6 +547,30 @@ def dress_inputs(wildcards):
         "wearer_model": PATHS["stage_model"].format(stage=EVAL["stage"], **theirs),
         "wearer_record": PATHS["record"].format(**theirs),
     }
+
+
+RESHAPE = config["applications"]["reshape"]["settings"]
+
+
+def reshape_inputs(wildcards):
+    """The avatar and, for Anny, its shape space (phenotype edits are made in it)."""
+    files = trained_inputs(wildcards)
+    if BODY["name"] == "anny":
+        files["shape_space"] = PATHS["anny_shape_space"]
+    return files
+
+
+def reshape_args(wildcards, input):
+    edit = json.dumps(config["applications"]["shapes"][wildcards.shape], sort_keys=True)
+    args = ["--edit", edit]
+    if "shape_space" in input.keys():
+        args += [
+            "--shape-space",
+            input.shape_space,
+            "--anny-cache",
+            PATHS["anny_cache"],
+        ]
+    return args
 
 
 def animate_clothing(wildcards, input):

@@ -51,13 +51,15 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
     for name in ("upper", "tight"):
         del main["datasets"]["synthetic"]["subjects"][name]
     # the stand-in's avatar driven by the synthetic subject's fitted motion and wearing its dress and hair
-    # (across datasets, by the real name)
+    # (across datasets, by the real name); the synthetic avatar made heavier
     main["applications"] = {"motions": {"loose-motion": "synthetic/loose"},
                             "animate": {"avatars": {"peoplesnapshot/male-3-casual": ["loose-motion"]},
                                         "settings": {"max_frames": 3, "meshes": True}},
                             "exteriors": {"loose-dress": "synthetic/loose"},
                             "dress": {"avatars": {"peoplesnapshot/male-3-casual": ["loose-dress"]},
-                                      "settings": {"turntable_frames": 2}}}  # fmt: skip
+                                      "settings": {"turntable_frames": 2}},
+                            "shapes": {"heavier": {"weight": 0.8}},
+                            "reshape": {"avatars": {"synthetic/loose": ["heavier"]}, "settings": {"turntable_frames": 2}}}  # fmt: skip
     (work / "config/config.yaml").write_text(yaml.safe_dump(main))
     cfg = yaml.safe_load((work / ".test/config/config.yaml").read_text())
     for name in ("upper", "tight"):
@@ -155,6 +157,8 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
     dressed = work / "results/peoplesnapshot" / STANDIN / "dress/loose-dress"
     assert cv2.imread(str(dressed / "dressed.png")).shape == (32, 3 * 32, 3)
     assert json.loads((dressed / "dress.json").read_text())["turntable_frames"] == 2
+    reshaped = json.loads((work / "results/synthetic/loose/reshape/heavier/reshape.json").read_text())
+    assert reshaped["edited"]["weight"] == 0.8 and reshaped["betas_after"] != reshaped["betas_before"]
     synthetic = pd.read_csv(work / "results/synthetic/metrics.csv")
     assert synthetic["train_body_err_mm"].notna().all()  # ground truth: geometry columns
     ps = pd.read_csv(work / "results/peoplesnapshot/metrics.csv")

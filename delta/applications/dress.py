@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from delta import DeltaError
-from delta.applications.settings import DressSettings
+from delta.applications.settings import ShowSettings
 from delta.data.frames import load_full_frames
 from delta.export.video import to_bgr, turntable, write_video
 from delta.io import atomic_path, save_json
@@ -43,7 +43,9 @@ def check_wearable(body: HybridAvatar, wearer: HybridAvatar) -> None:
     """Raise a DeltaError naming why ``wearer``'s exterior cannot go onto ``body``."""
     if wearer.nerf is None:
         raise DeltaError("the wearer avatar has no exterior (no clothing or hair was modelled): nothing to put on")
-    if body.body.num_vertices != wearer.body.num_vertices or not torch.equal(body.body.faces.cpu(), wearer.body.faces.cpu()):
+    if body.body.num_vertices != wearer.body.num_vertices or not torch.equal(
+        body.body.faces.cpu(), wearer.body.faces.cpu()
+    ):
         raise DeltaError(f"the avatars are built on different body models ({body.body.name}, {wearer.body.name}): "
                          "an exterior moves between avatars of the same body model only")  # fmt: skip
     uncovered = wearer.modelled & ~body.modelled
@@ -70,11 +72,11 @@ def put_on(body: HybridAvatar, wearer: HybridAvatar) -> None:
 
 def dress_avatar(body_model: str | Path, body_record: str | Path, wearer_model: str | Path,
                  wearer_record: str | Path, body_path: str | Path, out_dir: str | Path,
-                 settings: DressSettings | None = None, device: str = "cpu") -> dict:  # fmt: skip
+                 settings: ShowSettings | None = None, device: str = "cpu") -> dict:  # fmt: skip
     """Write ``dressed.png`` ([the body's capture frame | the body avatar as trained | wearing the other's
     exterior]), ``turntable.mp4`` of the dressed avatar and ``dress.json``; returns the summary."""
     t_start = time.perf_counter()
-    settings = settings or DressSettings()
+    settings = settings or ShowSettings()
     for what, p in (("body avatar's model", body_model), ("body avatar's record", body_record),
                     ("wearer's model", wearer_model), ("wearer's record", wearer_record), ("body model", body_path)):  # fmt: skip
         if not Path(p).is_file():

@@ -32,17 +32,18 @@ class AnimateSettings:
 
 
 @dataclasses.dataclass
-class DressSettings:
-    """An avatar wearing another avatar's exterior (results/{dataset}/{subject}/dress/{exterior}/).
+class ShowSettings:
+    """How an edited avatar is shown: dressed in another's exterior (results/{dataset}/{subject}/dress/{exterior}/)
+    or reshaped (results/{dataset}/{subject}/reshape/{shape}/).
 
-    The config section ``applications.dress.settings`` and the options of ``delta dress`` are generated
-    from these fields.
+    The config sections ``applications.dress.settings`` and ``applications.reshape.settings`` and the options
+    of ``delta dress`` and ``delta reshape`` are generated from these fields.
     """
 
     turntable_frames: int = _f(default=12, metadata={"minimum": 2, "maximum": 720})
-    """Frames of the dressed avatar's turntable (one full turn)."""
+    """Frames of the edited avatar's turntable (one full turn)."""
     fps: int = _f(default=12, metadata={"minimum": 1, "maximum": 120})
     """Frame rate of the turntable."""
 
     def __post_init__(self) -> None:
-        check(self, "applications.dress.settings")
+        check(self, "applications.dress/reshape.settings")
