@@ -35,6 +35,7 @@ localrules:
     fetch_perceptual,
     plot_losses,
     aggregate_metrics,
+    application_scores,
 
 
 onstart:

@@ -226,7 +226,8 @@ def cmd_dress(args: argparse.Namespace) -> None:
 
     _threads(args.threads)
     st = settings.from_arguments(ShowSettings, args, "applications.dress.settings")
-    dress_avatar(args.model, args.record, args.wearer_model, args.wearer_record, args.body, args.out, st, args.device)
+    dress_avatar(args.model, args.record, args.wearer_model, args.wearer_record, args.body, args.out, st, args.truth,
+                 args.perceptual, args.device)  # fmt: skip
 
 
 def cmd_reshape(args: argparse.Namespace) -> None:
@@ -241,6 +242,15 @@ def cmd_reshape(args: argparse.Namespace) -> None:
     reshape_avatar(
         args.model, args.record, args.body, edit, args.out, args.shape_space, args.anny_cache, st, args.device
     )
+
+
+def cmd_application_scores(args: argparse.Namespace) -> None:
+    from delta.applications.truth import summarize_scores
+    from delta.io import atomic_path
+
+    table = summarize_scores(args.scores)
+    with atomic_path(args.out) as tmp:
+        table.to_csv(tmp, index=False)
 
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
@@ -524,7 +534,16 @@ def build_parser() -> argparse.ArgumentParser:
     settings.add_arguments(p, ShowSettings)
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument(
+        "--truth", default=None, help="the generated capture of the true result (synthetic subjects): scores.csv"
+    )
+    p.add_argument("--perceptual", default=None, help="folder of the ST-LPIPS weights (a column of scores.csv)")
     p.set_defaults(func=cmd_dress)
+
+    p = sub.add_parser("application-scores", help="the applications' scores against their truth: applications.csv")
+    p.add_argument("--scores", nargs="*", default=[], help=".../{subject}/{application}/{name}/scores.csv files")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_application_scores)
 
     p = sub.add_parser("reshape", help="change a trained avatar's body shape; it keeps its own exterior")
     p.add_argument("--model", required=True, help="a stage's model.pt")
@@ -541,6 +560,10 @@ def build_parser() -> argparse.ArgumentParser:
     settings.add_arguments(p, ShowSettings)
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument(
+        "--truth", default=None, help="the generated capture of the true result (synthetic subjects): scores.csv"
+    )
+    p.add_argument("--perceptual", default=None, help="folder of the ST-LPIPS weights (a column of scores.csv)")
     p.set_defaults(func=cmd_reshape)
 
     p = sub.add_parser("evaluate", help="score a trained avatar on the test frames (eval/metrics.csv)")

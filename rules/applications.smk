@@ -57,6 +57,7 @@ rule dress:
             },
         ),
         summary=PATHS["dress_json"],
+        scores=PATHS["dress_scores"],
     log:
         log_path("dress", "{dataset}_{subject}_{exterior}"),
     benchmark:
@@ -69,11 +70,12 @@ rule dress:
         runtime=lambda w, attempt: 20 * attempt,
     params:
         out=lambda w: PATHS["dress_dir"].format(**w),
+        truth=truth_args,
         settings=json.dumps(DRESS, sort_keys=True),
         device=config["device"],
     shell:
         "delta dress --model {input.model:q} --record {input.record:q} --wearer-model {input.wearer_model:q}"
-        " --wearer-record {input.wearer_record:q} --body {input.body:q} --out {params.out:q}"
+        " --wearer-record {input.wearer_record:q} --body {input.body:q} --out {params.out:q} {params.truth:q}"
         " --settings {params.settings:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"
 
 
@@ -96,6 +98,7 @@ rule reshape:
             labels={"subject": "{subject}", "shape": "{shape}", "view": "turntable"},
         ),
         summary=PATHS["reshape_json"],
+        scores=PATHS["reshape_scores"],
     log:
         log_path("reshape", "{dataset}_{subject}_{shape}"),
     benchmark:
@@ -109,9 +112,28 @@ rule reshape:
     params:
         out=lambda w: PATHS["reshape_dir"].format(**w),
         edit=reshape_args,
+        truth=truth_args,
         settings=json.dumps(RESHAPE, sort_keys=True),
         device=config["device"],
     shell:
         "delta reshape --model {input.model:q} --record {input.record:q} --body {input.body:q} {params.edit:q}"
-        " --out {params.out:q} --settings {params.settings:q} --device {params.device:q} --threads {threads}"
+        " {params.truth:q} --out {params.out:q} --settings {params.settings:q} --device {params.device:q} --threads {threads}"
         " > {log:q} 2>&1"
+
+
+rule application_scores:
+    input:
+        application_score_inputs,
+    output:
+        report(
+            PATHS["application_scores"],
+            caption="../workflow/report/applications.rst",
+            category="Metrics",
+            labels={"dataset": "{dataset}", "table": "applications"},
+        ),
+    log:
+        log_path("application_scores", "{dataset}"),
+    conda:
+        "../workflow/envs/delta.yaml"
+    shell:
+        "delta application-scores --scores {input:q} --out {output:q} > {log:q} 2>&1"

@@ -10,7 +10,7 @@ from delta.config import validate_workflow_config
 from delta.config import variant_training as _variant_training
 from delta.data.sources import PROVIDES
 from delta.scene.settings import user_decided
-from delta.synthetic.spec import parse_subject
+from delta.synthetic.spec import dressed_raw, parse_subject, reshaped_raw
 from delta.training.presets import resolve as resolve_training, stage_view
 
 # the one validation (delta validate-config runs the same): every problem before any job starts;
@@ -29,6 +29,35 @@ DATASETS = config["datasets"]
 # the generated subjects: the synthetic dataset's and the People Snapshot stand-in's
 SYNTHETIC_RAW = DATASETS.get("synthetic", {}).get("subjects", {}) | config["standins"]
 SYNTHETIC = {name: parse_subject(name, raw) for name, raw in SYNTHETIC_RAW.items()}
+
+
+# The generated truth of each application on a synthetic subject (docs/applications.md): the subject wearing
+# the other's exterior, or with its phenotype edited. Named with a '.', which no configured subject has.
+def application_truths():
+    out = {}
+    for d, s, e in application_jobs(config, "dress"):
+        wearer = exterior_source(config, e)[1]
+        if s in SYNTHETIC_RAW and wearer in SYNTHETIC_RAW:
+            out[("dress", s, e)] = (
+                f"{s}.wears.{e}",
+                dressed_raw(SYNTHETIC_RAW[s], SYNTHETIC_RAW[wearer]),
+            )
+    for d, s, e in application_jobs(config, "reshape"):
+        edit = config["applications"]["shapes"][e]
+        phenotype_only = not any(k.startswith("beta") for k in edit)
+        if s in SYNTHETIC_RAW and phenotype_only and BODY["name"] == "anny":
+            out[("reshape", s, e)] = (
+                f"{s}.shape.{e}",
+                reshaped_raw(SYNTHETIC_RAW[s], edit),
+            )
+    return out
+
+
+APPLICATION_TRUTHS = application_truths()
+SYNTHETIC_RAW = SYNTHETIC_RAW | {name: raw for name, raw in APPLICATION_TRUTHS.values()}
+SYNTHETIC |= {
+    name: parse_subject(name, raw) for name, raw in APPLICATION_TRUTHS.values()
+}
 
 
 wildcard_constraints:
@@ -94,6 +123,9 @@ PATHS = {
     "reshaped": "results/{dataset}/{subject}/reshape/{shape}/reshaped.png",
     "reshaped_turntable": "results/{dataset}/{subject}/reshape/{shape}/turntable.mp4",
     "reshape_json": "results/{dataset}/{subject}/reshape/{shape}/reshape.json",
+    "dress_scores": "results/{dataset}/{subject}/dress/{exterior}/scores.csv",
+    "reshape_scores": "results/{dataset}/{subject}/reshape/{shape}/scores.csv",
+    "application_scores": "results/{dataset}/applications.csv",
     "perceptual_vgg": f"{config['training']['perceptual_dir']}/vgg_shift_tolerant.pth",
     "perceptual_alex": f"{config['training']['perceptual_dir']}/alex_shift_tolerant.pth",
     "log": "logs/{rule}/{name}.log",
@@ -136,7 +168,10 @@ def peoplesnapshot_files(subject):
 
 def synthetic_targets():
     out = []
+    truths = {name for name, _ in APPLICATION_TRUTHS.values()}
     for name, spec in SYNTHETIC.items():
+        if name in truths:
+            continue
         out += [
             PATHS[k].format(subject=name)
             for k in ("syn_video", "syn_params", "syn_frames", "syn_splits")
@@ -514,7 +549,29 @@ def application_targets():
             PATHS["reshaped"].format(dataset=d, subject=s, shape=e)
             for d, s, e in application_jobs(config, "reshape")
         ]
+        + [
+            PATHS["application_scores"].format(dataset=d)
+            for d in sorted({d for d, _, _ in scored_jobs()})
+        ]
     )
+
+
+def scored_jobs():
+    """(dataset, subject, scores.csv) of the application jobs that have a generated truth."""
+    out = []
+    for app, key, wildcard in (
+        ("dress", "dress_scores", "exterior"),
+        ("reshape", "reshape_scores", "shape"),
+    ):
+        for d, s, e in application_jobs(config, app):
+            if (app, s, e) in APPLICATION_TRUTHS:
+                path = PATHS[key].format(dataset=d, subject=s, **{wildcard: e})
+                out.append((d, s, path))
+    return out
+
+
+def application_score_inputs(wildcards):
+    return [path for d, _, path in scored_jobs() if d == wildcards.dataset]
 
 
 ANIMATE = config["applications"]["animate"]["settings"]
@@ -539,14 +596,40 @@ def animate_inputs(wildcards):
 DRESS = config["applications"]["dress"]["settings"]
 
 
+def truth_inputs(application, subject, name):
+    """The generated truth of an application job and the ST-LPIPS weights, where it has one."""
+    truth = APPLICATION_TRUTHS.get((application, subject, name))
+    if truth is None:
+        return {}
+    return {
+        "truth": PATHS["syn_params"].format(subject=truth[0]),
+        "alex": PATHS["perceptual_alex"],
+    }
+
+
+def truth_args(wildcards, input):
+    if "truth" not in input.keys():
+        return []
+    return [
+        "--truth",
+        str(Path(input.truth).parent.parent),
+        "--perceptual",
+        str(Path(input.alex).parent),
+    ]
+
+
 def dress_inputs(wildcards):
-    """The body avatar and the avatar whose exterior it wears."""
+    """The body avatar, the avatar whose exterior it wears and, on synthetic subjects, the truth."""
     dataset, subject = exterior_source(config, wildcards.exterior)
     theirs = {"dataset": dataset, "subject": subject}
-    return trained_inputs(wildcards) | {
-        "wearer_model": PATHS["stage_model"].format(stage=EVAL["stage"], **theirs),
-        "wearer_record": PATHS["record"].format(**theirs),
-    }
+    return (
+        trained_inputs(wildcards)
+        | {
+            "wearer_model": PATHS["stage_model"].format(stage=EVAL["stage"], **theirs),
+            "wearer_record": PATHS["record"].format(**theirs),
+        }
+        | truth_inputs("dress", wildcards.subject, wildcards.exterior)
+    )
 
 
 RESHAPE = config["applications"]["reshape"]["settings"]
@@ -557,7 +640,7 @@ def reshape_inputs(wildcards):
     files = trained_inputs(wildcards)
     if BODY["name"] == "anny":
         files["shape_space"] = PATHS["anny_shape_space"]
-    return files
+    return files | truth_inputs("reshape", wildcards.subject, wildcards.shape)
 
 
 def reshape_args(wildcards, input):

@@ -159,6 +159,14 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
     assert json.loads((dressed / "dress.json").read_text())["turntable_frames"] == 2
     reshaped = json.loads((work / "results/synthetic/loose/reshape/heavier/reshape.json").read_text())
     assert reshaped["edited"]["weight"] == 0.8 and reshaped["betas_after"] != reshaped["betas_before"]
+    # both scored against what the generator renders for them: the stand-in in the dress, loose made heavier
+    for dataset, subject, application, name in (("peoplesnapshot", STANDIN, "dress", "loose-dress"),
+                                                ("synthetic", "loose", "reshape", "heavier")):  # fmt: skip
+        table = pd.read_csv(work / "results" / dataset / "applications.csv")
+        assert list(table["variant"]) == ["as_trained", "edited", "gain"], dataset
+        assert (table["subject"] == subject).all() and (table["application"] == application).all()
+        assert (table["name"] == name).all() and table.loc[:1, "psnr"].between(5, 60).all()
+        assert table["stlpips_alex"].notna().all()
     synthetic = pd.read_csv(work / "results/synthetic/metrics.csv")
     assert synthetic["train_body_err_mm"].notna().all()  # ground truth: geometry columns
     ps = pd.read_csv(work / "results/peoplesnapshot/metrics.csv")

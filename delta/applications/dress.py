@@ -28,6 +28,7 @@ import torch
 
 from delta import DeltaError
 from delta.applications.settings import ShowSettings
+from delta.applications.truth import mean_scores, score_rows, truth_scorer, write_scores
 from delta.data.frames import load_full_frames
 from delta.export.video import to_bgr, turntable, write_video
 from delta.io import atomic_path, save_json
@@ -72,9 +73,12 @@ def put_on(body: HybridAvatar, wearer: HybridAvatar) -> None:
 
 def dress_avatar(body_model: str | Path, body_record: str | Path, wearer_model: str | Path,
                  wearer_record: str | Path, body_path: str | Path, out_dir: str | Path,
-                 settings: ShowSettings | None = None, device: str = "cpu") -> dict:  # fmt: skip
+                 settings: ShowSettings | None = None, truth: str | Path | None = None,
+                 perceptual_dir: str | None = None, device: str = "cpu") -> dict:  # fmt: skip
     """Write ``dressed.png`` ([the body's capture frame | the body avatar as trained | wearing the other's
-    exterior]), ``turntable.mp4`` of the dressed avatar and ``dress.json``; returns the summary."""
+    exterior]), ``turntable.mp4`` of the dressed avatar and ``dress.json``; with ``truth`` (the generated
+    capture of the body subject wearing the other's exterior), ``scores.csv`` (:mod:`delta.applications.truth`).
+    Returns the summary."""
     t_start = time.perf_counter()
     settings = settings or ShowSettings()
     for what, p in (("body avatar's model", body_model), ("body avatar's record", body_record),
@@ -89,13 +93,20 @@ def dress_avatar(body_model: str | Path, body_record: str | Path, wearer_model: 
     view = full_view(full, body.model.resolution)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    scorer = None
+    if truth is not None and settings.score_frames:
+        scorer = truth_scorer(body, body_record, truth, settings.score_frames, perceptual_dir, settings.supersample)
+    about = {"application": "dress", "model": str(body_model), "wearer": str(wearer_model)}
     progress = Progress(f"dress ({view.width}x{view.height})", 2 + settings.turntable_frames)
     with torch.no_grad():
         own = render_image(body.model, frame, view=view, soft_silhouette=False)["rgb"]
+        rows = score_rows(scorer, body.model, "as_trained", about)
         progress.tick("as trained")
         put_on(body.model, wearer.model)
         dressed = render_image(body.model, frame, view=view, soft_silhouette=False)["rgb"]
+        rows += score_rows(scorer, body.model, "edited", about)
         progress.tick("dressed")
+    write_scores(out / "scores.csv", rows)
     with atomic_path(out / "dressed.png") as tmp:
         cv2.imwrite(str(tmp), np.concatenate([to_bgr(full.images[0]), to_bgr(own), to_bgr(dressed)], axis=1))
     turn = turntable(body.model, frame, settings.turntable_frames, view)
@@ -105,7 +116,7 @@ def dress_avatar(body_model: str | Path, body_record: str | Path, wearer_model: 
                "wearer_capture": wearer.model.spec.capture, "turntable_frames": count, "settings": vars(settings).copy(),
                "resolution": "{}x{}".format(*full.size), "changed_pixels": round(float(
                    ((own - dressed).abs().amax(-1) > 0.05).float().mean()), 4),
-               "seconds": round(time.perf_counter() - t_start, 2)}  # fmt: skip
+               "seconds": round(time.perf_counter() - t_start, 2), "scores": mean_scores(rows)}  # fmt: skip
     save_json(out / "dress.json", summary)
     log.info("%s wears %s's exterior: %s", body_model, wearer_model, out)
     return summary

@@ -13,6 +13,7 @@ explains is kept. The exterior follows the new shape by the body's own skinning
 
 from __future__ import annotations
 
+import json
 import logging
 import re
 import time
@@ -24,6 +25,7 @@ import torch
 
 from delta import DeltaError
 from delta.applications.settings import ShowSettings
+from delta.applications.truth import mean_scores, score_rows, truth_scorer, write_scores
 from delta.data.frames import load_full_frames
 from delta.export.meshes import body_mesh, write_mesh
 from delta.export.video import to_bgr, turntable, write_video
@@ -109,9 +111,11 @@ def edit_betas(betas: torch.Tensor, edit: dict[str, float], space=None, anny_mod
 
 def reshape_avatar(model_path: str | Path, record: str | Path, body_path: str | Path, edit: dict[str, float],
                    out_dir: str | Path, shape_space: str | Path | None = None, anny_cache: str | Path | None = None,
-                   settings: ShowSettings | None = None, device: str = "cpu") -> dict:  # fmt: skip
+                   settings: ShowSettings | None = None, truth: str | Path | None = None,
+                   perceptual_dir: str | None = None, device: str = "cpu") -> dict:  # fmt: skip
     """Write ``reshaped.png`` ([capture frame | as trained | reshaped]), ``turntable.mp4`` and
-    ``body_canonical.ply`` of the reshaped avatar, and ``reshape.json``; returns the summary."""
+    ``body_canonical.ply`` of the reshaped avatar, and ``reshape.json``; with ``truth`` (the generated capture
+    of the subject with the edited phenotype), ``scores.csv``. Returns the summary."""
     t_start = time.perf_counter()
     settings = settings or ShowSettings()
     for what, p in (("model", model_path), ("record", record), ("body model", body_path)):
@@ -133,13 +137,20 @@ def reshape_avatar(model_path: str | Path, record: str | Path, body_path: str | 
     view = full_view(full, model.resolution)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    scorer = None
+    if truth is not None and settings.score_frames:
+        scorer = truth_scorer(tr, record, truth, settings.score_frames, perceptual_dir, settings.supersample)
+    tags = {"application": "reshape", "model": str(model_path), "edit": json.dumps(edit, sort_keys=True)}
     progress = Progress(f"reshape ({view.width}x{view.height})", 2 + settings.turntable_frames)
     with torch.no_grad():
         own = render_image(model, frame, view=view, soft_silhouette=False)["rgb"]
+        rows = score_rows(scorer, model, "as_trained", tags)
         progress.tick("as trained")
         model.betas.data[:] = new.to(model.betas)
         reshaped = render_image(model, frame, view=view, soft_silhouette=False)["rgb"]
+        rows += score_rows(scorer, model, "edited", tags)
         progress.tick("reshaped")
+    write_scores(out / "scores.csv", rows)
     with atomic_path(out / "reshaped.png") as tmp:
         cv2.imwrite(str(tmp), np.concatenate([to_bgr(full.images[0]), to_bgr(own), to_bgr(reshaped)], axis=1))
     write_mesh(out / "body_canonical.ply", body_mesh(model)[0])
@@ -147,7 +158,8 @@ def reshape_avatar(model_path: str | Path, record: str | Path, body_path: str | 
     count = write_video(out / "turntable.mp4", progress.counted(turn, "turntable"), settings.fps)
     summary = {"model": str(model_path), "edit": dict(edit), **about, "betas_before": before.tolist(),
                "betas_after": new.tolist(), "frame": frame, "turntable_frames": count,
-               "resolution": "{}x{}".format(*full.size), "seconds": round(time.perf_counter() - t_start, 2)}  # fmt: skip
+               "resolution": "{}x{}".format(*full.size), "seconds": round(time.perf_counter() - t_start, 2),
+               "scores": mean_scores(rows)}  # fmt: skip
     save_json(out / "reshape.json", summary)
     log.info("reshaped %s by %s: %s", model_path, edit, out)
     return summary

@@ -44,6 +44,10 @@ class ShowSettings:
     """Frames of the edited avatar's turntable (one full turn)."""
     fps: int = _f(default=12, metadata={"minimum": 1, "maximum": 120})
     """Frame rate of the turntable."""
+    score_frames: int = _f(default=5, metadata={"minimum": 0, "maximum": 1000})
+    """Test frames scored against the generated truth of the edit, where the subject is synthetic (0: none)."""
+    supersample: int = _f(default=2, metadata={"minimum": 1, "maximum": 8})
+    """Rays a pixel along each axis when scoring (as evaluation's)."""
 
     def __post_init__(self) -> None:
         check(self, "applications.dress/reshape.settings")

@@ -143,3 +143,21 @@ def parse_subject(name: str, raw: dict) -> SubjectSpec:
     if kw.get("camera") == "orthographic" and any(kw.get("distortion", ())):
         raise DeltaError(f"{key}.distortion: an orthographic camera has no lens distortion")
     return SubjectSpec(name=name, **kw)
+
+
+#: The keys of a subject that make its exterior (what an exterior transfer carries).
+EXTERIOR_KEYS = ("garments", "hair", "hair_color")
+
+
+def dressed_raw(body: dict, wearer: dict) -> dict:
+    """The subject ``body`` (its shape, skin, motion, camera: its seed) wearing ``wearer``'s garments and hair:
+    the generated truth of putting the wearer's exterior on the body's avatar."""
+    return {k: v for k, v in body.items() if k not in EXTERIOR_KEYS} | {
+        k: wearer[k] for k in EXTERIOR_KEYS if k in wearer
+    }
+
+
+def reshaped_raw(raw: dict, phenotype: dict[str, float]) -> dict:
+    """The subject ``raw`` with its phenotype labels set by ``phenotype`` (the rest unchanged): the generated
+    truth of a phenotype edit."""
+    return {**raw, "phenotype": {**raw.get("phenotype", {}), **phenotype}}

@@ -1,0 +1,154 @@
+"""Scoring an edited avatar against what the synthetic generator renders for the same edit.
+
+For a synthetic subject B, the generator can render the true result of an application: B's body
+(shape, skin, motion, camera: B's seed) wearing avatar A's garments and hair, or B's garments on B's
+body with its phenotype edited (``delta.synthetic.spec.dressed_raw`` / ``reshaped_raw``). Its frames go
+through the frame record's own steps (undistortion, resizing to the scoring size, the person alpha
+composited on the background) so that they line up pixel for pixel with B's record's whole frames.
+
+Each scored frame is rendered twice, with B's fitted pose and camera (no test-time refinement): B's
+avatar as trained (the baseline: what one gets without the application) and B's avatar edited; both
+are scored against the truth (PSNR, SSIM, L1, ST-LPIPS, and the IoU of the rendered exterior with the
+true clothing-and-hair mask).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from delta import DeltaError
+from delta import metrics as M
+from delta.data.sources import synthetic_source
+from delta.eval.evaluate import EvalSettings, Perceptual, score_image
+from delta.models.image import View, render_image
+from delta.preprocess.frames import Undistorter, iter_video, whole
+
+
+@dataclasses.dataclass
+class Truth:
+    """Frames of a generated capture at a record's scoring size."""
+
+    images: torch.Tensor
+    """(F, H, W, 3) in [0, 1], composited on the background."""
+    exterior: torch.Tensor
+    """(F, H, W) bool: clothing or hair, inside the person."""
+
+
+def truth_frames(capture: str | Path, frame_ids: list[int], size: tuple[int, int], background) -> Truth:
+    """The generated capture's frames ``frame_ids`` at ``size`` (W, H), as a record's whole frames are made."""
+    capture = Path(capture)
+    if not (capture / "gt" / "params.npz").is_file():
+        raise DeltaError(f"{capture}: no generated capture (gt/params.npz) to score against")
+    source = synthetic_source(capture, capture.name)
+    und = Undistorter(source.camera)
+    bg = np.asarray(background, dtype=np.float32)
+    images, exterior = {}, {}
+    try:
+        for i, rgb in iter_video(source.video, set(frame_ids)):
+            alpha = whole(und.image(source.provided["person"](i), mask=True), size, cv2.INTER_AREA)
+            a = alpha.astype(np.float32)[..., None] / 255.0
+            img = whole(und.image(rgb), size, cv2.INTER_AREA).astype(np.float32) / 255.0
+            images[i] = img * a + bg * (1 - a)
+            ext = np.zeros(alpha.shape, dtype=bool)
+            for part in ("clothing", "hair"):  # part masks hold 0/1 (the person's alpha 0..255)
+                ext |= whole(und.image(source.provided[part](i), mask=True, nearest=True), size, cv2.INTER_NEAREST) > 0
+            exterior[i] = ext & (alpha > 127)
+    finally:
+        source.close()
+    return Truth(torch.from_numpy(np.stack([images[i] for i in frame_ids])),
+                 torch.from_numpy(np.stack([exterior[i] for i in frame_ids])))  # fmt: skip
+
+
+class Scorer:
+    """Scores renders of a model's frames against a truth (ST-LPIPS when its weights folder is given)."""
+
+    def __init__(self, truth: Truth, view: View, perceptual_dir: str | None, supersample: int, device):
+        self.truth, self.view, self.supersample = truth, view, supersample
+        self.perceptual = Perceptual(EvalSettings(perceptual_dir=perceptual_dir), device)
+
+    @torch.no_grad()
+    def score(self, model, frames: list[int]) -> list[dict]:
+        rows = []
+        for k, f in enumerate(frames):
+            img = render_image(model, f, supersample=self.supersample, view=self.view, soft_silhouette=False)
+            row = {"frame": f, **score_image(img, self.truth.images[k], {}, self.perceptual)}
+            mask = img["nerf_mask"] > 0.5 if model.nerf is not None else torch.zeros_like(self.truth.exterior[k])
+            row["exterior_iou"] = M.iou(mask, self.truth.exterior[k])
+            rows.append(row)
+        return rows
+
+
+def truth_scorer(tr, record: str | Path, truth_dir: str | Path, count: int, perceptual_dir: str | None,
+                 supersample: int) -> Scorer:  # fmt: skip
+    """A scorer of ``count`` of the trained avatar's test frames (evenly spaced) against a generated capture."""
+    from delta.data.frames import load_full_frames
+    from delta.export.run import report_frames
+    from delta.models.image import full_view
+
+    frames = report_frames(tr.data.split, count)
+    full = load_full_frames(record, frames, tr.settings.background)
+    ids = [int(tr.data.frame_ids[f]) for f in frames]
+    truth = truth_frames(truth_dir, ids, full.size, tr.settings.background)
+    scorer = Scorer(truth, full_view(full, tr.model.resolution), perceptual_dir, supersample,
+                    tr.model.background.device)  # fmt: skip
+    scorer.frames = frames
+    return scorer
+
+
+def score_rows(scorer: Scorer | None, model, variant: str, about: dict) -> list[dict]:
+    """Rows of ``scores.csv`` for one variant ("as_trained", "edited"); none without a truth."""
+    if scorer is None:
+        return []
+    return [{**about, "variant": variant, **row} for row in scorer.score(model, scorer.frames)]
+
+
+def write_scores(path: str | Path, rows: list[dict]) -> None:
+    """``scores.csv``: one row per (variant, frame); a header alone where there is no truth."""
+    import pandas as pd
+
+    from delta.io import atomic_path
+
+    table = pd.DataFrame(rows) if rows else pd.DataFrame(columns=["application", "variant", "frame", "psnr"])
+    with atomic_path(path) as tmp:
+        table.to_csv(tmp, index=False, float_format="%.5g")
+
+
+def summarize_scores(paths: list[str | Path]) -> "pd.DataFrame":
+    """``results/{dataset}/applications.csv``: per job (``.../{subject}/{application}/{name}/scores.csv``) and
+    variant, the mean of each score over the frames, the number of frames, and what the edit gained over the
+    avatar as trained (``*_gain``: edited − as trained; lower is better for L1 and ST-LPIPS)."""
+    import pandas as pd
+
+    rows = []
+    for path in paths:
+        p = Path(path)
+        table = pd.read_csv(p)
+        if table.empty:
+            continue
+        subject, application, name = p.parts[-4], p.parts[-3], p.parts[-2]
+        scores = [c for c in table.columns if c not in ("application", "variant", "frame", "model", "wearer", "edit")
+                  and pd.api.types.is_numeric_dtype(table[c])]  # fmt: skip
+        means = table.groupby("variant", sort=False)[scores].mean()
+        for variant, values in means.iterrows():
+            rows.append({"application": application, "subject": subject, "name": name, "variant": variant,
+                         "frames": int((table["variant"] == variant).sum()), **values.round(4).to_dict()})  # fmt: skip
+        if {"as_trained", "edited"} <= set(means.index):
+            gain = (means.loc["edited"] - means.loc["as_trained"]).round(4)
+            rows.append({"application": application, "subject": subject, "name": name, "variant": "gain",
+                         "frames": int((table["variant"] == "edited").sum()), **gain.to_dict()})  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def mean_scores(rows: list[dict]) -> dict:
+    """{variant: {score: mean over the frames}} of ``scores.csv``'s rows (empty without a truth)."""
+    out: dict = {}
+    for variant in dict.fromkeys(r["variant"] for r in rows):
+        sel = [r for r in rows if r["variant"] == variant]
+        keys = [k for k, v in sel[0].items() if isinstance(v, float)]
+        out[variant] = {k: round(float(np.mean([r[k] for r in sel])), 4) for k in keys}
+    return out
