@@ -226,8 +226,8 @@ def cmd_dress(args: argparse.Namespace) -> None:
 
     _threads(args.threads)
     st = settings.from_arguments(ShowSettings, args, "applications.dress.settings")
-    dress_avatar(args.model, args.record, args.wearer_model, args.wearer_record, args.body, args.out, st, args.truth,
-                 args.perceptual, args.device)  # fmt: skip
+    dress_avatar(args.model, args.record, args.wearer_model, args.wearer_record, args.body, args.out, st,
+                 truth=args.truth, perceptual_dir=args.perceptual, device=args.device)  # fmt: skip
 
 
 def cmd_reshape(args: argparse.Namespace) -> None:
@@ -239,9 +239,8 @@ def cmd_reshape(args: argparse.Namespace) -> None:
     edit = json_or_file(args.edit, "--edit")
     if not isinstance(edit, dict):
         raise DeltaError('--edit: expected a JSON object of labels and values, e.g. {"weight": 0.8}')
-    reshape_avatar(
-        args.model, args.record, args.body, edit, args.out, args.shape_space, args.anny_cache, st, args.device
-    )
+    reshape_avatar(args.model, args.record, args.body, edit, args.out, args.shape_space, args.anny_cache, st,
+                   truth=args.truth, perceptual_dir=args.perceptual, device=args.device)  # fmt: skip
 
 
 def cmd_application_scores(args: argparse.Namespace) -> None:

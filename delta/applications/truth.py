@@ -19,6 +19,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pandas as pd
 import torch
 
 from delta import DeltaError
@@ -109,8 +110,6 @@ def score_rows(scorer: Scorer | None, model, variant: str, about: dict) -> list[
 
 def write_scores(path: str | Path, rows: list[dict]) -> None:
     """``scores.csv``: one row per (variant, frame); a header alone where there is no truth."""
-    import pandas as pd
-
     from delta.io import atomic_path
 
     table = pd.DataFrame(rows) if rows else pd.DataFrame(columns=["application", "variant", "frame", "psnr"])
@@ -118,12 +117,10 @@ def write_scores(path: str | Path, rows: list[dict]) -> None:
         table.to_csv(tmp, index=False, float_format="%.5g")
 
 
-def summarize_scores(paths: list[str | Path]) -> "pd.DataFrame":
+def summarize_scores(paths: list[str | Path]) -> pd.DataFrame:
     """``results/{dataset}/applications.csv``: per job (``.../{subject}/{application}/{name}/scores.csv``) and
     variant, the mean of each score over the frames, the number of frames, and what the edit gained over the
-    avatar as trained (``*_gain``: edited − as trained; lower is better for L1 and ST-LPIPS)."""
-    import pandas as pd
-
+    avatar as trained (the ``gain`` row: edited − as trained; lower is better for L1 and ST-LPIPS)."""
     rows = []
     for path in paths:
         p = Path(path)
