@@ -43,7 +43,7 @@ def avatar(text: str) -> tuple[str, dict]:
         raise SystemExit(f"{subject}: not a synthetic subject of {work}/config/config.yaml")
     out = work / "results" / dataset / subject
     return name, {"model": out / "stage2" / "model.pt", "record": out / "frames.h5", "raw": raw, "work": work,
-                  "subject": subject}  # fmt: skip
+                  "subject": subject, "clothing": out / "export" / "clothing_nerf_space.ply"}  # fmt: skip
 
 
 def truth(work: Path, name: str, raw: dict, body: Path, shape_space: Path, cache: Path) -> Path:
@@ -78,7 +78,8 @@ def main() -> None:
         t = time.perf_counter()
         gt = truth(args.work, f"{B['subject']}.wears.{a}", dressed_raw(B["raw"], A["raw"]), body, shape_space, cache)
         out = args.work / "results" / B["subject"] / "dress" / a
-        dress_avatar(B["model"], B["record"], A["model"], A["record"], body, out, settings, gt, perceptual)
+        dress_avatar(B["model"], B["record"], A["model"], A["record"], body, out, settings, gt, perceptual,
+                     B["clothing"], A["clothing"])  # fmt: skip
         scores.append(out / "scores.csv")
         seconds[(B["subject"], "dress", a)] = time.perf_counter() - t
     for job in args.reshape:
@@ -89,7 +90,8 @@ def main() -> None:
         t = time.perf_counter()
         gt = truth(args.work, f"{B['subject']}.shape.{name}", reshaped_raw(B["raw"], edit), body, shape_space, cache)
         out = args.work / "results" / B["subject"] / "reshape" / name
-        reshape_avatar(B["model"], B["record"], body, edit, out, shape_space, cache, settings, gt, perceptual)
+        reshape_avatar(B["model"], B["record"], body, edit, out, shape_space, cache, settings, gt, perceptual,
+                       B["clothing"])  # fmt: skip
         scores.append(out / "scores.csv")
         seconds[(B["subject"], "reshape", name)] = time.perf_counter() - t
     table = summarize_scores(scores)

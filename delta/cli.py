@@ -227,7 +227,8 @@ def cmd_dress(args: argparse.Namespace) -> None:
     _threads(args.threads)
     st = settings.from_arguments(ShowSettings, args, "applications.dress.settings")
     dress_avatar(args.model, args.record, args.wearer_model, args.wearer_record, args.body, args.out, st,
-                 truth=args.truth, perceptual_dir=args.perceptual, device=args.device)  # fmt: skip
+                 truth=args.truth, perceptual_dir=args.perceptual, clothing=args.clothing,
+                 wearer_clothing=args.wearer_clothing, device=args.device)  # fmt: skip
 
 
 def cmd_reshape(args: argparse.Namespace) -> None:
@@ -240,7 +241,7 @@ def cmd_reshape(args: argparse.Namespace) -> None:
     if not isinstance(edit, dict):
         raise DeltaError('--edit: expected a JSON object of labels and values, e.g. {"weight": 0.8}')
     reshape_avatar(args.model, args.record, args.body, edit, args.out, args.shape_space, args.anny_cache, st,
-                   truth=args.truth, perceptual_dir=args.perceptual, device=args.device)  # fmt: skip
+                   truth=args.truth, perceptual_dir=args.perceptual, clothing=args.clothing, device=args.device)  # fmt: skip
 
 
 def cmd_application_scores(args: argparse.Namespace) -> None:
@@ -537,6 +538,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--truth", default=None, help="the generated capture of the true result (synthetic subjects): scores.csv"
     )
     p.add_argument("--perceptual", default=None, help="folder of the ST-LPIPS weights (a column of scores.csv)")
+    p.add_argument(
+        "--clothing", default=None, help="the body avatar's export clothing_nerf_space.ply (garment distances)"
+    )
+    p.add_argument("--wearer-clothing", default=None, help="the wearer's export clothing_nerf_space.ply")
     p.set_defaults(func=cmd_dress)
 
     p = sub.add_parser("application-scores", help="the applications' scores against their truth: applications.csv")
@@ -563,6 +568,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--truth", default=None, help="the generated capture of the true result (synthetic subjects): scores.csv"
     )
     p.add_argument("--perceptual", default=None, help="folder of the ST-LPIPS weights (a column of scores.csv)")
+    p.add_argument("--clothing", default=None, help="the avatar's export clothing_nerf_space.ply (garment distances)")
     p.set_defaults(func=cmd_reshape)
 
     p = sub.add_parser("evaluate", help="score a trained avatar on the test frames (eval/metrics.csv)")

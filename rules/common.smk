@@ -596,26 +596,34 @@ def animate_inputs(wildcards):
 DRESS = config["applications"]["dress"]["settings"]
 
 
-def truth_inputs(application, subject, name):
-    """The generated truth of an application job and the ST-LPIPS weights, where it has one."""
-    truth = APPLICATION_TRUTHS.get((application, subject, name))
+def truth_inputs(wildcards, application, name, wearer=None):
+    """The generated truth of an application job, the ST-LPIPS weights and the exports whose clothing
+    surfaces are measured against it (the avatar's, and the wearer's), where it has a truth.
+    """
+    truth = APPLICATION_TRUTHS.get((application, wildcards.subject, name))
     if truth is None:
         return {}
-    return {
+    files = {
         "truth": PATHS["syn_params"].format(subject=truth[0]),
         "alex": PATHS["perceptual_alex"],
+        "export": PATHS["export_json"].format(**wildcards),
     }
+    if wearer is not None:
+        files["wearer_export"] = PATHS["export_json"].format(**wearer)
+    return files
 
 
 def truth_args(wildcards, input):
     if "truth" not in input.keys():
         return []
-    return [
-        "--truth",
-        str(Path(input.truth).parent.parent),
-        "--perceptual",
-        str(Path(input.alex).parent),
-    ]
+    ply = lambda key: str(
+        Path(input[key]).parent / "clothing_nerf_space.ply"
+    )  # noqa: E731
+    args = ["--truth", str(Path(input.truth).parent.parent)]
+    args += ["--perceptual", str(Path(input.alex).parent), "--clothing", ply("export")]
+    if "wearer_export" in input.keys():
+        args += ["--wearer-clothing", ply("wearer_export")]
+    return args
 
 
 def dress_inputs(wildcards):
@@ -628,7 +636,7 @@ def dress_inputs(wildcards):
             "wearer_model": PATHS["stage_model"].format(stage=EVAL["stage"], **theirs),
             "wearer_record": PATHS["record"].format(**theirs),
         }
-        | truth_inputs("dress", wildcards.subject, wildcards.exterior)
+        | truth_inputs(wildcards, "dress", wildcards.exterior, theirs)
     )
 
 
@@ -640,7 +648,7 @@ def reshape_inputs(wildcards):
     files = trained_inputs(wildcards)
     if BODY["name"] == "anny":
         files["shape_space"] = PATHS["anny_shape_space"]
-    return files | truth_inputs("reshape", wildcards.subject, wildcards.shape)
+    return files | truth_inputs(wildcards, "reshape", wildcards.shape)
 
 
 def reshape_args(wildcards, input):

@@ -74,11 +74,13 @@ def put_on(body: HybridAvatar, wearer: HybridAvatar) -> None:
 def dress_avatar(body_model: str | Path, body_record: str | Path, wearer_model: str | Path,
                  wearer_record: str | Path, body_path: str | Path, out_dir: str | Path,
                  settings: ShowSettings | None = None, truth: str | Path | None = None,
-                 perceptual_dir: str | None = None, device: str = "cpu") -> dict:  # fmt: skip
+                 perceptual_dir: str | None = None, clothing: str | Path | None = None,
+                 wearer_clothing: str | Path | None = None, device: str = "cpu") -> dict:  # fmt: skip
     """Write ``dressed.png`` ([the body's capture frame | the body avatar as trained | wearing the other's
     exterior]), ``turntable.mp4`` of the dressed avatar and ``dress.json``; with ``truth`` (the generated
-    capture of the body subject wearing the other's exterior), ``scores.csv`` (:mod:`delta.applications.truth`).
-    Returns the summary."""
+    capture of the body subject wearing the other's exterior), ``scores.csv`` (:mod:`delta.applications.truth`;
+    ``clothing`` / ``wearer_clothing``: the two avatars' exported clothing_nerf_space.ply, for the garment
+    distances as trained and dressed). Returns the summary."""
     t_start = time.perf_counter()
     settings = settings or ShowSettings()
     for what, p in (("body avatar's model", body_model), ("body avatar's record", body_record),
@@ -100,11 +102,11 @@ def dress_avatar(body_model: str | Path, body_record: str | Path, wearer_model: 
     progress = Progress(f"dress ({view.width}x{view.height})", 2 + settings.turntable_frames)
     with torch.no_grad():
         own = render_image(body.model, frame, view=view, soft_silhouette=False)["rgb"]
-        rows = score_rows(scorer, body.model, "as_trained", about)
+        rows = score_rows(scorer, "as_trained", about, clothing)
         progress.tick("as trained")
         put_on(body.model, wearer.model)
         dressed = render_image(body.model, frame, view=view, soft_silhouette=False)["rgb"]
-        rows += score_rows(scorer, body.model, "edited", about)
+        rows += score_rows(scorer, "edited", about, wearer_clothing)
         progress.tick("dressed")
     write_scores(out / "scores.csv", rows)
     with atomic_path(out / "dressed.png") as tmp:

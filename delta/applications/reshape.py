@@ -112,10 +112,12 @@ def edit_betas(betas: torch.Tensor, edit: dict[str, float], space=None, anny_mod
 def reshape_avatar(model_path: str | Path, record: str | Path, body_path: str | Path, edit: dict[str, float],
                    out_dir: str | Path, shape_space: str | Path | None = None, anny_cache: str | Path | None = None,
                    settings: ShowSettings | None = None, truth: str | Path | None = None,
-                   perceptual_dir: str | None = None, device: str = "cpu") -> dict:  # fmt: skip
+                   perceptual_dir: str | None = None, clothing: str | Path | None = None,
+                   device: str = "cpu") -> dict:  # fmt: skip
     """Write ``reshaped.png`` ([capture frame | as trained | reshaped]), ``turntable.mp4`` and
     ``body_canonical.ply`` of the reshaped avatar, and ``reshape.json``; with ``truth`` (the generated capture
-    of the subject with the edited phenotype), ``scores.csv``. Returns the summary."""
+    of the subject with the edited phenotype), ``scores.csv`` (``clothing``: the avatar's exported
+    clothing_nerf_space.ply, for the garment distances). Returns the summary."""
     t_start = time.perf_counter()
     settings = settings or ShowSettings()
     for what, p in (("model", model_path), ("record", record), ("body model", body_path)):
@@ -144,11 +146,11 @@ def reshape_avatar(model_path: str | Path, record: str | Path, body_path: str | 
     progress = Progress(f"reshape ({view.width}x{view.height})", 2 + settings.turntable_frames)
     with torch.no_grad():
         own = render_image(model, frame, view=view, soft_silhouette=False)["rgb"]
-        rows = score_rows(scorer, model, "as_trained", tags)
+        rows = score_rows(scorer, "as_trained", tags, clothing)
         progress.tick("as trained")
         model.betas.data[:] = new.to(model.betas)
         reshaped = render_image(model, frame, view=view, soft_silhouette=False)["rgb"]
-        rows += score_rows(scorer, model, "edited", tags)
+        rows += score_rows(scorer, "edited", tags, clothing)
         progress.tick("reshaped")
     write_scores(out / "scores.csv", rows)
     with atomic_path(out / "reshaped.png") as tmp:

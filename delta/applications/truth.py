@@ -8,8 +8,9 @@ composited on the background) so that they line up pixel for pixel with B's reco
 
 Each scored frame is rendered twice, with B's fitted pose and camera (no test-time refinement): B's
 avatar as trained (the baseline: what one gets without the application) and B's avatar edited; both
-are scored against the truth (PSNR, SSIM, L1, ST-LPIPS, and the IoU of the rendered exterior with the
-true clothing-and-hair mask).
+are scored against the truth (PSNR, SSIM, L1, ST-LPIPS, the IoU of the rendered exterior with the
+true clothing-and-hair mask, the body vertex error against the true body and, given the clothing surface
+the avatar exports, its distance to the true garments and hair).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ import torch
 from delta import DeltaError
 from delta import metrics as M
 from delta.data.sources import synthetic_source
-from delta.eval.evaluate import EvalSettings, Perceptual, score_image
+from delta.eval.evaluate import EvalSettings, Perceptual, body_errors, clothing_distance, gt_body_vertices, score_image
 from delta.models.image import View, render_image
 from delta.preprocess.frames import Undistorter, iter_video, whole
 
@@ -66,20 +67,33 @@ def truth_frames(capture: str | Path, frame_ids: list[int], size: tuple[int, int
 
 
 class Scorer:
-    """Scores renders of a model's frames against a truth (ST-LPIPS when its weights folder is given)."""
+    """Scores renders and meshes of a trained avatar's frames against a generated truth: the images (ST-LPIPS
+    when its weights folder is given), the exterior mask, the body vertex error (mm) against the truth's
+    body and, given the avatar's clothing surface, its distance to the truth's garments and hair (mm)."""
 
-    def __init__(self, truth: Truth, view: View, perceptual_dir: str | None, supersample: int, device):
-        self.truth, self.view, self.supersample = truth, view, supersample
-        self.perceptual = Perceptual(EvalSettings(perceptual_dir=perceptual_dir), device)
+    def __init__(self, tr, truth: Truth, meshes: Path, frames: list[int], view: View, perceptual_dir: str | None,
+                 supersample: int):  # fmt: skip
+        self.tr, self.truth, self.meshes, self.frames, self.view = tr, truth, meshes, frames, view
+        self.supersample = supersample
+        self.perceptual = Perceptual(EvalSettings(perceptual_dir=perceptual_dir), tr.model.background.device)
+        self.body = gt_body_vertices(meshes, tr.data.frame_ids[frames])
 
     @torch.no_grad()
-    def score(self, model, frames: list[int]) -> list[dict]:
-        rows = []
-        for k, f in enumerate(frames):
+    def score(self, clothing: str | Path | None = None) -> list[dict]:
+        """One row per frame of the avatar as it is now (``clothing``: its clothing surface in the NeRF's space,
+        clothing_nerf_space.ply, for the garment distances)."""
+        model, rows = self.tr.model, []
+        keep = model.modelled.cpu().numpy()
+        for k, f in enumerate(self.frames):
             img = render_image(model, f, supersample=self.supersample, view=self.view, soft_silhouette=False)
             row = {"frame": f, **score_image(img, self.truth.images[k], {}, self.perceptual)}
             mask = img["nerf_mask"] > 0.5 if model.nerf is not None else torch.zeros_like(self.truth.exterior[k])
             row["exterior_iou"] = M.iou(mask, self.truth.exterior[k])
+            mesh = model.posed_mesh(f)[0]
+            row |= body_errors(mesh, self.body[int(self.tr.data.frame_ids[f])], keep, model.camera(f))
+            if clothing is not None and Path(clothing).is_file() and model.nerf is not None:
+                found = clothing_distance(self.tr, clothing, self.meshes, [f], samples=10000)
+                row |= {k: v for k, v in found.items() if k in ("clothing_chamfer_mm", "clothing_p2s_mm")}
             rows.append(row)
         return rows
 
@@ -95,17 +109,15 @@ def truth_scorer(tr, record: str | Path, truth_dir: str | Path, count: int, perc
     full = load_full_frames(record, frames, tr.settings.background)
     ids = [int(tr.data.frame_ids[f]) for f in frames]
     truth = truth_frames(truth_dir, ids, full.size, tr.settings.background)
-    scorer = Scorer(truth, full_view(full, tr.model.resolution), perceptual_dir, supersample,
-                    tr.model.background.device)  # fmt: skip
-    scorer.frames = frames
-    return scorer
+    return Scorer(tr, truth, Path(truth_dir) / "gt" / "meshes.h5", frames, full_view(full, tr.model.resolution),
+                  perceptual_dir, supersample)  # fmt: skip
 
 
-def score_rows(scorer: Scorer | None, model, variant: str, about: dict) -> list[dict]:
+def score_rows(scorer: Scorer | None, variant: str, about: dict, clothing: str | Path | None = None) -> list[dict]:
     """Rows of ``scores.csv`` for one variant ("as_trained", "edited"); none without a truth."""
     if scorer is None:
         return []
-    return [{**about, "variant": variant, **row} for row in scorer.score(model, scorer.frames)]
+    return [{**about, "variant": variant, **row} for row in scorer.score(clothing)]
 
 
 def write_scores(path: str | Path, rows: list[dict]) -> None:
