@@ -360,6 +360,25 @@ def cmd_validate_config(args: argparse.Namespace) -> None:
     print(f"{' + '.join(args.config)}: valid")
 
 
+def _avatar_arguments(p: argparse.ArgumentParser, whose: str = "") -> None:
+    """--model, --record and --body of a trained avatar (``whose``: said in the help)."""
+    p.add_argument("--model", required=True, help=f"{whose}a stage's model.pt")
+    p.add_argument("--record", required=True, help="the frame record it was trained on")
+    p.add_argument("--body", required=True, help="the body model it is built on")
+
+
+def _job_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
+    p.add_argument("--threads", type=int, default=1)
+
+
+def _truth_arguments(p: argparse.ArgumentParser) -> None:
+    """What scores an application against the generated truth (synthetic subjects)."""
+    p.add_argument("--truth", default=None, help="the generated capture of the true result: scores.csv")
+    p.add_argument("--perceptual", default=None, help="folder of the ST-LPIPS weights (a column of scores.csv)")
+    p.add_argument("--clothing", default=None, help="the avatar's export clothing_nerf_space.ply (garment distances)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="delta", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -494,21 +513,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_fetch_perceptual)
 
     p = sub.add_parser("export", help="export a trained avatar: meshes (PLY, GLB), videos, side-by-side images")
-    p.add_argument("--model", required=True, help="a stage's model.pt")
-    p.add_argument("--record", required=True, help="the frame record it was trained on")
-    p.add_argument("--body", required=True)
+    _avatar_arguments(p)
     p.add_argument("--out", required=True, help="folder for the meshes, videos, sidebyside/ and export.json")
     settings.add_arguments(p, ExportSettings)
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
-    p.add_argument("--threads", type=int, default=1)
+    _job_arguments(p)
     p.set_defaults(func=cmd_export)
 
     from delta.applications.settings import AnimateSettings, ShowSettings
 
     p = sub.add_parser("animate", help="drive a trained avatar with another motion: animation.mp4 (and meshes)")
-    p.add_argument("--model", required=True, help="a stage's model.pt")
-    p.add_argument("--record", required=True, help="the frame record it was trained on")
-    p.add_argument("--body", required=True)
+    _avatar_arguments(p)
     p.add_argument(
         "--motion",
         required=True,
@@ -520,39 +534,22 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", required=True, help="folder for animation.mp4, animation.json and meshes/")
     settings.add_arguments(p, AnimateSettings)
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
-    p.add_argument("--threads", type=int, default=1)
+    _job_arguments(p)
     p.set_defaults(func=cmd_animate)
 
     p = sub.add_parser("dress", help="put one avatar's exterior (clothing, hair) on another avatar's body")
-    p.add_argument("--model", required=True, help="the body avatar: a stage's model.pt")
-    p.add_argument("--record", required=True, help="the frame record the body avatar was trained on")
+    _avatar_arguments(p, "the body avatar: ")
     p.add_argument("--wearer-model", required=True, help="the avatar whose exterior is put on: a stage's model.pt")
     p.add_argument("--wearer-record", required=True, help="the frame record the wearer was trained on")
-    p.add_argument("--body", required=True, help="the body model both avatars are built on")
-    p.add_argument("--out", required=True, help="folder for dressed.png, turntable.mp4 and dress.json")
+    p.add_argument("--out", required=True, help="folder for dressed.png, turntable.mp4, dress.json, scores.csv")
     settings.add_arguments(p, ShowSettings)
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument(
-        "--truth", default=None, help="the generated capture of the true result (synthetic subjects): scores.csv"
-    )
-    p.add_argument("--perceptual", default=None, help="folder of the ST-LPIPS weights (a column of scores.csv)")
-    p.add_argument(
-        "--clothing", default=None, help="the body avatar's export clothing_nerf_space.ply (garment distances)"
-    )
+    _truth_arguments(p)
     p.add_argument("--wearer-clothing", default=None, help="the wearer's export clothing_nerf_space.ply")
+    _job_arguments(p)
     p.set_defaults(func=cmd_dress)
 
-    p = sub.add_parser("application-scores", help="the applications' scores against their truth: applications.csv")
-    p.add_argument("--scores", nargs="*", default=[], help=".../{subject}/{application}/{name}/scores.csv files")
-    p.add_argument("--out", required=True)
-    p.set_defaults(func=cmd_application_scores)
-
     p = sub.add_parser("reshape", help="change a trained avatar's body shape; it keeps its own exterior")
-    p.add_argument("--model", required=True, help="a stage's model.pt")
-    p.add_argument("--record", required=True, help="the frame record it was trained on")
-    p.add_argument("--body", required=True)
+    _avatar_arguments(p)
     p.add_argument(
         "--edit", required=True, help='JSON: Anny phenotype labels and/or betaK -> value, e.g. {"weight": 0.8}'
     )
@@ -562,14 +559,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", required=True, help="folder for reshaped.png, turntable.mp4, body_canonical.ply, reshape.json"
     )
     settings.add_arguments(p, ShowSettings)
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda", "auto"])
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument(
-        "--truth", default=None, help="the generated capture of the true result (synthetic subjects): scores.csv"
-    )
-    p.add_argument("--perceptual", default=None, help="folder of the ST-LPIPS weights (a column of scores.csv)")
-    p.add_argument("--clothing", default=None, help="the avatar's export clothing_nerf_space.ply (garment distances)")
+    _truth_arguments(p)
+    _job_arguments(p)
     p.set_defaults(func=cmd_reshape)
+
+    p = sub.add_parser("application-scores", help="the applications' scores against their truth: applications.csv")
+    p.add_argument("--scores", nargs="*", default=[], help=".../{subject}/{application}/{name}/scores.csv files")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_application_scores)
 
     p = sub.add_parser("evaluate", help="score a trained avatar on the test frames (eval/metrics.csv)")
     p.add_argument("--model", required=True, help="a stage's model.pt")
