@@ -244,6 +244,16 @@ def cmd_reshape(args: argparse.Namespace) -> None:
                    truth=args.truth, perceptual_dir=args.perceptual, clothing=args.clothing, device=args.device)  # fmt: skip
 
 
+def cmd_try_on(args: argparse.Namespace) -> None:
+    from delta.applications.settings import ShowSettings
+    from delta.applications.tryon import try_on
+
+    _threads(args.threads)
+    st = settings.from_arguments(ShowSettings, args, "applications.tryon.settings")
+    try_on(args.record, args.init, args.body, args.wearer_model, args.wearer_record, args.out, args.frame, st,
+           args.device)  # fmt: skip
+
+
 def cmd_application_scores(args: argparse.Namespace) -> None:
     from delta.applications.truth import summarize_scores
     from delta.io import atomic_path
@@ -562,6 +572,18 @@ def build_parser() -> argparse.ArgumentParser:
     _truth_arguments(p)
     _job_arguments(p)
     p.set_defaults(func=cmd_reshape)
+
+    p = sub.add_parser("try-on", help="dress the person of one frame (its init fit) in a trained avatar's exterior")
+    p.add_argument("--record", required=True, help="the frame record holding the person's frame")
+    p.add_argument("--init", required=True, help="the init fit of that record (init/params.npz)")
+    p.add_argument("--body", required=True, help="the body model both are built on")
+    p.add_argument("--frame", type=int, default=-1, help="the record's frame (-1: the first training frame)")
+    p.add_argument("--wearer-model", required=True, help="the avatar whose exterior is put on: a stage's model.pt")
+    p.add_argument("--wearer-record", required=True, help="the frame record the wearer was trained on")
+    p.add_argument("--out", required=True, help="folder for tryon.png, turntable.mp4 and tryon.json")
+    settings.add_arguments(p, ShowSettings)
+    _job_arguments(p)
+    p.set_defaults(func=cmd_try_on)
 
     p = sub.add_parser("application-scores", help="the applications' scores against their truth: applications.csv")
     p.add_argument("--scores", nargs="*", default=[], help=".../{subject}/{application}/{name}/scores.csv files")

@@ -341,12 +341,12 @@ def exterior_source(config: dict, name: str) -> tuple[str, str]:
 
 
 #: Each application: the config key of the names its avatars take (motions, exteriors).
-APPLICATIONS = {"animate": "motions", "dress": "exteriors", "reshape": "shapes"}
+APPLICATIONS = {"animate": "motions", "dress": "exteriors", "reshape": "shapes", "tryon": "exteriors"}
 
 
 def application_jobs(config: dict, application: str) -> list[tuple[str, str, str]]:
     """(dataset, subject, name) of every configured job of ``application`` ("animate": name is a motion,
-    "dress": an exterior, "reshape": a shape edit)."""
+    "dress" and "tryon": an exterior, "reshape": a shape edit)."""
     out = []
     for avatar, names in config["applications"][application]["avatars"].items():
         dataset, subject = subject_ref(config, avatar)

@@ -137,3 +137,37 @@ rule application_scores:
         "../workflow/envs/delta.yaml"
     shell:
         "delta application-scores --scores {input:q} --out {output:q} > {log:q} 2>&1"
+
+
+rule tryon:
+    input:
+        unpack(tryon_inputs),
+    output:
+        tryon=report(
+            PATHS["tryon"],
+            caption="../workflow/report/tryon.rst",
+            category="Applications",
+            subcategory="{dataset} {subject}",
+            labels={"subject": "{subject}", "tries on": "{exterior}", "view": "frame"},
+        ),
+        turntable=PATHS["tryon_turntable"],
+        summary=PATHS["tryon_json"],
+    log:
+        log_path("tryon", "{dataset}_{subject}_{exterior}"),
+    benchmark:
+        benchmark_path("tryon", "{dataset}_{subject}_{exterior}")
+    conda:
+        "../workflow/envs/delta.yaml"
+    threads: 2
+    resources:
+        mem_mb=lambda w, attempt: _grow(3000, attempt),
+        runtime=lambda w, attempt: 15 * attempt,
+    params:
+        out=lambda w: PATHS["tryon_dir"].format(**w),
+        frame=TRYON["frame"],
+        settings=json.dumps(TRYON["settings"], sort_keys=True),
+        device=config["device"],
+    shell:
+        "delta try-on --record {input.record:q} --init {input.init:q} --body {input.body:q} --frame {params.frame}"
+        " --wearer-model {input.wearer_model:q} --wearer-record {input.wearer_record:q} --out {params.out:q}"
+        " --settings {params.settings:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"

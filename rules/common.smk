@@ -124,6 +124,10 @@ PATHS = {
     "reshaped_turntable": "results/{dataset}/{subject}/reshape/{shape}/turntable.mp4",
     "reshape_json": "results/{dataset}/{subject}/reshape/{shape}/reshape.json",
     "dress_scores": "results/{dataset}/{subject}/dress/{exterior}/scores.csv",
+    "tryon_dir": "results/{dataset}/{subject}/tryon/{exterior}",
+    "tryon": "results/{dataset}/{subject}/tryon/{exterior}/tryon.png",
+    "tryon_turntable": "results/{dataset}/{subject}/tryon/{exterior}/turntable.mp4",
+    "tryon_json": "results/{dataset}/{subject}/tryon/{exterior}/tryon.json",
     "reshape_scores": "results/{dataset}/{subject}/reshape/{shape}/scores.csv",
     "application_scores": "results/{dataset}/applications.csv",
     "perceptual_vgg": f"{config['training']['perceptual_dir']}/vgg_shift_tolerant.pth",
@@ -550,6 +554,10 @@ def application_targets():
             for d, s, e in application_jobs(config, "reshape")
         ]
         + [
+            PATHS["tryon"].format(dataset=d, subject=s, exterior=e)
+            for d, s, e in application_jobs(config, "tryon")
+        ]
+        + [
             PATHS["application_scores"].format(dataset=d)
             for d in sorted({d for d, _, _ in scored_jobs()})
         ]
@@ -662,6 +670,22 @@ def reshape_args(wildcards, input):
             PATHS["anny_cache"],
         ]
     return args
+
+
+TRYON = config["applications"]["tryon"]
+
+
+def tryon_inputs(wildcards):
+    """The capture's frames and init fit (no training), and the avatar whose exterior is tried on."""
+    dataset, subject = exterior_source(config, wildcards.exterior)
+    theirs = {"dataset": dataset, "subject": subject}
+    return {
+        "record": PATHS["record"].format(**wildcards),
+        "init": PATHS["init_params"].format(**wildcards),
+        "body": body_model_file(),
+        "wearer_model": PATHS["stage_model"].format(stage=EVAL["stage"], **theirs),
+        "wearer_record": PATHS["record"].format(**theirs),
+    }
 
 
 def animate_clothing(wildcards, input):

@@ -58,6 +58,8 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
                             "exteriors": {"loose-dress": "synthetic/loose"},
                             "dress": {"avatars": {"peoplesnapshot/male-3-casual": ["loose-dress"]},
                                       "settings": {"turntable_frames": 2}},
+                            "tryon": {"avatars": {"peoplesnapshot/male-3-casual": ["loose-dress"]},
+                                      "settings": {"turntable_frames": 2}},
                             "shapes": {"heavier": {"weight": 0.8}},
                             "reshape": {"avatars": {"synthetic/loose": ["heavier"]}, "settings": {"turntable_frames": 2}}}  # fmt: skip
     (work / "config/config.yaml").write_text(yaml.safe_dump(main))
@@ -154,6 +156,8 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
     video.release()
     assert len(list((animated / "meshes").glob("body_*.ply"))) == 3
     assert (work / "logs/animate" / f"peoplesnapshot_{STANDIN}_loose-motion.log").is_file()
+    tried = work / "results/peoplesnapshot" / STANDIN / "tryon/loose-dress"
+    assert cv2.imread(str(tried / "tryon.png")).shape == (32, 3 * 32, 3)
     dressed = work / "results/peoplesnapshot" / STANDIN / "dress/loose-dress"
     assert cv2.imread(str(dressed / "dressed.png")).shape == (32, 3 * 32, 3)
     assert json.loads((dressed / "dress.json").read_text())["turntable_frames"] == 2
