@@ -56,6 +56,8 @@ def video(path: Path, frames: int, size: int = 32) -> Path:
     ({"applications": {"animate": {"settings": {"fps": 0}}}}, "applications.animate.settings.fps"),
     ({"applications": {"exteriors": {"e": "synthetic/bob"}}}, "'applications.exteriors.e': 'synthetic/bob' names no configured subject"),
     ({"applications": {"dress": {"avatars": {"synthetic/tight": ["e"]}}}}, "exteriors ['e'] are not in applications.exteriors"),
+    ({"applications": {"shapes": {"s": {"weight": "0.3"}}}}, "'applications.shapes.s.weight'"),
+    ({"applications": {"shapes": {"s": {"wieght": 0.3}}}}, "applications.shapes.s"),
 ])  # fmt: skip
 def test_each_mistake_is_named(cfg, expected):
     cfg = {"datasets": SYN, **cfg} if "datasets" not in cfg else cfg

@@ -2,12 +2,14 @@
 
 A shape edit names what to change: Anny's phenotype labels (``weight``, ``height``, ``age``, ``muscle``,
 ``gender``, ``proportions``: values in [0, 1]) and/or single shape coefficients (``beta0``, ``beta1``, …:
-the value β_k takes, in standard deviations; the only kind of edit an SMPL-X body model has).
+the value β_k takes, in standard deviations; the only kind of edit an SMPL-X body model has). A number
+sets the label or coefficient; a signed string ("+0.3", "-0.2") changes it by that much.
 
 A phenotype edit is made where the avatar's shape is: the avatar's phenotype is estimated from its
-fitted β (the phenotype p̂ whose β(p̂) is nearest, :func:`estimate_phenotype`), the edit sets the named
-labels of p̂ (p'), and the avatar takes β + β(p') − β(p̂): the part of its shape that no phenotype
-explains is kept. The exterior follows the new shape by the body's own skinning
+fitted β (the phenotype p̂ whose β(p̂) is nearest, :func:`estimate_phenotype`), the edit sets (or
+changes) the named labels of p̂ (p'), and the avatar takes β + β(p') − β(p̂): the part of its shape
+that no phenotype explains is kept. A set value is only as right as p̂, i.e. as the fitted shape; a
+change is not (benchmarks/applications.csv measures both). The exterior follows the new shape by the body's own skinning
 (:mod:`delta.applications.dress` says how); offsets and albedo stay as learned.
 """
 
@@ -32,6 +34,7 @@ from delta.export.video import to_bgr, turntable, write_video
 from delta.io import atomic_path, save_json
 from delta.models.image import full_view, render_image
 from delta.progress import Progress
+from delta.synthetic.spec import edit_amount
 from delta.training.run import load_trained
 
 log = logging.getLogger(__name__)
@@ -59,13 +62,12 @@ def estimate_phenotype(space, anny_model, betas: torch.Tensor, steps: int = 150)
     return torch.sigmoid(logits).detach()
 
 
-def split_edit(edit: dict[str, float], labels: list[str] | None, num_shape: int) -> tuple[dict, dict]:
-    """(phenotype labels -> value, β index -> value) of a shape edit; errors name the key at fault."""
+def split_edit(edit: dict, labels: list[str] | None, num_shape: int) -> tuple[dict, dict]:
+    """(phenotype label -> (relative, amount), β index -> (relative, amount)) of a shape edit: a number sets
+    the label or coefficient, a signed string ("+0.3") changes it; errors name the key at fault."""
     phen, betas = {}, {}
-    for key, value in edit.items():
-        value = float(value)
-        if not np.isfinite(value):
-            raise DeltaError(f"shape edit '{key}': {value} is not a finite number")
+    for key, raw in edit.items():
+        relative, value = edit_amount(key, raw)
         m = BETA.match(key)
         if m:
             k = int(m.group(1))
@@ -73,16 +75,16 @@ def split_edit(edit: dict[str, float], labels: list[str] | None, num_shape: int)
                 raise DeltaError(
                     f"shape edit '{key}': the body model has {num_shape} shape coefficients (beta0..beta{num_shape - 1})"
                 )
-            betas[k] = value
+            betas[k] = (relative, value)
         elif labels is None:
             raise DeltaError(f"shape edit '{key}': phenotype labels need Anny's shape space; this body model takes "
                              f"beta0..beta{num_shape - 1} only")  # fmt: skip
         elif key not in labels:
             raise DeltaError(f"shape edit '{key}': unknown label; known: {labels} and beta0..beta{num_shape - 1}")
-        elif not 0.0 <= value <= 1.0:
-            raise DeltaError(f"shape edit '{key}': {value} is outside Anny's phenotype range [0, 1]")
+        elif not (-1.0 if relative else 0.0) <= value <= 1.0:
+            raise DeltaError(f"shape edit '{key}': {raw!r} is outside Anny's phenotype range [0, 1]")
         else:
-            phen[key] = value
+            phen[key] = (relative, value)
     if not edit:
         raise DeltaError("the shape edit is empty: name phenotype labels or betaK coefficients to change")
     return phen, betas
@@ -97,15 +99,16 @@ def edit_betas(betas: torch.Tensor, edit: dict[str, float], space=None, anny_mod
     if phen:
         estimated = estimate_phenotype(space, anny_model, new)
         target = estimated.clone()
-        for key, value in phen.items():
-            target[labels.index(key)] = value
+        for key, (relative, value) in phen.items():
+            i = labels.index(key)
+            target[i] = min(max(float(target[i]) + value, 0.0), 1.0) if relative else value
         with torch.no_grad():
             new = new + phenotype_betas_of(space, anny_model, target, len(new)) - phenotype_betas_of(
                 space, anny_model, estimated, len(new))  # fmt: skip
         about = {"estimated": dict(zip(labels, estimated.round(decimals=3).tolist())),
                  "edited": dict(zip(labels, target.round(decimals=3).tolist()))}  # fmt: skip
-    for k, value in coeffs.items():
-        new[k] = value
+    for k, (relative, value) in coeffs.items():
+        new[k] = new[k] + value if relative else value
     return new.to(betas.dtype), about
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any
 
 from delta import DeltaError
@@ -157,7 +158,34 @@ def dressed_raw(body: dict, wearer: dict) -> dict:
     }
 
 
-def reshaped_raw(raw: dict, phenotype: dict[str, float]) -> dict:
-    """The subject ``raw`` with its phenotype labels set by ``phenotype`` (the rest unchanged): the generated
-    truth of a phenotype edit."""
-    return {**raw, "phenotype": {**raw.get("phenotype", {}), **phenotype}}
+def edit_amount(key: str, value) -> tuple[bool, float]:
+    """(relative, amount) of one shape-edit value: a number sets the label (or coefficient) to it, a string
+    with a sign ("+0.3", "-0.2") changes it by that much; errors name the key."""
+    relative = isinstance(value, str)
+    text = value.strip() if relative else value
+    if relative and not (text[:1] in "+-" and len(text) > 1):
+        raise DeltaError(f"shape edit '{key}': {value!r} is neither a number nor a signed change such as '+0.3'")
+    try:
+        amount = float(text)
+    except (TypeError, ValueError):
+        raise DeltaError(
+            f"shape edit '{key}': {value!r} is neither a number nor a signed change such as '+0.3'"
+        ) from None
+    if not math.isfinite(amount):
+        raise DeltaError(f"shape edit '{key}': {value!r} is not a finite number")
+    return relative, amount
+
+
+#: The phenotype value a subject has for a label it does not set (Anny's default).
+DEFAULT_PHENOTYPE = 0.5
+
+
+def reshaped_raw(raw: dict, edit: dict) -> dict:
+    """The subject ``raw`` with its phenotype labels set, or changed (a signed string), by ``edit`` (the rest
+    unchanged, changes clamped to [0, 1]): the generated truth of a phenotype edit."""
+    phenotype = dict(raw.get("phenotype", {}))
+    for key, value in edit.items():
+        relative, amount = edit_amount(key, value)
+        base = phenotype.get(key, DEFAULT_PHENOTYPE) if relative else 0.0
+        phenotype[key] = min(max(base + amount, 0.0), 1.0)
+    return {**raw, "phenotype": phenotype}

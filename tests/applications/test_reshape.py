@@ -42,6 +42,12 @@ def test_an_edit_lands_on_the_edited_phenotypes_shape_and_keeps_the_rest(space, 
     assert about["edited"]["weight"] == 0.9 and abs(about["estimated"]["weight"] - 0.4) < 0.03
     coeff, _ = edit_betas(betas, {"beta2": -1.5})
     assert coeff[2] == -1.5 and torch.equal(torch.cat([coeff[:2], coeff[3:]]), torch.cat([betas[:2], betas[3:]]))
+    moved, _ = edit_betas(betas, {"beta2": "+0.5"})
+    assert moved[2] == pytest.approx(float(betas[2]) + 0.5)
+    # a change: weight 0.4 + 0.3 -> the β of weight 0.7
+    changed, about = edit_betas(betas, {"weight": "+0.3"}, space, anny_model)
+    assert (changed - phenotype_betas(space, anny_model, {**p, "weight": 0.7})).abs().max() < 0.05
+    assert abs(about["edited"]["weight"] - 0.7) < 0.03
 
 
 @pytest.mark.parametrize("edit, message", [
@@ -50,6 +56,9 @@ def test_an_edit_lands_on_the_edited_phenotypes_shape_and_keeps_the_rest(space, 
     ({"weight": 1.5}, "outside Anny's phenotype range"),
     ({"weight": float("nan")}, "not a finite number"),
     ({"beta40": 1.0}, "has 8 shape coefficients"),
+    ({"weight": "0.3"}, "neither a number nor a signed change"),
+    ({"weight": "+x"}, "neither a number nor a signed change"),
+    ({"weight": "+1.5"}, "outside Anny's phenotype range"),
 ])  # fmt: skip
 def test_bad_edits_are_named(edit, message):
     with pytest.raises(DeltaError, match=message):

@@ -26,6 +26,8 @@ def test_a_dressed_subject_keeps_its_body_and_takes_the_exterior():
     assert set(EXTERIOR_KEYS) <= {"garments", "hair", "hair_color"}
     edited = reshaped_raw(body, {"weight": 0.9})
     assert edited["phenotype"] == {**body["phenotype"], "weight": 0.9} and edited["garments"] == body["garments"]
+    changed = reshaped_raw(body, {"weight": "+0.3", "gender": "+0.3"})  # unset: from the default 0.5; clamped
+    assert changed["phenotype"] == {"gender": 1.0, "weight": pytest.approx(0.8)}
     assert body["phenotype"] == {"gender": 0.85}  # the configured subject is untouched
 
 
