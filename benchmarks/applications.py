@@ -10,7 +10,10 @@ frames at B's scoring size, as trained and edited (no test-time refinement), wit
     PYTHONPATH=. python3 benchmarks/applications.py \\
         --avatar standin=/tmp/dt-work:peoplesnapshot:standin-male-3-casual \\
         --avatar loose=/tmp/bench-work:synthetic:loose \\
-        --dress standin:loose --dress loose:standin --reshape standin:weight=0.85 \\
+        --avatar gen0=/tmp/gen-work:synthetic:gen0 \\
+        --dress standin:loose --dress loose:standin --dress standin:gen0 \\
+        --reshape standin:weight=0.85 --reshape loose:weight=0.8 \\
+        --reshape standin:weight=+0.35 --reshape loose:weight=+0.35 \\
         --work /tmp/appbench --out benchmarks/applications.csv
 
 Writes the CSV (one row per job and variant: as_trained, edited, gain) with each job's seconds.
@@ -57,7 +60,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--avatar", action="append", required=True, help="NAME=WORK:DATASET:SUBJECT")
     ap.add_argument("--dress", action="append", default=[], help="B:A (B wears A's exterior)")
-    ap.add_argument("--reshape", action="append", default=[], help="B:label=value[,label=value]")
+    ap.add_argument("--reshape", action="append", default=[], help="B:label=value[,label=value] (a signed value: a change)")
     ap.add_argument("--work", type=Path, required=True, help="folder for the generated truths and the outputs")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--frames", type=int, default=5, help="test frames scored per job")
@@ -84,9 +87,9 @@ def main() -> None:
         seconds[(B["subject"], "dress", a)] = time.perf_counter() - t
     for job in args.reshape:
         b, _, edit_text = job.partition(":")
-        edit = {k: float(v) for k, v in (kv.split("=") for kv in edit_text.split(","))}
+        edit = {k: v if v[:1] in "+-" else float(v) for k, v in (kv.split("=") for kv in edit_text.split(","))}
         B = avatars[b]
-        name = "-".join(f"{k}{v:g}" for k, v in edit.items())
+        name = "-".join(f"{k}{v}" for k, v in edit.items())
         t = time.perf_counter()
         gt = truth(args.work, f"{B['subject']}.shape.{name}", reshaped_raw(B["raw"], edit), body, shape_space, cache)
         out = args.work / "results" / B["subject"] / "reshape" / name
