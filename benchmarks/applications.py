@@ -60,7 +60,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--avatar", action="append", required=True, help="NAME=WORK:DATASET:SUBJECT")
     ap.add_argument("--dress", action="append", default=[], help="B:A (B wears A's exterior)")
-    ap.add_argument("--reshape", action="append", default=[], help="B:label=value[,label=value] (a signed value: a change)")
+    ap.add_argument(
+        "--reshape", action="append", default=[], help="B:label=value[,label=value] (a signed value: a change)"
+    )
     ap.add_argument("--work", type=Path, required=True, help="folder for the generated truths and the outputs")
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--frames", type=int, default=5, help="test frames scored per job")
