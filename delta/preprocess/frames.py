@@ -241,8 +241,10 @@ def _prepare(source: Source, out_path, size: int, margin: float, full_size: tupl
         h5.create_dataset("split", data=np.array([s for _, s in frames], dtype=np.uint8), track_times=False)
         writer = RecordWriter(h5, len(frames), size, masks, face="face_landmarks" in source.provided)
         full = FullFrameWriter(h5, len(frames), *full_size, masks)
-        row = {i: r for r, (i, _) in enumerate(frames)}
-        for i, rgb in iter_video(source.video, set(row)):
+        rows: dict[int, list[int]] = {}  # a frame in two splits (a one-frame capture) fills both rows
+        for r, (i, _) in enumerate(frames):
+            rows.setdefault(i, []).append(r)
+        for i, rgb in iter_video(source.video, set(rows)):
             if rgb.shape[:2] != (source.camera.height, source.camera.width):
                 raise DeltaError(f"{source.video}: frame {i} is {rgb.shape[1]}x{rgb.shape[0]} but the camera is for "
                                  f"{source.camera.width}x{source.camera.height} images")  # fmt: skip
@@ -264,9 +266,10 @@ def _prepare(source: Source, out_path, size: int, margin: float, full_size: tupl
                     p[:, :2] = box.apply_to_points(torch.from_numpy(und.points(p[:, :2]))).numpy()
                     points[name] = p
             rgb_u = und.image(rgb)
-            writer.write(row[i], crop(rgb_u, box, cv2.INTER_AREA), out_masks, points.get("keypoints"),
-                         points.get("face_landmarks"))  # fmt: skip
-            full.write(row[i], whole(rgb_u, full_size, cv2.INTER_AREA), full_masks)
+            cropped, whole_frame = crop(rgb_u, box, cv2.INTER_AREA), whole(rgb_u, full_size, cv2.INTER_AREA)
+            for r in rows[i]:
+                writer.write(r, cropped, out_masks, points.get("keypoints"), points.get("face_landmarks"))
+                full.write(r, whole_frame, full_masks)
         write_camera_attrs(h5, camera)
         ids = np.array([i for i, _ in frames])
         for name, values in source.body_params.items():  # per-frame rows for the kept frames; per-subject as is

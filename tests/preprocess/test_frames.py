@@ -158,6 +158,27 @@ def test_generic_video_with_a_step_file(tmp_path, tiny_captures):
     src.close()
 
 
+def test_a_frame_in_two_splits_fills_both_rows(tmp_path, tiny_captures):
+    """A one-frame capture (a photograph) lists its frame as training and test: both rows hold the frame."""
+    from delta.data.record import FrameRecord
+    from delta.data.sources import video_source
+    from delta.preprocess.steps import attach
+
+    shutil.copy(tiny_captures / "tight" / "tight.mp4", tmp_path / "clip.mp4")
+    with h5py.File(tiny_captures / "tight" / "gt" / "frames.h5") as g, h5py.File(tmp_path / "m.h5", "w") as f:
+        f.create_dataset("person", data=g["alpha"][:])
+        f.attrs["model"] = "rvm:test.onnx"
+    src = video_source(tmp_path, "clip", {"train": [2, 2, 1], "test": [2, 2, 1]})
+    attach(src, tmp_path / "m.h5")
+    prepare(src, tmp_path / "out.h5", 64)
+    with FrameRecord(tmp_path / "out.h5") as rec:
+        assert list(rec.h5["frame_ids"][:]) == [2, 2] and list(rec.h5["split"][:]) == [0, 1]
+        images, full = rec.h5["images"][:], rec.h5["full"]["images"][:]
+        person = rec.h5["person"][:]
+    assert images[0].any() and np.array_equal(images[0], images[1]) and np.array_equal(full[0], full[1])
+    assert person[0].max() == 255 and np.array_equal(person[0], person[1])
+
+
 def test_peoplesnapshot_standard_splits_and_missing_ranges(tmp_path, tiny_captures):
     from delta.data.peoplesnapshot import STANDARD_SPLITS
 
