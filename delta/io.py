@@ -17,6 +17,14 @@ import numpy as np
 from delta import DeltaError
 
 
+def require_files(**files: str | os.PathLike) -> None:
+    """Raise one DeltaError naming the first missing file: ``require_files(model=path, record=path)`` says
+    "PATH: no such model file" (underscores in a name read as spaces)."""
+    for what, path in files.items():
+        if not Path(path).is_file():
+            raise DeltaError(f"{path}: no such {what.replace('_', ' ')} file")
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; move it into place only on success.

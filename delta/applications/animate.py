@@ -26,7 +26,7 @@ from delta.body.lbs import batch_rodrigues
 from delta.data.frames import load_full_frames
 from delta.export.meshes import MeshPart, body_mesh, pose_clothing, write_mesh
 from delta.export.video import baked_trajectory, posed_as, to_bgr, write_video
-from delta.io import save_json
+from delta.io import require_files, save_json
 from delta.models.image import full_view, render_image
 from delta.progress import Progress
 from delta.training.run import load_trained
@@ -77,9 +77,7 @@ def animate_avatar(model_path: str | Path, record: str | Path, body_path: str | 
     """Render ``animation.mp4`` (and the per-frame meshes) of a trained avatar driven by a motion file;
     returns the summary written as ``animation.json``."""
     t_start = time.perf_counter()
-    for what, p in (("model", model_path), ("record", record), ("body model", body_path)):
-        if not Path(p).is_file():
-            raise DeltaError(f"{p}: no such {what} file")
+    require_files(model=model_path, record=record, body_model=body_path)
     tr = load_trained(model_path, record, body_path, device)
     model, body = tr.model, tr.model.body
     motion = read_motion(motion_path, body.joint_names, body.parents.cpu().numpy(),

@@ -31,7 +31,7 @@ from delta.applications.settings import ShowSettings
 from delta.applications.truth import mean_scores, score_rows, truth_scorer, write_scores
 from delta.data.frames import load_full_frames
 from delta.export.video import to_bgr, turntable, write_video
-from delta.io import atomic_path, save_json
+from delta.io import atomic_path, require_files, save_json
 from delta.models.avatar import HybridAvatar
 from delta.models.image import full_view, render_image
 from delta.progress import Progress
@@ -83,10 +83,8 @@ def dress_avatar(body_model: str | Path, body_record: str | Path, wearer_model: 
     distances as trained and dressed). Returns the summary."""
     t_start = time.perf_counter()
     settings = settings or ShowSettings()
-    for what, p in (("body avatar's model", body_model), ("body avatar's record", body_record),
-                    ("wearer's model", wearer_model), ("wearer's record", wearer_record), ("body model", body_path)):  # fmt: skip
-        if not Path(p).is_file():
-            raise DeltaError(f"{p}: no such {what} file")
+    require_files(body_avatar_model=body_model, body_avatar_record=body_record, wearer_model=wearer_model,
+                  wearer_record=wearer_record, body_model=body_path)  # fmt: skip
     body = load_trained(body_model, body_record, body_path, device)
     wearer = load_trained(wearer_model, wearer_record, body_path, device)
     check_wearable(body.model, wearer.model)

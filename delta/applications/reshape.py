@@ -31,7 +31,7 @@ from delta.applications.truth import mean_scores, score_rows, truth_scorer, writ
 from delta.data.frames import load_full_frames
 from delta.export.meshes import body_mesh, write_mesh
 from delta.export.video import to_bgr, turntable, write_video
-from delta.io import atomic_path, save_json
+from delta.io import atomic_path, require_files, save_json
 from delta.models.image import full_view, render_image
 from delta.progress import Progress
 from delta.synthetic.spec import edit_amount
@@ -123,9 +123,7 @@ def reshape_avatar(model_path: str | Path, record: str | Path, body_path: str | 
     clothing_nerf_space.ply, for the garment distances). Returns the summary."""
     t_start = time.perf_counter()
     settings = settings or ShowSettings()
-    for what, p in (("model", model_path), ("record", record), ("body model", body_path)):
-        if not Path(p).is_file():
-            raise DeltaError(f"{p}: no such {what} file")
+    require_files(model=model_path, record=record, body_model=body_path)
     tr = load_trained(model_path, record, body_path, device)
     model = tr.model
     space = anny = None

@@ -26,7 +26,7 @@ from delta.applications.settings import ShowSettings
 from delta.body.model import load_body_model
 from delta.data.frames import load_frames, load_full_frames
 from delta.export.video import to_bgr, turntable, write_video
-from delta.io import atomic_path, save_json
+from delta.io import atomic_path, require_files, save_json
 from delta.models.image import full_view, render_image
 from delta.models.init import load_init
 from delta.progress import Progress
@@ -48,10 +48,8 @@ def try_on(record: str | Path, init_params: str | Path, body_path: str | Path, w
     ``record`` (-1: the first training frame) wearing the exterior of ``wearer_model``; returns the summary."""
     t_start = time.perf_counter()
     settings = settings or ShowSettings()
-    for what, p in (("record", record), ("init fit", init_params), ("body model", body_path),
-                    ("wearer's model", wearer_model), ("wearer's record", wearer_record)):  # fmt: skip
-        if not Path(p).is_file():
-            raise DeltaError(f"{p}: no such {what} file")
+    require_files(record=record, init_fit=init_params, body_model=body_path, wearer_model=wearer_model,
+                  wearer_record=wearer_record)  # fmt: skip
     wearer = load_trained(wearer_model, wearer_record, body_path, device)
     st = wearer.settings
     data = load_frames(record, st.resolution, st.background, st.box_margin)

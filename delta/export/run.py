@@ -10,13 +10,12 @@ import cv2
 import numpy as np
 import torch
 
-from delta import DeltaError
 from delta.export import lineup
 from delta.export.meshes import MeshPart, body_mesh, clothing_nerf_space, pose_clothing, write_glb, write_mesh
 from delta.export.settings import ExportSettings
 from delta.export.video import render_frames, side_by_side, turntable, write_video
 from delta.geometry.raymesh import ray_mesh_hits
-from delta.io import atomic_path, save_json
+from delta.io import atomic_path, require_files, save_json
 from delta.metrics import psnr
 from delta.models.avatar import HybridAvatar
 from delta.data.frames import load_full_frames
@@ -92,9 +91,7 @@ def check_frame(model: HybridAvatar, frame: int, clothing: MeshPart | None, img:
 
 
 def _load(model_path, record, body_path, device):
-    for what, p in (("model", model_path), ("record", record), ("body model", body_path)):
-        if not Path(p).is_file():
-            raise DeltaError(f"{p}: no such {what} file")
+    require_files(model=model_path, record=record, body_model=body_path)
     return load_trained(model_path, record, body_path, device)  # names a record of other frames
 
 
