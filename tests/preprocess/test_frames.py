@@ -138,15 +138,20 @@ def test_bad_split_range_is_named(tmp_path, tiny_captures):
         peoplesnapshot_source(tiny_captures / "ps", "tight", {"train": [0, 4], "test": [5, 6, 1]})
 
 
+def clip_with_masks(tmp_path, tiny_captures) -> None:
+    """tmp_path/clip.mp4 (the tight capture's video) and m.h5, its person masks as a matting step writes them."""
+    shutil.copy(tiny_captures / "tight" / "tight.mp4", tmp_path / "clip.mp4")
+    with h5py.File(tiny_captures / "tight" / "gt" / "frames.h5") as g, h5py.File(tmp_path / "m.h5", "w") as f:
+        f.create_dataset("person", data=g["alpha"][:])
+        f.attrs["model"] = "rvm:test.onnx"
+
+
 def test_generic_video_with_a_step_file(tmp_path, tiny_captures):
     """Any video: default camera unless a camera.json is given; masks from a model step's file."""
     from delta.data.sources import video_source
     from delta.preprocess.steps import attach
 
-    shutil.copy(tiny_captures / "tight" / "tight.mp4", tmp_path / "clip.mp4")
-    with h5py.File(tiny_captures / "tight" / "gt" / "frames.h5") as g, h5py.File(tmp_path / "m.h5", "w") as f:
-        f.create_dataset("person", data=g["alpha"][:])
-        f.attrs["model"] = "rvm:test.onnx"
+    clip_with_masks(tmp_path, tiny_captures)
     src = video_source(tmp_path, "clip", {"train": [0, 4, 1], "test": [5, 6, 1]})
     assert src.origin["camera"] == "default" and src.camera.K[0, 0] == 1.2 * 128
     attach(src, tmp_path / "m.h5")
@@ -164,10 +169,7 @@ def test_a_frame_in_two_splits_fills_both_rows(tmp_path, tiny_captures):
     from delta.data.sources import video_source
     from delta.preprocess.steps import attach
 
-    shutil.copy(tiny_captures / "tight" / "tight.mp4", tmp_path / "clip.mp4")
-    with h5py.File(tiny_captures / "tight" / "gt" / "frames.h5") as g, h5py.File(tmp_path / "m.h5", "w") as f:
-        f.create_dataset("person", data=g["alpha"][:])
-        f.attrs["model"] = "rvm:test.onnx"
+    clip_with_masks(tmp_path, tiny_captures)
     src = video_source(tmp_path, "clip", {"train": [2, 2, 1], "test": [2, 2, 1]})
     attach(src, tmp_path / "m.h5")
     prepare(src, tmp_path / "out.h5", 64)
