@@ -22,19 +22,13 @@ import logging
 import time
 from pathlib import Path
 
-import cv2
-import numpy as np
 import torch
 
 from delta import DeltaError
 from delta.applications.settings import ShowSettings
-from delta.applications.truth import mean_scores, score_rows, truth_scorer, write_scores
-from delta.data.frames import load_full_frames
-from delta.export.video import to_bgr, turntable, write_video
-from delta.io import atomic_path, require_files, save_json
+from delta.applications.show import show_edit
+from delta.io import require_files, save_json
 from delta.models.avatar import HybridAvatar
-from delta.models.image import full_view, render_image
-from delta.progress import Progress
 from delta.training.run import load_trained
 
 log = logging.getLogger(__name__)
@@ -88,35 +82,12 @@ def dress_avatar(body_model: str | Path, body_record: str | Path, wearer_model: 
     body = load_trained(body_model, body_record, body_path, device)
     wearer = load_trained(wearer_model, wearer_record, body_path, device)
     check_wearable(body.model, wearer.model)
-    frame = int(body.data.train[0])
-    full = load_full_frames(body_record, [frame], body.settings.background)
-    view = full_view(full, body.model.resolution)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    scorer = None
-    if truth is not None and settings.score_frames:
-        scorer = truth_scorer(body, body_record, truth, settings.score_frames, perceptual_dir, settings.supersample)
     about = {"application": "dress", "model": str(body_model), "wearer": str(wearer_model)}
-    progress = Progress(f"dress ({view.width}x{view.height})", 2 + settings.turntable_frames)
-    with torch.no_grad():
-        own = render_image(body.model, frame, view=view, soft_silhouette=False)["rgb"]
-        rows = score_rows(scorer, "as_trained", about, clothing)
-        progress.tick("as trained")
-        put_on(body.model, wearer.model)
-        dressed = render_image(body.model, frame, view=view, soft_silhouette=False)["rgb"]
-        rows += score_rows(scorer, "edited", about, wearer_clothing)
-        progress.tick("dressed")
-    write_scores(out / "scores.csv", rows)
-    with atomic_path(out / "dressed.png") as tmp:
-        cv2.imwrite(str(tmp), np.concatenate([to_bgr(full.images[0]), to_bgr(own), to_bgr(dressed)], axis=1))
-    turn = turntable(body.model, frame, settings.turntable_frames, view)
-    count = write_video(out / "turntable.mp4", progress.counted(turn, "turntable"), settings.fps)
-    summary = {"body_model": str(body_model), "wearer_model": str(wearer_model), "frame": frame,
-               "frame_id": int(body.data.frame_ids[frame]), "body_capture": body.model.spec.capture,
-               "wearer_capture": wearer.model.spec.capture, "turntable_frames": count, "settings": vars(settings).copy(),
-               "resolution": "{}x{}".format(*full.size), "changed_pixels": round(float(
-                   ((own - dressed).abs().amax(-1) > 0.05).float().mean()), 4),
-               "seconds": round(time.perf_counter() - t_start, 2), "scores": mean_scores(rows)}  # fmt: skip
-    save_json(out / "dress.json", summary)
-    log.info("%s wears %s's exterior: %s", body_model, wearer_model, out)
+    shown = show_edit(body, body_record, Path(out_dir), "dressed", lambda: put_on(body.model, wearer.model),
+                      settings, about, truth, perceptual_dir, (clothing, wearer_clothing))  # fmt: skip
+    summary = {"body_model": str(body_model), "wearer_model": str(wearer_model), **shown,
+               "body_capture": body.model.spec.capture, "wearer_capture": wearer.model.spec.capture,
+               "seconds": round(time.perf_counter() - t_start, 2)}  # fmt: skip
+    save_json(Path(out_dir) / "dress.json", summary)
+    log.info("%s wears %s's exterior: %s", body_model, wearer_model, out_dir)
     return summary

@@ -21,19 +21,13 @@ import re
 import time
 from pathlib import Path
 
-import cv2
-import numpy as np
 import torch
 
 from delta import DeltaError
 from delta.applications.settings import ShowSettings
-from delta.applications.truth import mean_scores, score_rows, truth_scorer, write_scores
-from delta.data.frames import load_full_frames
+from delta.applications.show import show_edit
 from delta.export.meshes import body_mesh, write_mesh
-from delta.export.video import to_bgr, turntable, write_video
-from delta.io import atomic_path, require_files, save_json
-from delta.models.image import full_view, render_image
-from delta.progress import Progress
+from delta.io import require_files, save_json
 from delta.synthetic.spec import edit_amount
 from delta.training.run import load_trained
 
@@ -135,34 +129,16 @@ def reshape_avatar(model_path: str | Path, record: str | Path, body_path: str | 
         space, anny = ShapeSpace.load(shape_space), build_anny(anny_cache)
     before = model.betas.detach().clone()
     new, about = edit_betas(before, edit, space, anny)
-    frame = int(tr.data.train[0])
-    full = load_full_frames(record, [frame], tr.settings.background)
-    view = full_view(full, model.resolution)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    scorer = None
-    if truth is not None and settings.score_frames:
-        scorer = truth_scorer(tr, record, truth, settings.score_frames, perceptual_dir, settings.supersample)
     tags = {"application": "reshape", "model": str(model_path), "edit": json.dumps(edit, sort_keys=True)}
-    progress = Progress(f"reshape ({view.width}x{view.height})", 2 + settings.turntable_frames)
-    with torch.no_grad():
-        own = render_image(model, frame, view=view, soft_silhouette=False)["rgb"]
-        rows = score_rows(scorer, "as_trained", tags, clothing)
-        progress.tick("as trained")
+    out = Path(out_dir)
+
+    def reshape() -> None:
         model.betas.data[:] = new.to(model.betas)
-        reshaped = render_image(model, frame, view=view, soft_silhouette=False)["rgb"]
-        rows += score_rows(scorer, "edited", tags, clothing)
-        progress.tick("reshaped")
-    write_scores(out / "scores.csv", rows)
-    with atomic_path(out / "reshaped.png") as tmp:
-        cv2.imwrite(str(tmp), np.concatenate([to_bgr(full.images[0]), to_bgr(own), to_bgr(reshaped)], axis=1))
+
+    shown = show_edit(tr, record, out, "reshaped", reshape, settings, tags, truth, perceptual_dir, (clothing, clothing))
     write_mesh(out / "body_canonical.ply", body_mesh(model)[0])
-    turn = turntable(model, frame, settings.turntable_frames, view)
-    count = write_video(out / "turntable.mp4", progress.counted(turn, "turntable"), settings.fps)
     summary = {"model": str(model_path), "edit": dict(edit), **about, "betas_before": before.tolist(),
-               "betas_after": new.tolist(), "frame": frame, "turntable_frames": count,
-               "resolution": "{}x{}".format(*full.size), "seconds": round(time.perf_counter() - t_start, 2),
-               "scores": mean_scores(rows)}  # fmt: skip
+               "betas_after": new.tolist(), **shown, "seconds": round(time.perf_counter() - t_start, 2)}  # fmt: skip
     save_json(out / "reshape.json", summary)
     log.info("reshaped %s by %s: %s", model_path, edit, out)
     return summary
