@@ -33,7 +33,7 @@ from delta.applications.settings import ShowSettings
 from delta.applications.truth import summarize_scores
 from delta.config import load_config
 from delta.synthetic.generate import generate
-from delta.synthetic.spec import dressed_raw, parse_subject, reshaped_raw
+from delta.synthetic.spec import dressed_raw, parse_subject, reshaped_raw, truth_name
 
 
 def avatar(text: str) -> tuple[str, dict]:
@@ -81,7 +81,9 @@ def main() -> None:
         b, a = pair.split(":")
         B, A = avatars[b], avatars[a]
         t = time.perf_counter()
-        gt = truth(args.work, f"{B['subject']}.wears.{a}", dressed_raw(B["raw"], A["raw"]), body, shape_space, cache)
+        gt = truth(
+            args.work, truth_name("dress", B["subject"], a), dressed_raw(B["raw"], A["raw"]), body, shape_space, cache
+        )
         out = args.work / "results" / B["subject"] / "dress" / a
         dress_avatar(B["model"], B["record"], A["model"], A["record"], body, out, settings, gt, perceptual,
                      B["clothing"], A["clothing"])  # fmt: skip
@@ -93,7 +95,9 @@ def main() -> None:
         B = avatars[b]
         name = "-".join(f"{k}{v}" for k, v in edit.items())
         t = time.perf_counter()
-        gt = truth(args.work, f"{B['subject']}.shape.{name}", reshaped_raw(B["raw"], edit), body, shape_space, cache)
+        gt = truth(
+            args.work, truth_name("reshape", B["subject"], name), reshaped_raw(B["raw"], edit), body, shape_space, cache
+        )
         out = args.work / "results" / B["subject"] / "reshape" / name
         reshape_avatar(B["model"], B["record"], body, edit, out, shape_space, cache, settings, gt, perceptual,
                        B["clothing"])  # fmt: skip

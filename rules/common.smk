@@ -10,7 +10,7 @@ from delta.config import validate_workflow_config
 from delta.config import variant_training as _variant_training
 from delta.data.sources import PROVIDES
 from delta.scene.settings import user_decided
-from delta.synthetic.spec import dressed_raw, parse_subject, reshaped_raw
+from delta.synthetic.spec import dressed_raw, parse_subject, reshaped_raw, truth_name
 from delta.training.presets import resolve as resolve_training, stage_view
 
 # the one validation (delta validate-config runs the same): every problem before any job starts;
@@ -39,7 +39,7 @@ def application_truths():
         wearer = exterior_source(config, e)[1]
         if s in SYNTHETIC_RAW and wearer in SYNTHETIC_RAW:
             out[("dress", s, e)] = (
-                f"{s}.wears.{e}",
+                truth_name("dress", s, e),
                 dressed_raw(SYNTHETIC_RAW[s], SYNTHETIC_RAW[wearer]),
             )
     for d, s, e in application_jobs(config, "reshape"):
@@ -47,7 +47,7 @@ def application_truths():
         phenotype_only = not any(k.startswith("beta") for k in edit)
         if s in SYNTHETIC_RAW and phenotype_only and BODY["name"] == "anny":
             out[("reshape", s, e)] = (
-                f"{s}.shape.{e}",
+                truth_name("reshape", s, e),
                 reshaped_raw(SYNTHETIC_RAW[s], edit),
             )
     return out

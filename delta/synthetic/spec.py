@@ -150,6 +150,16 @@ def parse_subject(name: str, raw: dict) -> SubjectSpec:
 EXTERIOR_KEYS = ("garments", "hair", "hair_color")
 
 
+#: The word between a subject and an application's name in the name of its generated truth.
+TRUTH_WORDS = {"dress": "wears", "reshape": "shape"}
+
+
+def truth_name(application: str, subject: str, name: str) -> str:
+    """The generated truth's subject name of an application job: ``tight.wears.loose-dress``,
+    ``tight.shape.heavier`` (with a '.', which no configured subject name has)."""
+    return f"{subject}.{TRUTH_WORDS[application]}.{name}"
+
+
 def dressed_raw(body: dict, wearer: dict) -> dict:
     """The subject ``body`` (its shape, skin, motion, camera: its seed) wearing ``wearer``'s garments and hair:
     the generated truth of putting the wearer's exterior on the body's avatar."""

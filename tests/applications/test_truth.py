@@ -11,7 +11,7 @@ from delta.applications.truth import summarize_scores, truth_frames
 from delta.cli import main
 from delta.data.frames import load_full_frames
 from delta.data.record import FrameRecord
-from delta.synthetic.spec import EXTERIOR_KEYS, dressed_raw, parse_subject, reshaped_raw
+from delta.synthetic.spec import EXTERIOR_KEYS, dressed_raw, parse_subject, reshaped_raw, truth_name
 from tests.conftest import TINY_SUBJECTS
 
 
@@ -21,6 +21,7 @@ def test_a_dressed_subject_keeps_its_body_and_takes_the_exterior():
     assert raw["seed"] == body["seed"] and raw["camera"] == body["camera"] and raw["phenotype"] == body["phenotype"]
     assert raw["garments"] == wearer["garments"] and raw["hair"] == wearer["hair"]
     assert "hair_color" not in raw  # the wearer's default, not the body's
+    assert truth_name("dress", "tight", "loose") == "tight.wears.loose"
     spec = parse_subject("tight.wears.loose", raw)
     assert spec.garments[0].kind == "dress" and spec.turn_frames == body["turn_frames"]
     assert set(EXTERIOR_KEYS) <= {"garments", "hair", "hair_color"}
