@@ -24,7 +24,7 @@ from delta.applications.motion import Motion, read_motion, resample
 from delta.applications.settings import AnimateSettings
 from delta.body.lbs import batch_rodrigues
 from delta.data.frames import load_full_frames
-from delta.export.meshes import MeshPart, body_mesh, pose_clothing, write_mesh
+from delta.export.meshes import MeshPart, body_mesh, pose_clothing, read_mesh, write_mesh
 from delta.export.video import baked_trajectory, posed_as, to_bgr, write_video
 from delta.io import require_files, save_json
 from delta.models.image import full_view, render_image
@@ -62,13 +62,7 @@ def check_anchor(anchor: int, frames: int, train: np.ndarray) -> int:
 
 def _clothing(path: str | Path | None) -> MeshPart | None:
     """The export's clothing surface in the NeRF's space (clothing_nerf_space.ply), when there is one."""
-    if path is None or not Path(path).is_file():
-        return None
-    import trimesh
-
-    tm = trimesh.load(path, process=False, force="mesh")
-    colors = np.asarray(tm.visual.vertex_colors)[:, :3] / 255.0 if len(tm.vertices) else np.zeros((0, 3))
-    return MeshPart(np.asarray(tm.vertices, np.float64), np.asarray(tm.faces, np.int64), colors)
+    return read_mesh(path) if path is not None and Path(path).is_file() else None
 
 
 def animate_avatar(model_path: str | Path, record: str | Path, body_path: str | Path, motion_path: str | Path,

@@ -284,13 +284,12 @@ def clothing_distance(trained: Trained, nerf_space_mesh: str | Path, gt_meshes: 
     mesh's triangles, exact) and normal consistency of the exported clothing surface, posed as each
     frame by forward skinning, against the GT clothing and hair of that frame. Both are moved by the
     offset that aligns the fitted body's centroid with the GT body's (as the body error is)."""
-    from delta.export.meshes import MeshPart, pose_clothing
+    from delta.export.meshes import pose_clothing, read_mesh
 
     model, data = trained.model, trained.data
-    surface = trimesh.load(nerf_space_mesh, process=False)
-    if len(surface.faces) == 0:
+    part = read_mesh(nerf_space_mesh)
+    if part.empty:
         return {}
-    part = MeshPart(np.asarray(surface.vertices), np.asarray(surface.faces), np.zeros((len(surface.vertices), 3)))
     gt_body = gt_body_vertices(gt_meshes, data.frame_ids[frames])
     rows, exact = [], []
     with torch.no_grad():

@@ -151,6 +151,13 @@ def write_mesh(path: str | os.PathLike, part: MeshPart) -> None:
         part.to_trimesh().export(tmp)
 
 
+def read_mesh(path: str | os.PathLike) -> MeshPart:
+    """A mesh ``write_mesh`` wrote (PLY or OBJ), its vertex colours included (grey where it has none)."""
+    tm = trimesh.load(path, process=False, force="mesh")
+    colors = np.asarray(tm.visual.vertex_colors)[:, :3] / 255.0 if len(tm.vertices) else np.zeros((0, 3))
+    return MeshPart(np.asarray(tm.vertices, np.float64), np.asarray(tm.faces, np.int64).reshape(-1, 3), colors)
+
+
 def write_glb(path: str | os.PathLike, parts: dict[str, MeshPart]) -> None:
     """One GLB scene with a node per non-empty part."""
     scene = trimesh.Scene()
