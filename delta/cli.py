@@ -59,6 +59,16 @@ def cmd_convert_anny(args: argparse.Namespace) -> None:
         conv.space.save(args.shape_space)
 
 
+def cmd_anny_expressions(args: argparse.Namespace) -> None:
+    from delta.body.expressions import anny_expression_space
+
+    _threads(args.threads)
+    space = anny_expression_space(cache_dir=args.cache_dir)
+    space.save(args.out)
+    log.info("Anny's %d facial actions move %d of %d base vertices", space.num_expression, len(space.vertex_ids),
+             space.num_vertices)  # fmt: skip
+
+
 def cmd_load_smplx(args: argparse.Namespace) -> None:
     import torch
 
@@ -404,6 +414,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache-dir", default="resources/anny_cache")
     p.add_argument("--threads", type=int, default=1)
     p.set_defaults(func=cmd_convert_anny)
+
+    p = sub.add_parser("anny-expressions", help="Anny's 52 facial actions as a sparse expression space")
+    p.add_argument("--out", required=True)
+    p.add_argument("--cache-dir", default="resources/anny_cache")
+    p.add_argument("--threads", type=int, default=1)
+    p.set_defaults(func=cmd_anny_expressions)
 
     p = sub.add_parser("load-smplx", help="read the user's SMPLX_NEUTRAL.npz/.pkl into the project's format")
     p.add_argument("--src", required=True)

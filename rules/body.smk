@@ -28,6 +28,24 @@ rule convert_anny:
         " --merge {params.merge:q} --cache-dir {params.cache:q} --threads {threads} > {log:q} 2>&1"
 
 
+rule anny_expressions:
+    output:
+        PATHS["anny_expressions"],
+    log:
+        log_path("anny_expressions"),
+    benchmark:
+        benchmark_path("anny_expressions")
+    conda:
+        "../workflow/envs/delta.yaml"
+    resources:
+        mem_mb=4000,
+        runtime=10,
+    params:
+        cache=PATHS["anny_cache"],
+    shell:
+        "delta anny-expressions --out {output:q} --cache-dir {params.cache:q} > {log:q} 2>&1"
+
+
 rule load_smplx:
     input:
         BODY["smplx_path"],

@@ -80,6 +80,7 @@ PATHS = {
     "body": "resources/body/{model}_sub{level}.npz",
     "body_summary": "results/body/{model}_sub{level}.json",
     "anny_shape_space": "resources/body/anny_pca.npz",
+    "anny_expressions": "resources/body/anny_expressions.npz",
     # synthetic captures: the video is all a real capture has; ground truth lies apart in gt/
     "syn_video": "data/synthetic/{subject}/{subject}.mp4",
     "syn_params": "data/synthetic/{subject}/gt/params.npz",

@@ -132,6 +132,15 @@ def anny_model():
 
 
 @pytest.fixture(scope="session")
+def anny_face_model():
+    """Anny with its 52 facial actions (its own build cache entry)."""
+    from delta.body.anny_convert import build_anny
+
+    with exclusive("anny"):
+        return build_anny(ANNY_CACHE, facial_actions=True)
+
+
+@pytest.fixture(scope="session")
 def anny_conversion(anny_model):
     from delta.body.anny_convert import convert_anny
 

@@ -93,8 +93,9 @@ class AnnyConversion:
         return self.space.phenotype_labels
 
 
-def build_anny(cache_dir: str | os.PathLike | None = None):
-    """Construct Anny (float64, dense LBS); its ~0.8 GB build cache goes to ``cache_dir``."""
+def build_anny(cache_dir: str | os.PathLike | None = None, facial_actions: bool = False):
+    """Construct Anny (float64, dense LBS), with its 52 facial actions when asked; its ~0.8 GB build
+    cache goes to ``cache_dir``."""
     if cache_dir is not None:
         os.environ["ANNY_CACHE_DIR"] = str(Path(cache_dir).resolve())
     try:
@@ -104,18 +105,22 @@ def build_anny(cache_dir: str | os.PathLike | None = None):
         raise DeltaError("the shipped body model needs the 'anny' package: pip install anny") from exc
     if cache_dir is not None:
         anny.paths.set_anny_cache_path(Path(cache_dir).resolve())
-    return anny.Anny(skinning_method="lbs")
+    return anny.Anny(skinning_method="lbs", facial_actions="all" if facial_actions else "none")
 
 
-def anny_coefficients(anny_model, phenotypes: torch.Tensor) -> torch.Tensor:
-    """Blend-shape coefficients of (B, P) phenotype values in [0, 1]."""
-    empty = phenotypes.new_zeros((phenotypes.shape[0], 0))
-    return anny_model._get_phenotype_blendshape_coefficients(phenotypes, empty, empty)
+def anny_coefficients(anny_model, phenotypes: torch.Tensor, actions: torch.Tensor | None = None) -> torch.Tensor:
+    """Blend-shape coefficients of (B, P) phenotype values in [0, 1] and (B, A) facial-action
+    activations (zero when not given; A = 0 for a model built without them)."""
+    B = phenotypes.shape[0]
+    if actions is None:
+        actions = phenotypes.new_zeros((B, len(anny_model.facial_action_labels)))
+    return anny_model._get_phenotype_blendshape_coefficients(phenotypes, phenotypes.new_zeros((B, 0)), actions)
 
 
-def anny_rest(anny_model, phenotypes: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Anny's rest vertices, bone heads and bone poses for (B, P) phenotypes (Anny axes)."""
-    return anny_model.get_rest_model(anny_coefficients(anny_model, phenotypes))
+def anny_rest(anny_model, phenotypes: torch.Tensor, actions: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    """Anny's rest vertices, bone heads and bone poses for (B, P) phenotypes and optional facial
+    actions (Anny axes)."""
+    return anny_model.get_rest_model(anny_coefficients(anny_model, phenotypes, actions))
 
 
 def vertex_regions(anny_model) -> np.ndarray:

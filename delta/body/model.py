@@ -21,7 +21,7 @@ from delta.io import save_npz
 REGION_NAMES: tuple[str, ...] = ("body", "face", "hands", "feet", "eyes", "mouth")
 REGION = {name: i for i, name in enumerate(REGION_NAMES)}
 
-_OPTIONAL = ("posedirs", "exprdirs", "joints_exprdirs", "embed_vertex_ids", "embed_bary")
+_OPTIONAL = ("posedirs", "exprdirs", "joints_exprdirs", "embed_vertex_ids", "embed_bary", "expression_names")
 
 
 @dataclasses.dataclass
@@ -64,6 +64,8 @@ class BodyModel:
     """(V, 3) int64 base-mesh vertices each vertex interpolates (upsampled models)."""
     embed_bary: Optional[torch.Tensor] = None
     """(V, 3) barycentric weights of those base-mesh vertices."""
+    expression_names: list[str] = dataclasses.field(default_factory=list)
+    """(E,) names of the expression coefficients (Anny's facial actions), or empty when unnamed."""
 
     # ------------------------------------------------------------------ sizes
     @property
@@ -119,6 +121,9 @@ class BodyModel:
                 raise DeltaError(f"{source}: '{key}' has shape {tuple(value.shape)}, expected {shape} (None = any)")
             if value.is_floating_point() and not torch.isfinite(value).all():
                 raise DeltaError(f"{source}: '{key}' contains NaN or infinite values")
+        if self.expression_names and len(self.expression_names) != self.num_expression:
+            raise DeltaError(f"{source}: 'expression_names' has {len(self.expression_names)} names for "
+                             f"{self.num_expression} expression blend shapes")  # fmt: skip
         if len(self.joint_names) != J:
             raise DeltaError(f"{source}: 'joint_names' has {len(self.joint_names)} names for {J} joints")
         parents = self.parents.tolist()
@@ -137,6 +142,8 @@ class BodyModel:
     def save(self, path: str | os.PathLike, **metadata: np.ndarray) -> None:
         """Write the model as a pickle-free npz (atomically); ``metadata`` is stored with a ``meta_`` prefix."""
         arrays: dict[str, np.ndarray] = {"name": np.array(self.name), "joint_names": np.array(self.joint_names)}
+        if self.expression_names:
+            arrays["expression_names"] = np.array(self.expression_names)
         for f in dataclasses.fields(self):
             value = getattr(self, f.name)
             if isinstance(value, torch.Tensor):
@@ -166,7 +173,7 @@ def load_body_model(path: str | os.PathLike, dtype: torch.dtype = torch.float32)
         value = arrays[key]
         if key == "name":
             kwargs[key] = str(value)
-        elif key == "joint_names":
+        elif key in ("joint_names", "expression_names"):
             kwargs[key] = [str(n) for n in value]
         elif np.issubdtype(value.dtype, np.integer):
             kwargs[key] = torch.from_numpy(value.astype(np.int64))

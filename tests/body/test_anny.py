@@ -22,13 +22,14 @@ pytestmark = pytest.mark.slow
 C = torch.as_tensor(ANNY_TO_SMPLX)
 
 
-def anny_forward(anny_model, phenotypes, pose, transl):
-    """Anny's own posed vertices (project axes) for our axis-angle pose (project axes)."""
-    rest = anny_rest(anny_model, phenotypes)
+def anny_forward(anny_model, phenotypes, pose, transl, actions=None):
+    """Anny's own posed vertices (project axes) for our axis-angle pose (project axes), with
+    ``actions`` (B, 52) facial-action activations for a model built with them."""
+    rest = anny_rest(anny_model, phenotypes, actions)
     rot = C.T @ batch_rodrigues(pose) @ C
     deltas = anny_pose_deltas(rot, transl @ C, rest["rest_bone_poses"], anny_model.reference_bone_orientations,
                               anny_model.bone_parents)  # fmt: skip
-    out = anny_model(pose_parameters=deltas, phenotype_kwargs=phenotypes)
+    out = anny_model(pose_parameters=deltas, phenotype_kwargs=phenotypes, facial_actions=actions)
     return out["vertices"] @ C.T, rest
 
 
