@@ -112,7 +112,8 @@ def cmd_synthesize(args: argparse.Namespace) -> None:
     _threads(args.threads)
     raw = json_or_file(args.settings, "--settings")
     spec = parse_subject(args.subject, raw)
-    generate(spec, args.body, args.out, shape_space=args.shape_space, anny_cache=args.anny_cache)
+    generate(spec, args.body, args.out, shape_space=args.shape_space, anny_cache=args.anny_cache,
+             expressions=args.expressions)  # fmt: skip
     log.info("synthetic capture '%s' written to %s", args.subject, args.out)
 
 
@@ -440,6 +441,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--settings", required=True, help="the subject's spec as JSON (config datasets.synthetic.subjects)")
     p.add_argument("--body", required=True, help="the Anny body model npz")
     p.add_argument("--shape-space", help="the Anny shape-space npz (needed for phenotypes)")
+    p.add_argument("--expressions", help="the expression-space npz (needed for a talking face)")
     p.add_argument("--anny-cache", default="resources/anny_cache")
     p.add_argument("--out", required=True)
     p.add_argument("--threads", type=int, default=1)

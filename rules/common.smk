@@ -161,6 +161,13 @@ def synthetic_spec_json(wildcards):
     return json.dumps(SYNTHETIC_RAW[wildcards.subject], sort_keys=True)
 
 
+def synthetic_expressions(wildcards):
+    """The expression space a subject's talking face needs (nothing for a still face)."""
+    if SYNTHETIC[wildcards.subject].expressions == "none":
+        return []
+    return PATHS["anny_expressions"]
+
+
 def peoplesnapshot_files(subject):
     d = PATHS["syn_ps_dir"].format(subject=subject)
     return [

@@ -5,6 +5,7 @@ rule synthesize:
     input:
         body=anny_model_file(),
         shape_space=PATHS["anny_shape_space"],
+        expressions=synthetic_expressions,
     output:
         video=PATHS["syn_video"],
         params=PATHS["syn_params"],
@@ -23,12 +24,15 @@ rule synthesize:
         runtime=synth_runtime,
     params:
         spec=synthetic_spec_json,
+        expressions=lambda w, input: (
+            ["--expressions", input.expressions] if input.expressions else []
+        ),
         cache=PATHS["anny_cache"],
         out=lambda w: str(Path(PATHS["syn_video"].format(subject=w.subject)).parent),
     shell:
         "delta synthesize --subject {wildcards.subject:q} --settings {params.spec:q} --body {input.body:q}"
         " --shape-space {input.shape_space:q} --anny-cache {params.cache:q} --out {params.out:q}"
-        " --threads {threads} > {log:q} 2>&1"
+        " {params.expressions:q} --threads {threads} > {log:q} 2>&1"
 
 
 rule synthetic_peoplesnapshot:

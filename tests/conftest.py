@@ -160,6 +160,16 @@ def anny_files(tmp_path_factory, anny_model):
     return {"body": str(out / "anny_sub1.npz"), "shape_space": str(out / "anny_pca.npz"), "cache": str(ANNY_CACHE)}
 
 
+@pytest.fixture(scope="session")
+def anny_expressions_file(tmp_path_factory, anny_face_model):
+    """Anny's facial actions as the expression-space file the workflow writes."""
+    from delta.body.expressions import anny_expression_space
+
+    path = tmp_path_factory.mktemp("expressions") / "anny_expressions.npz"
+    anny_expression_space(anny_face_model).save(path)
+    return str(path)
+
+
 TINY_SUBJECTS = {
     "tight": dict(seed=1, phenotype={"gender": 0.85}, garments=["tshirt", "trousers"], hair="short", camera="pinhole",
                   distortion=[-0.04, 0.01, 0.0, 0.0, 0.0], resolution=128, turn_frames=5, novel_frames=2,

@@ -20,6 +20,7 @@ import torch
 import trimesh
 
 from delta import DeltaError
+from delta.body.expressions import ExpressionSpace, with_expressions
 from delta.body.keypoints import openpose18_map
 from delta.body.lbs import lbs, skin
 from delta.body.model import REGION_NAMES, BodyModel, load_body_model
@@ -27,7 +28,8 @@ from delta.cameras.models import OrthographicCamera, PinholeCamera, look_at
 from delta.io import atomic_path, save_json, save_npz
 from delta.synthetic import textures
 from delta.synthetic.garments import BODY_LABEL_OFFSET, LAYER_LABELS, Layer, build_layers, nonrigid_offsets
-from delta.synthetic.motion import novel_sequence, turn_sequence
+from delta.synthetic.motion import face_sequence, novel_face_sequence, novel_sequence, turn_sequence
+from delta.synthetic.talk import novel_expressions, talk_sequence
 from delta.synthetic.raycast import SceneMesh, render
 from delta.synthetic.spec import SubjectSpec
 
@@ -42,16 +44,18 @@ def label_names() -> dict[int, str]:
     return names
 
 
-#: share of the standing height an ``upper`` framing shows, from the top of the head down
+#: share of the standing height an ``upper`` / ``head`` framing shows, from the top of the head down
 UPPER_FRAMING = 0.35
+HEAD_FRAMING = 0.2
 
 
 def frame_span(spec: SubjectSpec, rest_y: np.ndarray) -> tuple[float, float]:
     """(height, centre) in metres of what the camera frames: the standing body (``full``) or its
-    top ``UPPER_FRAMING`` (``upper``), with 5 cm of room above and below."""
+    top ``UPPER_FRAMING`` (``upper``) or ``HEAD_FRAMING`` (``head``), with 5 cm of room above and below."""
     low, top = float(rest_y.min()), float(rest_y.max())
-    if spec.framing == "upper":
-        low = top - UPPER_FRAMING * (top - low)
+    share = {"upper": UPPER_FRAMING, "head": HEAD_FRAMING}.get(spec.framing)
+    if share is not None:
+        low = top - share * (top - low)
     return top - low + 0.1, (low + top) / 2
 
 
@@ -121,18 +125,45 @@ def _phenotype_betas(spec: SubjectSpec, shape_space: str | None, anny_cache: str
     return phenotype_betas(ShapeSpace.load(shape_space), build_anny(anny_cache), spec.phenotype)[:num_shape]
 
 
+def motion(spec: SubjectSpec, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(F, J, 3) poses of the capture's frames (its motion, then the held-out segment) and the body's
+    turn rate (rad/s) per frame, which sways the garments and hair."""
+    if spec.motion == "face":
+        poses = np.concatenate([face_sequence(names, spec.turn_frames, spec.fps, spec.seed),
+                                novel_face_sequence(names, spec.novel_frames, spec.seed)])  # fmt: skip
+        return poses, np.zeros(spec.num_frames)
+    turn, rate = turn_sequence(names, spec.turn_frames, spec.turns, spec.fps, spec.seed)
+    poses = np.concatenate([turn, novel_sequence(names, spec.novel_frames, spec.seed)])
+    return poses, np.concatenate([rate, np.zeros(spec.novel_frames)])
+
+
+def face_actions(spec: SubjectSpec, names: list[str]) -> np.ndarray | None:
+    """(F, E) facial-action activations of the capture's frames, or None for a still face."""
+    if spec.expressions == "none":
+        return None
+    return np.concatenate([talk_sequence(names, spec.turn_frames, spec.fps, spec.seed),
+                           novel_expressions(names, spec.novel_frames, spec.seed)])  # fmt: skip
+
+
 def generate(
     spec: SubjectSpec,
     body_model: str | os.PathLike,
     out_dir: str | os.PathLike,
     shape_space: str | None = None,
     anny_cache: str | None = None,
+    expressions: str | os.PathLike | None = None,
 ) -> None:
-    """Render the capture of ``spec`` into ``out_dir`` (see the module docstring)."""
+    """Render the capture of ``spec`` into ``out_dir`` (see the module docstring); a talking face
+    needs the ``expressions`` space file."""
     out = Path(out_dir)
     model: BodyModel = load_body_model(body_model, dtype=torch.float64)
     if not model.name.startswith("anny"):
         raise DeltaError(f"synthetic captures are built on the Anny body model, got '{model.name}'")
+    if spec.expressions != "none":
+        if expressions is None:
+            raise DeltaError(f"subject '{spec.name}': expressions '{spec.expressions}' need the expression-space "
+                             "file (delta anny-expressions)")  # fmt: skip
+        model = with_expressions(model, ExpressionSpace.load(expressions), str(expressions))
     betas = _phenotype_betas(spec, shape_space, anny_cache, model.num_shape)[None]
     zero = torch.zeros(1, model.num_joints, 3, dtype=torch.float64)
     with torch.no_grad():
@@ -140,9 +171,8 @@ def generate(
     rest_v, rest_j = rest.vertices[0].numpy(), rest.joints[0].numpy()
     layers = build_layers(model, rest_v, rest_j, spec.garments, spec.hair)
     camera = make_camera(spec, *frame_span(spec, rest_v[:, 1]))
-    turn, rate = turn_sequence(model.joint_names, spec.turn_frames, spec.turns, spec.fps, spec.seed)
-    poses = np.concatenate([turn, novel_sequence(model.joint_names, spec.novel_frames, spec.seed)])
-    rates = np.concatenate([rate, np.zeros(spec.novel_frames)])
+    poses, rates = motion(spec, model.joint_names)
+    actions = face_actions(spec, model.expression_names)
     transl = np.zeros((spec.num_frames, 3))
     kp_map = openpose18_map(model)
     on_joint = kp_map.joint_weights.sum(1).numpy() > 0
@@ -175,8 +205,9 @@ def generate(
             weights = [torch.from_numpy(l.weights) for l in layers]
             for f in range(F):
                 pose = torch.from_numpy(poses[f : f + 1])
+                expression = None if actions is None else torch.from_numpy(actions[f : f + 1])
                 with torch.no_grad():
-                    posed = lbs(model, betas, pose, transl=torch.from_numpy(transl[f : f + 1]))
+                    posed = lbs(model, betas, pose, expression, transl=torch.from_numpy(transl[f : f + 1]))
                 verts = [posed.vertices[0].numpy()]
                 for k, layer in enumerate(layers, start=1):
                     moved = layer.vertices + nonrigid_offsets(layer, canon_n[k], f / spec.fps, rates[f], spec.sway)
@@ -202,6 +233,7 @@ def generate(
         else np.zeros(1),
         fps=spec.fps,
         **_camera_arrays(camera, F),
+        **({} if actions is None else {"expression": actions, "expression_names": np.array(model.expression_names)}),
     )
     save_json(gt / "splits.json", splits(spec))
     save_json(gt / "labels.json", {str(k): v for k, v in label_names().items()})

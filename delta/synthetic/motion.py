@@ -69,3 +69,49 @@ def novel_sequence(names: list[str], frames: int, seed: int) -> np.ndarray:
     w = w * w * (3 - 2 * w)
     hi = np.minimum(lo + 1, len(keys) - 1)
     return (1 - w) * keys[lo] + w * keys[hi]
+
+
+#: the head's share of a head turn, nod or tilt, spread down the neck (Anny's and SMPL-X's neck joints)
+_HEAD_CHAIN = (("neck01", 0.3), ("neck02", 0.3), ("head", 0.4), ("neck", 0.5))
+
+#: key head poses of the held-out segment of a ``face`` motion: (yaw, pitch, roll) in rad, +yaw to the
+#: subject's left, +pitch down; beyond the training frames' reach (yaw ±0.45, pitch ±0.15, roll ±0.06)
+_KEY_HEAD_POSES = [(0.6, -0.3, 0.0), (-0.55, 0.25, 0.1), (0.0, 0.0, 0.3), (0.75, 0.1, -0.15), (-0.2, -0.35, -0.2)]
+
+
+def _head_pose(pose: np.ndarray, names: list[str], yaw, pitch, roll) -> None:
+    for joint, share in _HEAD_CHAIN:
+        if joint in names:
+            _set(pose, names, joint, share * np.stack([pitch, yaw, roll], -1))
+
+
+def face_sequence(names: list[str], frames: int, fps: int, seed: int) -> np.ndarray:
+    """(F, J, 3) poses of a subject facing the camera who turns, nods and tilts the head as one does
+    talking, the shoulders still but for breathing."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(frames) / fps
+    phase = rng.uniform(0, 2 * np.pi, size=4)
+    pose = np.zeros((frames, len(names), 3))
+    yaw = 0.45 * np.sin(2 * np.pi * 0.11 * t + phase[0])
+    pitch = 0.1 * np.sin(2 * np.pi * 0.23 * t + phase[1]) + 0.05 * np.sin(2 * np.pi * 0.7 * t + phase[2])
+    roll = 0.06 * np.sin(2 * np.pi * 0.17 * t + phase[3])
+    _head_pose(pose, names, yaw, pitch, roll)
+    _set(pose, names, "spine03", np.stack([0.015 * np.sin(2 * np.pi * 0.3 * t), 0 * t, 0 * t], -1))
+    return pose
+
+
+def novel_face_sequence(names: list[str], frames: int, seed: int) -> np.ndarray:
+    """(F, J, 3) head poses through key poses the ``face`` motion's training frames never reach."""
+    if frames == 0:
+        return np.zeros((0, len(names), 3))
+    keys = np.asarray(_KEY_HEAD_POSES)
+    rng = np.random.default_rng(seed + 1)
+    keys = keys[rng.permutation(len(keys))]
+    s = np.linspace(0, len(keys) - 1, frames)
+    lo = np.floor(s).astype(int).clip(0, len(keys) - 2)
+    w = s - lo
+    w = (w * w * (3 - 2 * w))[:, None]
+    values = (1 - w) * keys[lo] + w * keys[lo + 1]
+    pose = np.zeros((frames, len(names), 3))
+    _head_pose(pose, names, values[:, 0], values[:, 1], values[:, 2])
+    return pose

@@ -12,7 +12,9 @@ GARMENTS = ("tshirt", "longsleeve", "trousers", "shorts", "skirt", "dress")
 PATTERNS = ("stripes", "checker", "dots", "plaid", "plain")
 HAIR = ("none", "short", "long")
 CAMERAS = ("pinhole", "orthographic")
-FRAMINGS = ("full", "upper")
+FRAMINGS = ("full", "upper", "head")
+MOTIONS = ("turn", "face")
+EXPRESSIONS = ("none", "talk")
 CODECS = ("ffv1", "mp4v")
 #: garments that cover the upper / lower body; at most one of each, and a dress covers both
 _UPPER, _LOWER = {"tshirt", "longsleeve", "dress"}, {"trousers", "shorts", "skirt", "dress"}
@@ -41,7 +43,14 @@ class SubjectSpec:
     distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
     framing: str = "full"
     """``full``: the whole standing body in view; ``upper``: head, shoulders and chest (the top
-    ``UPPER_FRAMING`` of the height), hips and legs out of view: a capture that needs no legs."""
+    ``UPPER_FRAMING`` of the height), hips and legs out of view: a capture that needs no legs;
+    ``head``: head and shoulders (the top ``HEAD_FRAMING``), a talking-head video's framing."""
+    motion: str = "turn"
+    """``turn``: the subject turns in place (``turns`` times), People Snapshot's motion; ``face``: the
+    subject faces the camera and turns, nods and tilts the head, a talking-head video's motion."""
+    expressions: str = "none"
+    """``none``: a still, neutral face; ``talk``: the face talks, blinks and smiles (Anny's facial
+    actions), and the held-out segment shows expressions the training frames never do."""
     resolution: int = 512
     turn_frames: int = 100
     novel_frames: int = 30
@@ -118,7 +127,8 @@ def parse_subject(name: str, raw: dict) -> SubjectSpec:
         kinds = [g.kind for g in kw["garments"]]
         if sum(k in _UPPER for k in kinds) > 1 or sum(k in _LOWER for k in kinds) > 1:
             raise DeltaError(f"{key}.garments: {kinds} overlap (one upper and one lower garment, or one dress)")
-    for choice_key, options in (("hair", HAIR), ("camera", CAMERAS), ("codec", CODECS), ("framing", FRAMINGS)):
+    for choice_key, options in (("hair", HAIR), ("camera", CAMERAS), ("codec", CODECS), ("framing", FRAMINGS),
+                                ("motion", MOTIONS), ("expressions", EXPRESSIONS)):  # fmt: skip
         if choice_key in kw and kw[choice_key] not in options:
             raise DeltaError(f"{key}.{choice_key}: unknown value '{kw[choice_key]}'; known: {list(options)}")
     for color_key in ("skin_color", "hair_color", "background"):

@@ -30,7 +30,7 @@ def test_defaults():
         ({"phenotype": {"height": 1.5}}, r"phenotype: values must lie in \[0, 1\]"),
         ({"frames": 10}, r"unknown key\(s\) \['frames'\]"),
         ({"codec": "h265"}, r"codec: unknown value"),
-        ({"framing": "feet"}, r"framing: unknown value 'feet'; known: \['full', 'upper'\]"),
+        ({"framing": "feet"}, r"framing: unknown value 'feet'; known: \['full', 'upper', 'head'\]"),
     ],
 )
 def test_bad_specs_are_named(raw, message):
