@@ -1,0 +1,189 @@
+"""Face tracking: per-frame expression and head rotation from 2D face points, the body held as fitted.
+
+Given the body's fit (shape, per-frame pose, translation, camera) and per-frame detections of face
+points (u, v, confidence) whose embedding on the mesh is known (:mod:`delta.body.face_points`), the
+fit finds per frame the expression activations (in [0, 1], Anny's facial actions) and a correction
+of the head joints' rotations that reproject the points onto their detections. Priors: a small L2
+and L1 pull of the activations towards a neutral face (most actions rest at 0), a pull of the head
+correction towards the body fit, and first-order temporal smoothness of both. Every frame is fitted
+at once; only the K face-point vertices are posed.
+
+A frame is not fitted to garbage: where fewer than ``min_seen`` of the points are detected inside the
+image it is flagged (``out of frame`` when the detections lie outside it, ``face not seen`` when they
+are missing), and where the fitted face turns more than ``max_turn_deg`` from the camera it is flagged
+``turned away``; flagged frames take their neighbours' values. A capture with no usable frame is an
+error.
+
+Shapes: F frames, K face points, J joints, E expression coefficients.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+
+import torch
+
+from delta import DeltaError
+from delta.body.face_points import FacePoints, restrict
+from delta.body.lbs import lbs
+from delta.body.model import BodyModel
+from delta.cameras.models import OrthographicCamera
+from delta.fitting.start import interpolate
+from delta.fitting.terms import gmof
+
+log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass
+class FaceFitConfig:
+    iterations: int = 300
+    lr: float = 0.02
+    sigma_px: float = 6.0
+    """Robust-penalty scale of the point residuals (pixels)."""
+    expression_weight: float = 0.5
+    """L2 pull of the activations to 0 (px² per unit activation²)."""
+    sparsity_weight: float = 0.5
+    """L1 pull of the activations to 0 (px² per unit activation)."""
+    head_weight: float = 50.0
+    """Pull of the head correction to the body fit (px² per rad²)."""
+    smooth_weight: float = 2.0
+    """First-difference smoothness of activations and head correction between consecutive frames (px² per unit²)."""
+    conf_threshold: float = 0.5
+    min_seen: float = 0.5
+    """Share of the face points a frame must detect inside the image to be fitted."""
+    max_turn_deg: float = 75.0
+    """A fitted face turned further than this from the camera is flagged."""
+    head_joints: tuple[str, ...] = ("neck02", "head", "neck")
+    """The joints whose rotation the face corrects (those of them the body model has)."""
+
+
+@dataclasses.dataclass
+class FaceFit:
+    expression: torch.Tensor
+    """(F, E) activations in [0, 1]."""
+    poses: torch.Tensor
+    """(F, J, 3) the body poses with the head joints corrected."""
+    flags: list[str]
+    """(F,) '' for a fitted frame, else why it was not: 'face not seen', 'out of frame', 'turned away'."""
+    residual_px: torch.Tensor
+    """(F,) median reprojection error of the detected points (NaN where none)."""
+
+    @property
+    def fitted(self) -> torch.Tensor:
+        return torch.tensor([not f for f in self.flags])
+
+
+def _inside(uv: torch.Tensor, camera) -> torch.Tensor:
+    return (uv[..., 0] >= 0) & (uv[..., 0] < camera.width) & (uv[..., 1] >= 0) & (uv[..., 1] < camera.height)
+
+
+def screen_frames(detected: torch.Tensor, camera, cfg: FaceFitConfig) -> tuple[torch.Tensor, list[str]]:
+    """(F, K) usable detections and each frame's flag before fitting ('' when it can be fitted)."""
+    confident = detected[..., 2] >= cfg.conf_threshold
+    inside = _inside(detected[..., :2], camera)
+    usable = confident & inside
+    flags = []
+    for f in range(len(detected)):
+        if usable[f].float().mean() >= cfg.min_seen:
+            flags.append("")
+        elif confident[f].float().mean() >= cfg.min_seen:
+            flags.append("out of frame")
+        else:
+            flags.append("face not seen")
+    return usable, flags
+
+
+def face_turn_deg(model: BodyModel, out_transforms: torch.Tensor, head: int, camera, head_pos: torch.Tensor):
+    """(F,) angle (deg) between the head's forward axis (+z at rest) and the direction to the camera."""
+    forward = out_transforms[:, head, :3, 2]
+    if isinstance(camera, OrthographicCamera):
+        to_camera = torch.tensor([0.0, 0.0, 1.0], dtype=forward.dtype).expand_as(forward)
+    else:
+        centre = -(camera.R.T.to(forward.dtype) @ camera.t.to(forward.dtype))
+        to_camera = centre[None] - head_pos
+    cos = torch.nn.functional.cosine_similarity(forward, to_camera, dim=-1)
+    return torch.rad2deg(torch.acos(cos.clamp(-1, 1)))
+
+
+def fit_face(
+    model: BodyModel,
+    points: FacePoints,
+    detected: torch.Tensor,
+    camera,
+    betas: torch.Tensor,
+    poses: torch.Tensor,
+    transl: torch.Tensor,
+    cfg: FaceFitConfig = FaceFitConfig(),
+) -> FaceFit:
+    """Fit (F, E) expressions and head corrections to (F, K, 3) detections; see the module docstring.
+
+    ``betas`` (S,), ``poses`` (F, J, 3), ``transl`` (F, 3): the body fit; ``camera`` shared (pinhole) or
+    per frame (orthographic with (F,) scale)."""
+    if model.exprdirs is None:
+        raise DeltaError(f"body model '{model.name}': face tracking needs an expression space")
+    F, K = detected.shape[:2]
+    if K != points.num_points:
+        raise DeltaError(f"face points: {K} detections a frame for {points.num_points} embedded points")
+    if not torch.isfinite(detected).all():
+        bad = int(torch.nonzero(~torch.isfinite(detected).reshape(F, -1).all(1))[0])
+        raise DeltaError(f"face points: frame {bad} holds NaN or infinite values")
+    usable, flags = screen_frames(detected, camera, cfg)
+    if all(flags):
+        raise DeltaError(f"no face in any of the {F} frames: fewer than {cfg.min_seen:.0%} of the face points "
+                         "detected inside the image in every frame")  # fmt: skip
+    dtype = model.v_template.dtype
+    used = points.used_vertices()
+    small = restrict(model, used)
+    local = FacePoints(torch.searchsorted(used, points.vertex_ids), points.bary)
+    joints = [model.joint_names.index(n) for n in cfg.head_joints if n in model.joint_names]
+    if not joints:
+        raise DeltaError(f"body model '{model.name}': none of the head joints {list(cfg.head_joints)}")
+    E = model.num_expression
+    expression = torch.zeros(F, E, dtype=dtype, requires_grad=True)
+    head = torch.zeros(F, len(joints), 3, dtype=dtype, requires_grad=True)
+    base = poses.to(dtype).detach()
+    B = betas.to(dtype).detach()[None].expand(F, -1)
+    T = transl.to(dtype).detach()
+    target = detected[..., :2].to(dtype)
+    weight = usable.to(dtype) * (torch.tensor([not f for f in flags], dtype=dtype)[:, None])
+    opt = torch.optim.Adam([expression, head], lr=cfg.lr)
+
+    def pose_of(h):
+        full = base.clone()
+        full[:, joints] = full[:, joints] + h
+        return full
+
+    for _ in range(cfg.iterations):
+        opt.zero_grad()
+        out = lbs(small, B, pose_of(head), expression, transl=T)
+        uv, _ = camera.project(local(out.vertices))
+        data = (weight * gmof(uv - target, cfg.sigma_px)).sum(1)
+        prior = cfg.expression_weight * expression.square().sum(1) + cfg.sparsity_weight * expression.abs().sum(1)
+        prior = prior + cfg.head_weight * head.square().sum((1, 2))
+        smooth = cfg.smooth_weight * (
+            (expression[1:] - expression[:-1]).square().sum(1) + (head[1:] - head[:-1]).square().sum((1, 2))
+        )
+        loss = (data + prior).sum() + smooth.sum()
+        loss.backward()
+        opt.step()
+        with torch.no_grad():
+            expression.clamp_(0.0, 1.0)
+
+    with torch.no_grad():
+        out = lbs(small, B, pose_of(head), expression, transl=T)
+        uv, _ = camera.project(local(out.vertices))
+        err = (uv - target).norm(dim=-1)
+        residual = torch.tensor([err[f, usable[f]].median().item() if usable[f].any() else math.nan for f in range(F)])
+        head_j = model.joint_names.index("head") if "head" in model.joint_names else joints[-1]
+        turn = face_turn_deg(model, out.joint_transforms, head_j, camera, out.joints[:, head_j])
+        flags = [f or ("turned away" if turn[i] > cfg.max_turn_deg else "") for i, f in enumerate(flags)]
+        bad = torch.tensor([bool(f) for f in flags])
+        expr = interpolate(expression.detach(), bad)
+        corrected = interpolate(head.detach(), bad)
+    if bad.any():
+        counts = {k: flags.count(k) for k in set(flags) if k}
+        log.warning("face tracking: %d of %d frames not fitted (%s); they take their neighbours' values",
+                    int(bad.sum()), F, ", ".join(f"{v} {k}" for k, v in sorted(counts.items())))  # fmt: skip
+    return FaceFit(expression=expr, poses=pose_of(corrected).detach(), flags=flags, residual_px=residual)
