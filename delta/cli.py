@@ -69,6 +69,16 @@ def cmd_anny_expressions(args: argparse.Namespace) -> None:
              space.num_vertices)  # fmt: skip
 
 
+def cmd_attach_expressions(args: argparse.Namespace) -> None:
+    from delta.body.expressions import ExpressionSpace, with_expressions
+    from delta.body.model import load_body_model
+
+    body = load_body_model(args.body)
+    model = with_expressions(body, ExpressionSpace.load(args.expressions), args.expressions)
+    model.validate(args.out).save(args.out)
+    log.info("%s: '%s' with %d expressions -> %s", args.body, model.name, model.num_expression, args.out)
+
+
 def cmd_load_smplx(args: argparse.Namespace) -> None:
     import torch
 
@@ -421,6 +431,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cache-dir", default="resources/anny_cache")
     p.add_argument("--threads", type=int, default=1)
     p.set_defaults(func=cmd_anny_expressions)
+
+    p = sub.add_parser("attach-expressions", help="a body model with an expression space attached (a tracked face)")
+    p.add_argument("--body", required=True)
+    p.add_argument("--expressions", required=True)
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_attach_expressions)
 
     p = sub.add_parser("load-smplx", help="read the user's SMPLX_NEUTRAL.npz/.pkl into the project's format")
     p.add_argument("--src", required=True)

@@ -46,6 +46,23 @@ rule anny_expressions:
         "delta anny-expressions --out {output:q} --cache-dir {params.cache:q} > {log:q} 2>&1"
 
 
+rule face_body_model:
+    input:
+        body=PATHS["body"],
+        expressions=PATHS["anny_expressions"],
+    output:
+        PATHS["face_body"],
+    log:
+        log_path("face_body_model", "{model}_sub{level}"),
+    conda:
+        "../workflow/envs/delta.yaml"
+    resources:
+        mem_mb=4000,
+    shell:
+        "delta attach-expressions --body {input.body:q} --expressions {input.expressions:q} --out {output:q}"
+        " > {log:q} 2>&1"
+
+
 rule load_smplx:
     input:
         BODY["smplx_path"],

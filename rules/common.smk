@@ -81,6 +81,7 @@ PATHS = {
     "body_summary": "results/body/{model}_sub{level}.json",
     "anny_shape_space": "resources/body/anny_pca.npz",
     "anny_expressions": "resources/body/anny_expressions.npz",
+    "face_body": "resources/body/{model}_sub{level}_face.npz",
     # synthetic captures: the video is all a real capture has; ground truth lies apart in gt/
     "syn_video": "data/synthetic/{subject}/{subject}.mp4",
     "syn_params": "data/synthetic/{subject}/gt/params.npz",
@@ -147,9 +148,21 @@ def benchmark_path(rule, name="all"):
 
 
 # ------------------------------------------------------- input functions
-def body_model_file():
-    """The upsampled body model every later stage reads."""
-    return PATHS["body"].format(model=BODY["name"], level=BODY["upsample_level"])
+def tracks_face(wildcards):
+    """A subject whose face is tracked and modelled: a synthetic talking face (its record carries face points)."""
+    dataset, subject = wildcards.get("dataset"), wildcards.get("subject")
+    if dataset != "synthetic" or subject not in SYNTHETIC:
+        return False
+    return SYNTHETIC[subject].expressions != "none"
+
+
+def body_model_file(wildcards=None):
+    """The upsampled body model a subject's stages read: with the expression space for a tracked face
+    (Anny's facial actions attached), without it for everyone else."""
+    level = BODY["upsample_level"]
+    if wildcards is not None and BODY["name"] == "anny" and tracks_face(wildcards):
+        return PATHS["face_body"].format(model="anny", level=level)
+    return PATHS["body"].format(model=BODY["name"], level=level)
 
 
 def anny_model_file():
@@ -285,7 +298,8 @@ def prepare_settings(wildcards):
     )
     return json.dumps(
         {"kind": kind, "resolution": PRE["resolution"], "crop_margin": PRE["crop_margin"],
-         "score_size": PRE["score_size"], "frames": frames, "use_provided": used_provided(wildcards.dataset)},
+         "score_size": PRE["score_size"], "frames": frames,
+         "use_provided": [a for a in used_provided(wildcards.dataset) if a != "face_points" or tracks_face(wildcards)]},
         sort_keys=True,
     )  # fmt: skip
 
@@ -378,7 +392,7 @@ def scene_settings_json(wildcards):
 def train_inputs(wildcards):
     """Stage 1 starts from the init fit; stage 2 from stage 1's model (and the VGG weights of its semantic loss)."""
     w = dict(wildcards)
-    files = {"record": PATHS["record"].format(**w), "body": body_model_file(),
+    files = {"record": PATHS["record"].format(**w), "body": body_model_file(wildcards),
              "scene": PATHS["scene"].format(dataset=w["dataset"], subject=w["subject"])}  # fmt: skip
     if wildcards.stage == "1":
         files["start"] = PATHS["init_params"].format(**w)
@@ -483,7 +497,7 @@ def trained_inputs(wildcards):
     return {
         "model": evaluated_model(wildcards),
         "record": PATHS["record"].format(**wildcards),
-        "body": body_model_file(),
+        "body": body_model_file(wildcards),
     }
 
 
@@ -690,7 +704,7 @@ def tryon_inputs(wildcards):
     return {
         "record": PATHS["record"].format(**wildcards),
         "init": PATHS["init_params"].format(**wildcards),
-        "body": body_model_file(),
+        "body": body_model_file(wildcards),
         "wearer_model": PATHS["stage_model"].format(stage=EVAL["stage"], **theirs),
         "wearer_record": PATHS["record"].format(**theirs),
     }

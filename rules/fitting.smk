@@ -4,7 +4,7 @@
 rule fit_init:
     input:
         record=PATHS["record"],
-        body=body_model_file(),
+        body=body_model_file,
     output:
         params=PATHS["init_params"],
         report=PATHS["init_report"],
@@ -30,7 +30,7 @@ rule analyze_scene:
     input:
         record=PATHS["record"],
         init=PATHS["init_params"],
-        body=body_model_file(),
+        body=body_model_file,
     output:
         report(
             PATHS["scene"],

@@ -90,7 +90,7 @@ def variant_eval_inputs(wildcards):
     files = {
         "model": variant_model(wildcards),
         "record": PATHS["record"].format(**wildcards),
-        "body": body_model_file(),
+        "body": body_model_file(wildcards),
         "alex": PATHS["perceptual_alex"],
     }
     if dataset_kind(wildcards.dataset) == "synthetic":
@@ -184,7 +184,7 @@ rule profile_step:
     input:
         model=variant_model,
         record=PATHS["record"],
-        body=body_model_file(),
+        body=body_model_file,
     output:
         PATHS["variant_profile"],
     log:

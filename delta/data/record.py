@@ -6,6 +6,8 @@ One HDF5 file per subject (``results/{dataset}/{subject}/frames.h5``):
 - ``person`` (N, S, S) uint8 alpha (0-255); ``clothing``, ``skin``, ``hair`` (N, S, S) uint8 0/1 when known;
 - ``keypoints`` (N, 18, 3) float32 OpenPose-18 (u, v, confidence) in the cropped image;
   ``face_landmarks`` (N, 468, 3) MediaPipe face-mesh points, same format, when asked for;
+  ``face_points`` (N, K, 3) face points on the body mesh, same format, with their embedding
+  ``face_point_vertices`` (K, 3) int and ``face_point_bary`` (K, 3), when the dataset provides them;
 - ``frame_ids`` (N,) int64 indices into the source video; ``split`` (N,) uint8 (0 train, 1 test view, 2 test pose);
 - camera: attrs ``camera_model``; pinhole ``K`` (3, 3), ``R``, ``t`` (undistorted: no distortion left);
   orthographic ``ortho_scale`` (N,), ``ortho_trans`` (N, 2);
@@ -36,15 +38,22 @@ MASKS = ("person", "clothing", "skin", "hair")
 class RecordWriter:
     """Append frames one at a time (streamed: a whole video never sits in memory)."""
 
-    def __init__(self, h5: h5py.File, n: int, size: int, masks: tuple[str, ...], face: bool = False):
+    def __init__(self, h5: h5py.File, n: int, size: int, masks: tuple[str, ...], face: bool = False,
+                 face_points=None):  # fmt: skip
         kw = dict(compression="gzip", compression_opts=3, track_times=False)
         self.images = h5.create_dataset("images", (n, size, size, 3), np.uint8, chunks=(1, size, size, 3), **kw)
         self.masks = {m: h5.create_dataset(m, (n, size, size), np.uint8, chunks=(1, size, size), **kw) for m in masks}
         self.keypoints = h5.create_dataset("keypoints", (n, 18, 3), np.float32, track_times=False)
         self.face = h5.create_dataset("face_landmarks", (n, 468, 3), np.float32, track_times=False) if face else None
+        self.face_points = None
+        if face_points is not None:  # a FacePointEmbedding
+            K = len(face_points.vertices)
+            self.face_points = h5.create_dataset("face_points", (n, K, 3), np.float32, track_times=False)
+            h5.create_dataset("face_point_vertices", data=face_points.vertices.astype(np.int64), track_times=False)
+            h5.create_dataset("face_point_bary", data=face_points.bary.astype(np.float32), track_times=False)
 
     def write(self, i: int, image: np.ndarray, masks: dict[str, np.ndarray], keypoints: np.ndarray | None,
-              face: np.ndarray | None = None) -> None:  # fmt: skip
+              face: np.ndarray | None = None, face_points: np.ndarray | None = None) -> None:  # fmt: skip
         self.images[i] = image
         for name, dset in self.masks.items():
             dset[i] = masks[name]
@@ -52,6 +61,8 @@ class RecordWriter:
             self.keypoints[i] = keypoints
         if face is not None and self.face is not None:
             self.face[i] = face
+        if face_points is not None and self.face_points is not None:
+            self.face_points[i] = face_points
 
 
 class FullFrameWriter:

@@ -37,13 +37,25 @@ class Source:
     num_video_frames: int
     provided: dict[str, FrameArray]
     """Per-frame arrays the dataset ships: 'person' (H, W) uint8 0-255, 'clothing'/'skin'/'hair' 0/1,
-    'keypoints' (18, 3)."""
+    'keypoints' (18, 3), 'face_points' (K, 3) (u, v, confidence)."""
     origin: dict[str, str]
     """Where each provided array comes from (recorded in the frame record)."""
     close: Callable[[], None] = lambda: None
     body_params: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     """Per-video-frame body parameters the dataset ships (People Snapshot's SMPL 'pose', 'trans'),
     and per-subject ones ('betas'); copied into the record for the selected frames."""
+    face_points: "FacePointEmbedding | None" = None
+    """Where the provided 'face_points' (K, 3) a frame sit on the body mesh."""
+
+
+@dataclasses.dataclass
+class FacePointEmbedding:
+    """K face points on the body mesh: each a barycentric combination of three vertices."""
+
+    vertices: np.ndarray
+    """(K, 3) int vertex ids."""
+    bary: np.ndarray
+    """(K, 3) weights."""
 
 
 def frame_array(path, name: str, dset, per_frame: tuple[int, ...], what: str, needed: int = 0,
@@ -139,7 +151,7 @@ def peoplesnapshot_source(root: str | Path, subject: str, cfg: dict) -> Source:
 
 #: what each dataset kind ships, so the DAG runs only the missing steps
 PROVIDES = {
-    "synthetic": ("person", "clothing", "skin", "hair", "keypoints"),
+    "synthetic": ("person", "clothing", "skin", "hair", "keypoints", "face_points"),
     "peoplesnapshot": ("person", "keypoints"),
     "video": (),
 }
@@ -236,12 +248,16 @@ def synthetic_source(capture: str | Path, subject: str) -> Source:
     except DeltaError:
         h5.close()
         raise
-    return Source(
+    face = {}
+    if "face_points" in h5:  # a talking face: its dense face points and their embedding on the body mesh
+        points = np.asarray(h5["face_points"])
+        face = {"face_points": lambda i: points[i]}
+    source = Source(
         video=video,
         camera=camera,
         frames=frames,
         num_video_frames=int(h5["person"].shape[0]),
-        provided={**masks, "keypoints": lambda i: keypoints[i]},
+        provided={**masks, "keypoints": lambda i: keypoints[i], **face},
         origin={
             k: f"dataset:gt/frames.h5:{v}"
             for k, v in (
@@ -250,7 +266,13 @@ def synthetic_source(capture: str | Path, subject: str) -> Source:
                 ("skin", "skin"),
                 ("hair", "hair"),
                 ("keypoints", "keypoints"),
+                ("face_points", "face_points"),
             )
         },  # fmt: skip
         close=h5.close,
     )
+    if face:
+        source.face_points = FacePointEmbedding(
+            np.asarray(h5["face_point_vertices"]), np.asarray(h5["face_point_bary"])
+        )
+    return source

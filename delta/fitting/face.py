@@ -48,6 +48,14 @@ class FaceFitConfig:
     """L1 pull of the activations to 0 (px² per unit activation)."""
     head_weight: float = 50.0
     """Pull of the head correction to the body fit (px² per rad²)."""
+    shape_weight: float = 20.0
+    """Pull of the shape correction to the body fit (px² per unit² of β, which is ~N(0, 1)): the face's
+    points shape the face, which the body's few keypoints barely see."""
+    place_weight: float = 1000.0
+    """Pull of the per-frame translation correction across the image to the body fit (px² per m²)."""
+    depth_weight: float = 1000.0
+    """The same along the camera's axis, which a distant camera barely sees: a deeper, larger face
+    projects like a nearer, smaller one, and the face is held at the body fit's depth."""
     smooth_weight: float = 2.0
     """First-difference smoothness of activations and head correction between consecutive frames (px² per unit²)."""
     conf_threshold: float = 0.5
@@ -65,6 +73,10 @@ class FaceFit:
     """(F, E) activations in [0, 1]."""
     poses: torch.Tensor
     """(F, J, 3) the body poses with the head joints corrected."""
+    betas: torch.Tensor
+    """(S,) the body shape corrected by the face."""
+    transl: torch.Tensor
+    """(F, 3) the body translation corrected by the face."""
     flags: list[str]
     """(F,) '' for a fitted frame, else why it was not: 'face not seen', 'out of frame', 'turned away'."""
     residual_px: torch.Tensor
@@ -143,36 +155,47 @@ def fit_face(
     E = model.num_expression
     expression = torch.zeros(F, E, dtype=dtype, requires_grad=True)
     head = torch.zeros(F, len(joints), 3, dtype=dtype, requires_grad=True)
+    shape = torch.zeros_like(betas, dtype=dtype, requires_grad=True)
+    place = torch.zeros(F, 3, dtype=dtype, requires_grad=True)  # in the camera's axes: across, up, depth
+    axes = torch.eye(3, dtype=dtype) if isinstance(camera, OrthographicCamera) else camera.R.to(dtype)
+    place_w = torch.tensor([cfg.place_weight, cfg.place_weight, cfg.depth_weight], dtype=dtype)
     base = poses.to(dtype).detach()
-    B = betas.to(dtype).detach()[None].expand(F, -1)
-    T = transl.to(dtype).detach()
+    B0 = betas.to(dtype).detach()
+    T0 = transl.to(dtype).detach()
     target = detected[..., :2].to(dtype)
     weight = usable.to(dtype) * (torch.tensor([not f for f in flags], dtype=dtype)[:, None])
-    opt = torch.optim.Adam([expression, head], lr=cfg.lr)
+    # metres move pixels ~10x more than radians and activations: smaller steps for the translation
+    opt = torch.optim.Adam([{"params": [expression, head, shape], "lr": cfg.lr},
+                            {"params": [place], "lr": cfg.lr / 10}])  # fmt: skip
 
     def pose_of(h):
         full = base.clone()
         full[:, joints] = full[:, joints] + h
         return full
 
-    for _ in range(cfg.iterations):
+    rigid = cfg.iterations // 3
+    for it in range(cfg.iterations):
+        # first the face's placement, size and turn with a neutral face and a wide robust scale (a body fit
+        # off by tens of pixels), then the expressions with it
+        sigma = cfg.sigma_px * (5.0 if it < rigid else 1.0)
+        expression.requires_grad_(it >= rigid)
         opt.zero_grad()
-        out = lbs(small, B, pose_of(head), expression, transl=T)
+        out = lbs(small, (B0 + shape)[None].expand(F, -1), pose_of(head), expression, transl=T0 + place @ axes)
         uv, _ = camera.project(local(out.vertices))
-        data = (weight * gmof(uv - target, cfg.sigma_px)).sum(1)
+        data = (weight * gmof(uv - target, sigma)).sum(1)
         prior = cfg.expression_weight * expression.square().sum(1) + cfg.sparsity_weight * expression.abs().sum(1)
-        prior = prior + cfg.head_weight * head.square().sum((1, 2))
+        prior = prior + cfg.head_weight * head.square().sum((1, 2)) + (place.square() * place_w).sum(1)
         smooth = cfg.smooth_weight * (
             (expression[1:] - expression[:-1]).square().sum(1) + (head[1:] - head[:-1]).square().sum((1, 2))
-        )
-        loss = (data + prior).sum() + smooth.sum()
+        ) + ((place[1:] - place[:-1]).square() * place_w).sum(1)
+        loss = (data + prior).sum() + smooth.sum() + cfg.shape_weight * F * shape.square().sum()
         loss.backward()
         opt.step()
         with torch.no_grad():
             expression.clamp_(0.0, 1.0)
 
     with torch.no_grad():
-        out = lbs(small, B, pose_of(head), expression, transl=T)
+        out = lbs(small, (B0 + shape)[None].expand(F, -1), pose_of(head), expression, transl=T0 + place @ axes)
         uv, _ = camera.project(local(out.vertices))
         err = (uv - target).norm(dim=-1)
         residual = torch.tensor([err[f, usable[f]].median().item() if usable[f].any() else math.nan for f in range(F)])
@@ -182,8 +205,10 @@ def fit_face(
         bad = torch.tensor([bool(f) for f in flags])
         expr = interpolate(expression.detach(), bad)
         corrected = interpolate(head.detach(), bad)
+        moved = interpolate(place.detach() @ axes, bad)
     if bad.any():
         counts = {k: flags.count(k) for k in set(flags) if k}
         log.warning("face tracking: %d of %d frames not fitted (%s); they take their neighbours' values",
                     int(bad.sum()), F, ", ".join(f"{v} {k}" for k, v in sorted(counts.items())))  # fmt: skip
-    return FaceFit(expression=expr, poses=pose_of(corrected).detach(), flags=flags, residual_px=residual)
+    return FaceFit(expression=expr, poses=pose_of(corrected).detach(), betas=(B0 + shape).detach(), transl=T0 + moved,
+                   flags=flags, residual_px=residual)  # fmt: skip

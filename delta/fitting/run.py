@@ -17,6 +17,8 @@ from delta.cameras.models import OrthographicCamera, check_camera
 from delta.data.person import confident_keypoints, no_person_message
 from delta.data.record import FrameRecord
 from delta import DeltaError
+from delta.body.face_points import FacePoints
+from delta.fitting.face import FaceFit, fit_face
 from delta.fitting.fit import FitConfig, FitStart, fit
 from delta.io import atomic_path, save_npz
 
@@ -95,6 +97,29 @@ def check_result(where, res, frame_ids: np.ndarray) -> None:
                          f"{ids[:10]}{' ...' if len(ids) > 10 else ''}")  # fmt: skip
 
 
+def face_points(rec: FrameRecord, model, body_path) -> FacePoints | None:
+    """The record's face points on ``model`` (None when it has none), checked before any fitting."""
+    if "face_points" not in rec.h5:
+        return None
+    if model.exprdirs is None:
+        raise DeltaError(f"{rec.path} holds face points but the body model {body_path} has no expression "
+                         "space: fit it with the face body model (the workflow picks it for a talking face)")  # fmt: skip
+    points = FacePoints(torch.from_numpy(rec.h5["face_point_vertices"][:]).long(),
+                        torch.from_numpy(rec.h5["face_point_bary"][:]).double())  # fmt: skip
+    if int(points.vertex_ids.max()) >= model.num_vertices:
+        raise DeltaError(f"{rec.path}: its face points lie on a mesh of more than {model.num_vertices} vertices, "
+                         f"not on {body_path}")  # fmt: skip
+    return points
+
+
+def track_face(rec: FrameRecord, model, res, points: FacePoints | None) -> FaceFit | None:
+    """Per-frame expressions and head rotations from the record's face points (None when it has none)."""
+    if points is None:
+        return None
+    detected = torch.from_numpy(rec.h5["face_points"][:]).double()
+    return fit_face(model, points, detected, res.camera, res.betas, res.pose, res.transl)
+
+
 def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, overlays: int = 4,
         cfg: FitConfig = FitConfig()) -> dict:  # fmt: skip
     """Fit and write ``params.npz``, ``report.csv`` (per-frame residuals and flags) and overlay PNGs."""
@@ -106,6 +131,7 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
         check_record(rec, detected.numpy(), masks, frame_ids, cfg)
         model = load_body_model(body_path, dtype=torch.float64)
         kp_map = openpose18_map(model)
+        points = face_points(rec, model, body_path)
         start = dataset_start(rec, model)
         if rec.h5.attrs["camera_model"] == "pinhole":
             camera = rec.camera(0)
@@ -121,18 +147,25 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
         res = fit(model, kp_map, detected, camera, cfg, knees=knees, masks=masks, start=start, exterior=exterior,
                   sequence=sequence)  # fmt: skip
         check_result(rec.path, res, frame_ids)
+        face, face_arrays = track_face(rec, model, res, points), {}
+        if face is not None:
+            res.pose, res.betas, res.transl = face.poses, face.betas, face.transl
+            face_arrays = dict(expression=face.expression.numpy(), expression_names=np.array(model.expression_names),
+                               face_flags=np.array(face.flags), face_residual_px=face.residual_px.numpy())  # fmt: skip
         cam = {"camera_model": np.array(rec.h5.attrs["camera_model"])}
         if isinstance(res.camera, OrthographicCamera):
             cam.update(ortho_scale=res.camera.scale.numpy(), ortho_trans=res.camera.trans.numpy())
         save_npz(out / "params.npz", betas=res.betas.numpy(), poses=res.pose.numpy(), transl=res.transl.numpy(),
                  flagged=res.flagged.numpy(), few_keypoints=res.few_keypoints.numpy(),
                  empty_mask=res.empty_mask.numpy(), started_from=np.array("dataset" if start else "mean_pose"),
-                 frame_ids=frame_ids, joint_names=np.array(model.joint_names), **cam)  # fmt: skip
+                 frame_ids=frame_ids, joint_names=np.array(model.joint_names), **cam, **face_arrays)  # fmt: skip
         confident = confident_keypoints(detected.numpy(), cfg.conf_threshold)
         report = pd.DataFrame({"frame": frame_ids, "flagged": res.flagged.numpy(),
                                "few_keypoints": res.few_keypoints.numpy(), "empty_mask": res.empty_mask.numpy(),
                                "residual_px": res.residual_px.numpy(),
                                "confident_keypoints": confident})  # fmt: skip
+        if face is not None:
+            report["face_flag"], report["face_residual_px"] = face.flags, face.residual_px.numpy()
         with atomic_path(out / "report.csv") as tmp:
             report.to_csv(tmp, index=False)
         picks = np.linspace(0, len(frame_ids) - 1, min(overlays, len(frame_ids))).round().astype(int)

@@ -135,7 +135,12 @@ def frames_silhouette(uv: torch.Tensor, faces: torch.Tensor, size: int, image_si
     g = (uv * torch.tensor([size / W, size / H], dtype=uv.dtype)).clamp(-size, 2 * size)
     offset = torch.arange(F, dtype=uv.dtype) * (4 * size)
     canvas = torch.stack([g[..., 0] + offset[:, None], g[..., 1]], -1).reshape(F * V, 2)
-    all_faces = (faces[None] + V * torch.arange(F)[:, None, None]).reshape(-1, 3)
+    # a triangle whose box misses the grid (and its margin) covers none of its pixels: leave it out. A body
+    # mostly outside the image (a head-and-shoulders capture) would otherwise pile thousands of clamped
+    # triangles onto the strip's edge, where the nearest-centroid search slows to a crawl
+    corners = g.detach()[:, faces]  # (F, T, 3, 2)
+    near = ((corners.amax(2) >= -2.0) & (corners.amin(2) <= size + 2.0)).all(-1)  # (F, T)
+    all_faces = (faces[None] + V * torch.arange(F)[:, None, None])[near]
     grid = pixel_grid(size, (size, size), uv.dtype)  # (r², 2)
     active = _active_pixels(g, grid, masks, margin=2.0)
     frame, pix = torch.nonzero(active, as_tuple=True)

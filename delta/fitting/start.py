@@ -37,34 +37,54 @@ def interpolate(values: torch.Tensor, flagged: torch.Tensor) -> torch.Tensor:
 
 
 def _torso_extent(kp: torch.Tensor, detected: torch.Tensor):
-    """Model torso height (F,), detected torso height in pixels (F,), detected torso centre (F, 2), usable (F,)."""
-    torso = list(TORSO)
-    model_size = (kp[:, torso, 1].amax(1) - kp[:, torso, 1].amin(1)).clamp_min(1e-3)
-    conf = detected[:, torso, 2] > 0
+    """Model size (F,), detected size in pixels (F,), detected centre (F, 2), the model point at that centre
+    (F, 3) and usable (F,).
+
+    With both hips detected: the torso's height and centre. Without them (a head-and-shoulders capture, whose
+    torso runs off the image) the sizes are the box diagonals of the torso and face keypoints detected, the
+    model's taken over the same keypoints, and the centres theirs: the torso's model height against the few
+    pixels from neck to shoulders would put the body several times too far away."""
+    torso, upper = list(TORSO), list(TORSO) + list(FACE)
+    hips = list(TORSO[-2:])
+    full = (detected[:, hips, 2] > 0).all(1)
+    is_torso = torch.arange(len(upper)) < len(torso)
+    conf = (detected[:, upper, 2] > 0) & (is_torso[None] | ~full[:, None])  # the face counts without the hips
+    height = (kp[:, torso, 1].amax(1) - kp[:, torso, 1].amin(1)).clamp_min(1e-3)
     v = detected[:, torso, 1]
-    pix_size = torch.where(conf, v, -1e9).amax(1) - torch.where(conf, v, 1e9).amin(1)
+    c = conf[:, : len(torso)]
+    pix_height = torch.where(c, v, -1e9).amax(1) - torch.where(c, v, 1e9).amin(1)
+
+    def diagonal(points, mask):
+        lo = torch.where(mask[..., None], points, torch.full_like(points, 1e9)).amin(1)
+        hi = torch.where(mask[..., None], points, torch.full_like(points, -1e9)).amax(1)
+        return (hi - lo).norm(dim=-1)
+
+    model_size = torch.where(full, height, diagonal(kp[:, upper, :2], conf).clamp_min(1e-3))
+    pix_size = torch.where(full, pix_height, diagonal(detected[:, upper, :2], conf))
     usable = conf.sum(1) >= 2
     pix_size = torch.where(usable, pix_size, 1.0).clamp_min(1.0)
-    centre = (detected[:, torso, :2] * conf[..., None]).sum(1) / conf.sum(1, keepdim=True).clamp_min(1)
-    return model_size, pix_size, centre, usable
+    n = conf.sum(1, keepdim=True).clamp_min(1)
+    centre = (detected[:, upper, :2] * conf[..., None]).sum(1) / n
+    model_centre = torch.where(full[:, None], kp[:, torso].mean(1), (kp[:, upper] * conf[..., None]).sum(1) / n)
+    return model_size, pix_size, centre, model_centre, usable
 
 
 def init_translation(kp: torch.Tensor, detected: torch.Tensor, camera: PinholeCamera) -> torch.Tensor:
     """(F, 3) translation putting the (F, K, 3) untranslated keypoints' torso on the camera ray through the
     detected torso centre, at the depth where it has the detected size; frames without two torso
     detections take their neighbours' values (or, with none anywhere, 3 m ahead of the camera)."""
-    model_size, pix_size, centre_px, usable = _torso_extent(kp, detected)
+    model_size, pix_size, centre_px, model_centre, usable = _torso_extent(kp, detected)
     K = camera.K.to(torch.float64)
     depth = K[1, 1] * model_size / pix_size
     centre_px = torch.where(usable[:, None], centre_px, K[:2, 2])
     depth = torch.where(usable, depth, torch.full_like(depth, 3.0))
     ray = torch.cat([(centre_px - K[:2, 2]) / torch.diag(K)[:2], torch.ones_like(depth[:, None])], 1)
     target = (ray * depth[:, None] - camera.t.to(torch.float64)) @ camera.R.to(torch.float64)  # R^T (x - t)
-    return interpolate(target - kp[:, list(TORSO)].mean(1), ~usable)
+    return interpolate(target - model_centre, ~usable)
 
 
 def init_ortho_scale(kp: torch.Tensor, detected: torch.Tensor, height: int) -> torch.Tensor:
     """(F,) scaled-orthographic scale giving the torso its detected height (neighbours' value where unusable)."""
-    model_size, pix_size, _, usable = _torso_extent(kp, detected)
+    model_size, pix_size, _, _, usable = _torso_extent(kp, detected)
     scale = 2 * pix_size / height / model_size
     return interpolate(torch.where(usable, scale, torch.ones_like(scale)), ~usable)

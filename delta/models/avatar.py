@@ -65,6 +65,8 @@ class InitParams:
     """(N, 3)."""
     camera: object
     """PinholeCamera (fixed) or OrthographicCamera with (N,) scale, (N, 2) translation."""
+    expression: Optional[torch.Tensor] = None
+    """(N, E) expression activations of a tracked face, or None (a still face: none modelled)."""
 
 
 def knn_vertex_ids(body: BodyModel, which: str) -> torch.Tensor:
@@ -89,6 +91,12 @@ class HybridAvatar(nn.Module):
         self.betas = nn.Parameter(init.betas.float().clone())
         self.poses = nn.Parameter(init.poses.float().clone())
         self.transl = nn.Parameter(init.transl.float().clone())
+        self.expression = None
+        if init.expression is not None:  # a tracked face: its expressions are refined with the pose
+            if body.num_expression < init.expression.shape[1]:
+                raise ValueError(f"the init has {init.expression.shape[1]} expression coefficients, the body model "
+                                 f"'{body.name}' {body.num_expression}")  # fmt: skip
+            self.expression = nn.Parameter(init.expression.float().clone())
         self.pinhole = isinstance(init.camera, PinholeCamera)
         if self.pinhole:
             cam = init.camera
@@ -165,14 +173,16 @@ class HybridAvatar(nn.Module):
 
     def pose_body(self, frame: int, offsets: Optional[torch.Tensor] = None):
         """LBS output of one frame (batch of 1)."""
+        expression = None if self.expression is None else self.expression[frame : frame + 1]
         if self.trajectory is None:
-            return lbs(self.body, self.betas[None], self.poses[frame : frame + 1], offsets=offsets,
+            return lbs(self.body, self.betas[None], self.poses[frame : frame + 1], expression, offsets=offsets,
                        transl=self.transl[frame : frame + 1])  # fmt: skip
         turn, shift = self.trajectory(frame)
         rot = batch_rodrigues(self.poses[frame])  # (J, 3, 3)
         rot = torch.cat([(batch_rodrigues(turn[None]) @ rot[:1]), rot[1:]])
         transl = self.transl[frame] + shift if self.pinhole else self.transl[frame]
-        return lbs(self.body, self.betas[None], rot[None], offsets=offsets, transl=transl[None], pose_is_rotmat=True)
+        return lbs(self.body, self.betas[None], rot[None], expression, offsets=offsets, transl=transl[None],
+                   pose_is_rotmat=True)  # fmt: skip
 
     def posed_mesh(self, frame: int) -> tuple[PosedMesh, torch.Tensor, torch.Tensor]:
         """The posed interior of one frame, with the offsets and posed vertices for the regularisers."""
@@ -234,8 +244,9 @@ class HybridAvatar(nn.Module):
             self.poses.grad.mul_(self.pose_mask[None, :, None])
 
     def per_frame_parameters(self) -> list[torch.Tensor]:
-        """Parameters with one slice per frame (pose, translation, orthographic camera)."""
-        return [self.poses, self.transl] + ([] if self.pinhole else [self.ortho_scale, self.ortho_trans])
+        """Parameters with one slice per frame (pose, translation, expression, orthographic camera)."""
+        face = [] if self.expression is None else [self.expression]
+        return [self.poses, self.transl] + face + ([] if self.pinhole else [self.ortho_scale, self.ortho_trans])
 
     def param_groups(self, lr: dict) -> list[dict]:
         """Optimiser groups, each ``name``d: networks, shape, per-frame pose, per-frame camera (lr keys: fields,
@@ -247,7 +258,11 @@ class HybridAvatar(nn.Module):
                 "name": "fields",
             },
             {"params": [self.betas], "lr": lr["shape"], "name": "shape"},
-            {"params": [self.poses, self.transl], "lr": lr["pose"], "name": "pose"},
+            {
+                "params": [self.poses, self.transl] + ([] if self.expression is None else [self.expression]),
+                "lr": lr["pose"],
+                "name": "pose",
+            },  # fmt: skip
         ]
         if self.nerf is not None:
             groups.append({"params": list(self.nerf.parameters()), "lr": lr["nerf"], "name": "nerf"})

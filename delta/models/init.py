@@ -27,4 +27,7 @@ def load_init(path: str | Path, data: FrameData) -> InitParams:
     camera = data.camera
     if str(p.get("camera_model", "pinhole")) == "orthographic":
         camera = OrthographicCamera(t("ortho_scale"), t("ortho_trans"), data.resolution, data.resolution)
-    return InitParams(t("betas"), t("poses"), t("transl"), camera)
+    expression = t("expression") if "expression" in p else None
+    if expression is not None and expression.shape[0] != len(data.frame_ids):
+        raise DeltaError(f"{path}: 'expression' has {expression.shape[0]} rows for {len(data.frame_ids)} frames")
+    return InitParams(t("betas"), t("poses"), t("transl"), camera, expression)

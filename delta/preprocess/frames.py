@@ -143,7 +143,7 @@ class PrepareSettings:
     frames: dict = dataclasses.field(default_factory=dict)
     """The subject's frame ranges, ``{"train": [first, last, step], "test": [...]}`` (video, People Snapshot)."""
     use_provided: Optional[tuple[str, ...]] = dataclasses.field(
-        default=None, metadata={"choices": ("person", "clothing", "skin", "hair", "keypoints")}
+        default=None, metadata={"choices": ("person", "clothing", "skin", "hair", "keypoints", "face_points")}
     )
     """The dataset's own arrays to use (None: all it ships); model steps give the rest."""
     score_size: int = dataclasses.field(default=0, metadata={"minimum": 0, "maximum": 4096})
@@ -239,7 +239,8 @@ def _prepare(source: Source, out_path, size: int, margin: float, full_size: tupl
     with atomic_path(out_path) as tmp, h5py.File(tmp, "w") as h5:
         h5.create_dataset("frame_ids", data=np.array([i for i, _ in frames], dtype=np.int64), track_times=False)
         h5.create_dataset("split", data=np.array([s for _, s in frames], dtype=np.uint8), track_times=False)
-        writer = RecordWriter(h5, len(frames), size, masks, face="face_landmarks" in source.provided)
+        writer = RecordWriter(h5, len(frames), size, masks, face="face_landmarks" in source.provided,
+                              face_points=source.face_points if "face_points" in source.provided else None)  # fmt: skip
         full = FullFrameWriter(h5, len(frames), *full_size, masks)
         rows: dict[int, list[int]] = {}  # a frame in two splits (a one-frame capture) fills both rows
         for r, (i, _) in enumerate(frames):
@@ -260,7 +261,7 @@ def _prepare(source: Source, out_path, size: int, margin: float, full_size: tupl
                 out_masks[m] = crop(part, box, cv2.INTER_NEAREST, mask=True) * (out_masks["person"] > 127)
                 full_masks[m] = whole(part, full_size, cv2.INTER_NEAREST) * (full_masks["person"] > 127)
             points = {}
-            for name in ("keypoints", "face_landmarks"):  # undistorted, then moved with the crop
+            for name in ("keypoints", "face_landmarks", "face_points"):  # undistorted, then moved with the crop
                 if name in source.provided:
                     p = np.asarray(source.provided[name](i), dtype=np.float64).copy()
                     p[:, :2] = box.apply_to_points(torch.from_numpy(und.points(p[:, :2]))).numpy()
@@ -268,7 +269,8 @@ def _prepare(source: Source, out_path, size: int, margin: float, full_size: tupl
             rgb_u = und.image(rgb)
             cropped, whole_frame = crop(rgb_u, box, cv2.INTER_AREA), whole(rgb_u, full_size, cv2.INTER_AREA)
             for r in rows[i]:
-                writer.write(r, cropped, out_masks, points.get("keypoints"), points.get("face_landmarks"))
+                writer.write(r, cropped, out_masks, points.get("keypoints"), points.get("face_landmarks"),
+                             points.get("face_points"))  # fmt: skip
                 full.write(r, whole_frame, full_masks)
         write_camera_attrs(h5, camera)
         ids = np.array([i for i, _ in frames])

@@ -21,6 +21,7 @@ import trimesh
 
 from delta import DeltaError
 from delta.body.expressions import ExpressionSpace, with_expressions
+from delta.body.face_points import FacePoints, dense_face_points
 from delta.body.keypoints import openpose18_map
 from delta.body.lbs import lbs, skin
 from delta.body.model import REGION_NAMES, BodyModel, load_body_model
@@ -173,6 +174,7 @@ def generate(
     camera = make_camera(spec, *frame_span(spec, rest_v[:, 1]))
     poses, rates = motion(spec, model.joint_names)
     actions = face_actions(spec, model.expression_names)
+    face = dense_face_points(model) if actions is not None else None
     transl = np.zeros((spec.num_frames, 3))
     kp_map = openpose18_map(model)
     on_joint = kp_map.joint_weights.sum(1).numpy() > 0
@@ -190,7 +192,7 @@ def generate(
         if not writer.isOpened():
             raise DeltaError(f"OpenCV cannot write '{spec.codec}' video to {video}")
         with h5py.File(tmp_frames, "w", track_order=False) as fh, h5py.File(tmp_meshes, "w") as mh:
-            dsets = _frame_datasets(fh, F, H, W, len(kp_map.names))
+            dsets = _frame_datasets(fh, F, H, W, len(kp_map.names), face)
             mesh_dsets = _mesh_datasets(mh, model, rest_v, layers, F)
             # the scene's topology, texture coordinates and labels never change: build them once
             offsets = np.cumsum([0, len(rest_v)] + [len(l.vertices) for l in layers])
@@ -220,6 +222,8 @@ def generate(
                 writer.write(cv2.cvtColor(np.round(frame.image * 255).astype(np.uint8), cv2.COLOR_RGB2BGR))
                 kp3d = kp_map(posed.joints, posed.vertices)[0]
                 _write_frame(dsets, f, frame, kp3d, camera, on_joint)
+                if face is not None:
+                    dsets["face_points"][f] = seen_points(face(posed.vertices)[0], camera, frame.depth)
             writer.release()
     save_npz(
         gt / "params.npz",
@@ -242,13 +246,34 @@ def generate(
         _export_ply(gt / f"canonical_{layer.name}.ply", layer.vertices, layer.faces)
 
 
-def _frame_datasets(fh: h5py.File, F: int, H: int, W: int, K: int) -> dict:
+#: a face point is seen where it lies within this much (m) of the depth map's first surface
+FACE_POINT_TOLERANCE = 0.004
+
+
+def seen_points(points: torch.Tensor, camera, depth: np.ndarray) -> np.ndarray:
+    """(K, 3) (u, v, confidence) of (K, 3) surface points: confidence 1 where the first surface along the
+    pixel's ray is the point's own (within ``FACE_POINT_TOLERANCE``), 0 where hidden or outside the image."""
+    uv, z = camera.project(points)
+    uv_np, z_np = uv.numpy(), z.numpy()
+    H, W = depth.shape
+    i, j = np.floor(uv_np[:, 1]).astype(int), np.floor(uv_np[:, 0]).astype(int)
+    inside = (i >= 0) & (i < H) & (j >= 0) & (j < W)
+    conf = np.zeros(len(uv_np), np.float32)
+    conf[inside] = z_np[inside] <= depth[i[inside], j[inside]] + FACE_POINT_TOLERANCE
+    return np.concatenate([uv_np, conf[:, None]], 1).astype(np.float32)
+
+
+def _frame_datasets(fh: h5py.File, F: int, H: int, W: int, K: int, face: FacePoints | None = None) -> dict:
     kw = dict(chunks=(1, H, W), compression="gzip", compression_opts=4, track_times=False)
     d = {name: fh.create_dataset(name, (F, H, W), dtype=np.uint8, **kw)
          for name in ("person", "clothing", "skin", "hair", "labels", "alpha")}  # fmt: skip
     d["depth"] = fh.create_dataset("depth", (F, H, W), dtype=np.float32, **kw)
     d["keypoints"] = fh.create_dataset("keypoints", (F, K, 3), dtype=np.float32, track_times=False)
     d["keypoints3d"] = fh.create_dataset("keypoints3d", (F, K, 3), dtype=np.float32, track_times=False)
+    if face is not None:  # the dense face points and their embedding on the body mesh
+        d["face_points"] = fh.create_dataset("face_points", (F, face.num_points, 3), np.float32, track_times=False)
+        fh.create_dataset("face_point_vertices", data=face.vertex_ids.numpy(), track_times=False)
+        fh.create_dataset("face_point_bary", data=face.bary.numpy(), track_times=False)
     return d
 
 

@@ -182,7 +182,8 @@ def load_init_from_state(state: dict, data: FrameData) -> InitParams:
     if "ortho_scale" in state:
         camera = OrthographicCamera(state["ortho_scale"].cpu(), state["ortho_trans"].cpu(),
                                     data.resolution, data.resolution)  # fmt: skip
-    return InitParams(state["betas"].cpu(), state["poses"].cpu(), state["transl"].cpu(), camera)
+    expression = state["expression"].cpu() if "expression" in state else None
+    return InitParams(state["betas"].cpu(), state["poses"].cpu(), state["transl"].cpu(), camera, expression)
 
 
 @dataclasses.dataclass

@@ -72,12 +72,20 @@ def test_expressions_and_head_are_recovered(scene):
     out = fit(s)
     assert not any(out.flags) and out.residual_px.median() < 1.0
     F = len(s["poses"])
-    posed = lbs(s["body"], s["betas"][None].expand(F, -1), out.poses, out.expression, transl=s["transl"])
+    posed = lbs(s["body"], out.betas[None].expand(F, -1), out.poses, out.expression, transl=out.transl)
     face = s["body"].regions == REGION["face"]
-    err_mm = 1000 * (posed.vertices - s["truth"].vertices)[:, face].norm(dim=-1)
+    # a distant camera sees a deeper, larger face as a nearer, smaller one: the face's shape and motion are
+    # scored with each frame's mean offset taken out (it is a few millimetres, along the camera's axis)
+    d = (posed.vertices - s["truth"].vertices)[:, face]
+    err_mm = 1000 * (d - d.mean(1, keepdim=True)).norm(dim=-1)
     start = lbs(s["body"], s["betas"][None].expand(F, -1), s["start"], transl=s["transl"])
-    start_mm = 1000 * (start.vertices - s["truth"].vertices)[:, face].norm(dim=-1)
+    d0 = (start.vertices - s["truth"].vertices)[:, face]
+    start_mm = 1000 * (d0 - d0.mean(1, keepdim=True)).norm(dim=-1)
+    print(
+        f"face error {err_mm.mean():.2f} mm (start {start_mm.mean():.2f}), offset {1000 * d.mean(1).norm(dim=-1).mean():.1f} mm"
+    )
     assert err_mm.mean() < 1.0 and start_mm.mean() > 5.0, (err_mm.mean(), start_mm.mean())
+    assert 1000 * d.mean(1).norm(dim=-1).mean() < 10.0
     names = s["body"].expression_names
     for action, corr in (("jawOpen", 0.99), ("eyeBlinkLeft", 0.9), ("mouthSmileLeft", 0.95)):
         i = names.index(action)
@@ -104,13 +112,21 @@ def test_frames_without_a_usable_face_are_flagged_and_bridged(scene):
 
 
 def test_a_face_turned_away_is_flagged_not_fitted(scene):
-    """The body fit turns the subject's back to the camera in one frame: the face points cannot be fitted
-    from behind, whatever the detector claims."""
+    """In one frame the head turns to a profile (95 degrees) and a detector still claims every point: the
+    fitted face looks past the camera, and the frame takes its neighbours' values."""
     s = scene
-    start = s["start"].clone()
-    start[30, 0, 1] = np.pi
-    out = fit_face(s["body"], s["points"], s["detected"], s["camera"], s["betas"], start, s["transl"])
-    assert out.flags[30] == "turned away"
+    body, F = s["body"], len(s["poses"])
+    poses, start = s["poses"].clone(), s["start"].clone()
+    for name, share in (("neck01", 0.3), ("neck02", 0.3), ("head", 0.4)):
+        j = body.joint_names.index(name)
+        poses[30, j, 1] += share * np.radians(95)
+        start[30, j, 1] += share * np.radians(95)
+    truth = lbs(body, s["betas"][None].expand(F, -1), poses, s["expr"], transl=s["transl"])
+    detected = s["detected"].clone()
+    detected[30, :, :2] = s["camera"].project(s["points"](truth.vertices[30:31]))[0][0]
+    out = fit_face(body, s["points"], detected, s["camera"], s["betas"], start, s["transl"])
+    assert out.flags[30] == "turned away" and sum(bool(f) for f in out.flags) == 1
+    assert torch.allclose(out.expression[30], (out.expression[29] + out.expression[31]) / 2)
 
 
 def test_bad_detections_get_one_clear_error(scene):

