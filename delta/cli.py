@@ -249,7 +249,7 @@ def cmd_dress(args: argparse.Namespace) -> None:
     st = settings.from_arguments(ShowSettings, args, "applications.dress.settings")
     dress_avatar(args.model, args.record, args.wearer_model, args.wearer_record, args.body, args.out, st,
                  truth=args.truth, perceptual_dir=args.perceptual, clothing=args.clothing,
-                 wearer_clothing=args.wearer_clothing, device=args.device)  # fmt: skip
+                 wearer_clothing=args.wearer_clothing, device=args.device, wearer_body=args.wearer_body)  # fmt: skip
 
 
 def cmd_reshape(args: argparse.Namespace) -> None:
@@ -272,7 +272,7 @@ def cmd_try_on(args: argparse.Namespace) -> None:
     _threads(args.threads)
     st = settings.from_arguments(ShowSettings, args, "applications.tryon.settings")
     try_on(args.record, args.init, args.body, args.wearer_model, args.wearer_record, args.out, args.frame, st,
-           args.device)  # fmt: skip
+           args.device, args.wearer_body)  # fmt: skip
 
 
 def cmd_application_scores(args: argparse.Namespace) -> None:
@@ -585,6 +585,7 @@ def build_parser() -> argparse.ArgumentParser:
     _avatar_arguments(p, "the body avatar: ")
     p.add_argument("--wearer-model", required=True, help="the avatar whose exterior is put on: a stage's model.pt")
     p.add_argument("--wearer-record", required=True, help="the frame record the wearer was trained on")
+    p.add_argument("--wearer-body", help="the body model the wearer was trained on (default: --body)")
     p.add_argument("--out", required=True, help="folder for dressed.png, turntable.mp4, dress.json, scores.csv")
     settings.add_arguments(p, ShowSettings)
     _truth_arguments(p)
@@ -614,6 +615,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frame", type=int, default=-1, help="the record's frame (-1: the first training frame)")
     p.add_argument("--wearer-model", required=True, help="the avatar whose exterior is put on: a stage's model.pt")
     p.add_argument("--wearer-record", required=True, help="the frame record the wearer was trained on")
+    p.add_argument("--wearer-body", help="the body model the wearer was trained on (default: --body)")
     p.add_argument("--out", required=True, help="folder for tryon.png, turntable.mp4 and tryon.json")
     settings.add_arguments(p, ShowSettings)
     _job_arguments(p)

@@ -75,7 +75,8 @@ rule dress:
         device=config["device"],
     shell:
         "delta dress --model {input.model:q} --record {input.record:q} --wearer-model {input.wearer_model:q}"
-        " --wearer-record {input.wearer_record:q} --body {input.body:q} --out {params.out:q} {params.truth:q}"
+        " --wearer-record {input.wearer_record:q} --body {input.body:q} --wearer-body {input.wearer_body:q}"
+        " --out {params.out:q} {params.truth:q}"
         " --settings {params.settings:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"
 
 
@@ -169,5 +170,6 @@ rule tryon:
         device=config["device"],
     shell:
         "delta try-on --record {input.record:q} --init {input.init:q} --body {input.body:q} --frame {params.frame}"
-        " --wearer-model {input.wearer_model:q} --wearer-record {input.wearer_record:q} --out {params.out:q}"
+        " --wearer-model {input.wearer_model:q} --wearer-record {input.wearer_record:q}"
+        " --wearer-body {input.wearer_body:q} --out {params.out:q}"
         " --settings {params.settings:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"

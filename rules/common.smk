@@ -665,6 +665,7 @@ def dress_inputs(wildcards):
         | {
             "wearer_model": PATHS["stage_model"].format(stage=EVAL["stage"], **theirs),
             "wearer_record": PATHS["record"].format(**theirs),
+            "wearer_body": body_model_file(theirs),
         }
         | truth_inputs(wildcards, "dress", wildcards.exterior, theirs)
     )
@@ -707,6 +708,7 @@ def tryon_inputs(wildcards):
         "body": body_model_file(wildcards),
         "wearer_model": PATHS["stage_model"].format(stage=EVAL["stage"], **theirs),
         "wearer_record": PATHS["record"].format(**theirs),
+        "wearer_body": body_model_file(theirs),
     }
 
 

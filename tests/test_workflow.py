@@ -405,3 +405,28 @@ def test_tradeoff_variants_reuse_the_main_run_and_name_their_subjects(tmp_path):
         res.returncode != 0
         and "tradeoff.variants.few_rays.subjects': ['nobody'] are not configured subjects" in res.stdout + res.stderr
     )
+
+
+def test_a_talking_subject_alone_gets_the_face_body_model(tmp_path):
+    """config/heads.yaml adds a talking head: its stages read the body model with the expression space, the
+    other subjects' read the plain one (their jobs unchanged), and an avatar wearing the talker's hair loads
+    the talker with its own body model."""
+    work = workflow_copy(tmp_path)
+    cfg = yaml.safe_load((work / ".test/config/config.yaml").read_text())
+    cfg["applications"] = {"exteriors": {"talker-hair": "synthetic/talker"},
+                           "dress": {"avatars": {"synthetic/tight": ["talker-hair"]}}}  # fmt: skip
+    (work / "apps.yaml").write_text(yaml.safe_dump(cfg))
+    target = "results/synthetic/tight/dress/talker-hair/dress.json"
+    res = snakemake(work, target, "--configfile", "apps.yaml", "config/heads.yaml", "--dry-run", "--printshellcmds")
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out[-3000:]
+    face, plain = "resources/body/anny_sub1_face.npz", "resources/body/anny_sub1.npz"
+    fits = dict(re.findall(r"delta fit-init --record results/synthetic/(\w+)/frames\.h5 --body (\S+)", out))
+    assert fits == {"talker": face, "tight": plain}
+    assert "delta anny-expressions" in out and "delta attach-expressions" in out
+    assert "--expressions resources/body/anny_expressions.npz" in out  # the talker's capture talks
+    dress = re.search(r"delta dress [^\n]*", out).group(0)
+    assert f"--body {plain}" in dress and f"--wearer-body {face}" in dress
+    # the talker's record keeps its face points; tight's prepare job is the one it always was
+    assert '"use_provided": ["person", "clothing", "skin", "hair", "keypoints", "face_points"]' in out
+    assert '"use_provided": ["person", "clothing", "skin", "hair", "keypoints"]' in out

@@ -69,18 +69,20 @@ def dress_avatar(body_model: str | Path, body_record: str | Path, wearer_model: 
                  wearer_record: str | Path, body_path: str | Path, out_dir: str | Path,
                  settings: ShowSettings | None = None, truth: str | Path | None = None,
                  perceptual_dir: str | None = None, clothing: str | Path | None = None,
-                 wearer_clothing: str | Path | None = None, device: str = "cpu") -> dict:  # fmt: skip
+                 wearer_clothing: str | Path | None = None, device: str = "cpu",
+                 wearer_body: str | Path | None = None) -> dict:  # fmt: skip
     """Write ``dressed.png`` ([the body's capture frame | the body avatar as trained | wearing the other's
     exterior]), ``turntable.mp4`` of the dressed avatar and ``dress.json``; with ``truth`` (the generated
     capture of the body subject wearing the other's exterior), ``scores.csv`` (:mod:`delta.applications.truth`;
     ``clothing`` / ``wearer_clothing``: the two avatars' exported clothing_nerf_space.ply, for the garment
-    distances as trained and dressed). Returns the summary."""
+    distances as trained and dressed; ``wearer_body``: the body model the wearer was trained on, when not
+    ``body_path``: a tracked face's, with its expressions). Returns the summary."""
     t_start = time.perf_counter()
     settings = settings or ShowSettings()
     require_files(body_avatar_model=body_model, body_avatar_record=body_record, wearer_model=wearer_model,
-                  wearer_record=wearer_record, body_model=body_path)  # fmt: skip
+                  wearer_record=wearer_record, body_model=body_path, wearer_body_model=wearer_body or body_path)  # fmt: skip
     body = load_trained(body_model, body_record, body_path, device)
-    wearer = load_trained(wearer_model, wearer_record, body_path, device)
+    wearer = load_trained(wearer_model, wearer_record, wearer_body or body_path, device)
     check_wearable(body.model, wearer.model)
     about = {"application": "dress", "model": str(body_model), "wearer": str(wearer_model)}
     shown = show_edit(body, body_record, Path(out_dir), "dressed", lambda: put_on(body.model, wearer.model),

@@ -43,14 +43,15 @@ def composite(photo: torch.Tensor, render: dict) -> torch.Tensor:
 
 def try_on(record: str | Path, init_params: str | Path, body_path: str | Path, wearer_model: str | Path,
            wearer_record: str | Path, out_dir: str | Path, anchor: int = -1, settings: ShowSettings | None = None,
-           device: str = "cpu") -> dict:  # fmt: skip
+           device: str = "cpu", wearer_body: str | Path | None = None) -> dict:  # fmt: skip
     """Write ``tryon.png``, ``turntable.mp4`` and ``tryon.json`` of the person of frame ``anchor`` of
-    ``record`` (-1: the first training frame) wearing the exterior of ``wearer_model``; returns the summary."""
+    ``record`` (-1: the first training frame) wearing the exterior of ``wearer_model`` (trained on
+    ``wearer_body``, when not ``body_path``); returns the summary."""
     t_start = time.perf_counter()
     settings = settings or ShowSettings()
     require_files(record=record, init_fit=init_params, body_model=body_path, wearer_model=wearer_model,
-                  wearer_record=wearer_record)  # fmt: skip
-    wearer = load_trained(wearer_model, wearer_record, body_path, device)
+                  wearer_record=wearer_record, wearer_body_model=wearer_body or body_path)  # fmt: skip
+    wearer = load_trained(wearer_model, wearer_record, wearer_body or body_path, device)
     st = wearer.settings
     data = load_frames(record, st.resolution, st.background, st.box_margin)
     frame = int(data.train[0]) if anchor == -1 else anchor
