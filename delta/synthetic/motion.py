@@ -63,9 +63,15 @@ def novel_sequence(names: list[str], frames: int, seed: int) -> np.ndarray:
         for joint, value in key.items():
             _set(keys[k], names, joint, value)
         keys[k, 0, 1] = rng.uniform(-0.8, 0.8)  # face the camera from different angles
+    return through_keys(keys, frames)
+
+
+def through_keys(keys: np.ndarray, frames: int) -> np.ndarray:
+    """(F, ...) values moving through (K, ...) ``keys`` at an even pace, easing in and out of each
+    (smoothstep), from the first key to the last."""
     s = np.linspace(0, len(keys) - 1, frames)
     lo = np.floor(s).astype(int).clip(0, len(keys) - 2) if len(keys) > 1 else np.zeros(frames, int)
-    w = (s - lo)[:, None, None]
+    w = (s - lo).reshape((-1,) + (1,) * (keys.ndim - 1))
     w = w * w * (3 - 2 * w)
     hi = np.minimum(lo + 1, len(keys) - 1)
     return (1 - w) * keys[lo] + w * keys[hi]
@@ -106,12 +112,7 @@ def novel_face_sequence(names: list[str], frames: int, seed: int) -> np.ndarray:
         return np.zeros((0, len(names), 3))
     keys = np.asarray(_KEY_HEAD_POSES)
     rng = np.random.default_rng(seed + 1)
-    keys = keys[rng.permutation(len(keys))]
-    s = np.linspace(0, len(keys) - 1, frames)
-    lo = np.floor(s).astype(int).clip(0, len(keys) - 2)
-    w = s - lo
-    w = (w * w * (3 - 2 * w))[:, None]
-    values = (1 - w) * keys[lo] + w * keys[lo + 1]
+    values = through_keys(keys[rng.permutation(len(keys))], frames)
     pose = np.zeros((frames, len(names), 3))
     _head_pose(pose, names, values[:, 0], values[:, 1], values[:, 2])
     return pose

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from delta.synthetic.motion import through_keys
+
 #: key expressions of the held-out segment; every action here but the jaw is absent from the talk
 _KEY_EXPRESSIONS = [
     {"mouthSmileLeft": 0.95, "mouthSmileRight": 0.95, "cheekSquintLeft": 0.7, "cheekSquintRight": 0.7,
@@ -91,8 +93,4 @@ def novel_expressions(names: list[str], frames: int, seed: int) -> np.ndarray:
     keys = keys[rng.permutation(len(keys))]
     # neutral between key expressions: each expression is reached and released
     path = np.concatenate([np.stack([np.zeros(len(names)), key]) for key in keys] + [np.zeros((1, len(names)))])
-    s = np.linspace(0, len(path) - 1, frames)
-    lo = np.floor(s).astype(int).clip(0, len(path) - 2)
-    w = s - lo
-    w = (w * w * (3 - 2 * w))[:, None]
-    return (1 - w) * path[lo] + w * path[lo + 1]
+    return through_keys(path, frames)
