@@ -46,11 +46,12 @@ class RecordWriter:
         self.keypoints = h5.create_dataset("keypoints", (n, 18, 3), np.float32, track_times=False)
         self.face = h5.create_dataset("face_landmarks", (n, 468, 3), np.float32, track_times=False) if face else None
         self.face_points = None
-        if face_points is not None:  # a FacePointEmbedding
-            K = len(face_points.vertices)
-            self.face_points = h5.create_dataset("face_points", (n, K, 3), np.float32, track_times=False)
-            h5.create_dataset("face_point_vertices", data=face_points.vertices.astype(np.int64), track_times=False)
-            h5.create_dataset("face_point_bary", data=face_points.bary.astype(np.float32), track_times=False)
+        if face_points is not None:  # a FacePoints embedding
+            self.face_points = h5.create_dataset("face_points", (n, face_points.num_points, 3), np.float32,
+                                                 track_times=False)  # fmt: skip
+            h5.create_dataset("face_point_vertices", data=face_points.vertex_ids.numpy().astype(np.int64),
+                              track_times=False)  # fmt: skip
+            h5.create_dataset("face_point_bary", data=face_points.bary.numpy().astype(np.float32), track_times=False)
 
     def write(self, i: int, image: np.ndarray, masks: dict[str, np.ndarray], keypoints: np.ndarray | None,
               face: np.ndarray | None = None, face_points: np.ndarray | None = None) -> None:  # fmt: skip

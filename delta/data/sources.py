@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from delta import DeltaError
+from delta.body.face_points import FacePoints
 from delta.cameras.models import OrthographicCamera, PinholeCamera, check_camera
 from delta.data import peoplesnapshot as ps
 
@@ -44,18 +45,8 @@ class Source:
     body_params: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
     """Per-video-frame body parameters the dataset ships (People Snapshot's SMPL 'pose', 'trans'),
     and per-subject ones ('betas'); copied into the record for the selected frames."""
-    face_points: "FacePointEmbedding | None" = None
+    face_points: FacePoints | None = None
     """Where the provided 'face_points' (K, 3) a frame sit on the body mesh."""
-
-
-@dataclasses.dataclass
-class FacePointEmbedding:
-    """K face points on the body mesh: each a barycentric combination of three vertices."""
-
-    vertices: np.ndarray
-    """(K, 3) int vertex ids."""
-    bary: np.ndarray
-    """(K, 3) weights."""
 
 
 def frame_array(path, name: str, dset, per_frame: tuple[int, ...], what: str, needed: int = 0,
@@ -272,7 +263,6 @@ def synthetic_source(capture: str | Path, subject: str) -> Source:
         close=h5.close,
     )
     if face:
-        source.face_points = FacePointEmbedding(
-            np.asarray(h5["face_point_vertices"]), np.asarray(h5["face_point_bary"])
-        )
+        source.face_points = FacePoints(torch.from_numpy(np.asarray(h5["face_point_vertices"])).long(),
+                                        torch.from_numpy(np.asarray(h5["face_point_bary"])).double())  # fmt: skip
     return source
