@@ -82,10 +82,6 @@ class FaceFit:
     residual_px: torch.Tensor
     """(F,) median reprojection error of the detected points (NaN where none)."""
 
-    @property
-    def fitted(self) -> torch.Tensor:
-        return torch.tensor([not f for f in self.flags])
-
 
 def _inside(uv: torch.Tensor, camera) -> torch.Tensor:
     return (uv[..., 0] >= 0) & (uv[..., 0] < camera.width) & (uv[..., 1] >= 0) & (uv[..., 1] < camera.height)
@@ -96,18 +92,12 @@ def screen_frames(detected: torch.Tensor, camera, cfg: FaceFitConfig) -> tuple[t
     confident = detected[..., 2] >= cfg.conf_threshold
     inside = _inside(detected[..., :2], camera)
     usable = confident & inside
-    flags = []
-    for f in range(len(detected)):
-        if usable[f].float().mean() >= cfg.min_seen:
-            flags.append("")
-        elif confident[f].float().mean() >= cfg.min_seen:
-            flags.append("out of frame")
-        else:
-            flags.append("face not seen")
+    seen, found = usable.float().mean(1) >= cfg.min_seen, confident.float().mean(1) >= cfg.min_seen
+    flags = ["" if s else "out of frame" if c else "face not seen" for s, c in zip(seen.tolist(), found.tolist())]
     return usable, flags
 
 
-def face_turn_deg(model: BodyModel, out_transforms: torch.Tensor, head: int, camera, head_pos: torch.Tensor):
+def face_turn_deg(out_transforms: torch.Tensor, head: int, camera, head_pos: torch.Tensor):
     """(F,) angle (deg) between the head's forward axis (+z at rest) and the direction to the camera."""
     forward = out_transforms[:, head, :3, 2]
     if isinstance(camera, OrthographicCamera):
@@ -198,9 +188,9 @@ def fit_face(
         out = lbs(small, (B0 + shape)[None].expand(F, -1), pose_of(head), expression, transl=T0 + place @ axes)
         uv, _ = camera.project(local(out.vertices))
         err = (uv - target).norm(dim=-1)
-        residual = torch.tensor([err[f, usable[f]].median().item() if usable[f].any() else math.nan for f in range(F)])
+        residual = err.masked_fill(~usable, math.nan).nanmedian(1).values
         head_j = model.joint_names.index("head") if "head" in model.joint_names else joints[-1]
-        turn = face_turn_deg(model, out.joint_transforms, head_j, camera, out.joints[:, head_j])
+        turn = face_turn_deg(out.joint_transforms, head_j, camera, out.joints[:, head_j])
         flags = [f or ("turned away" if turn[i] > cfg.max_turn_deg else "") for i, f in enumerate(flags)]
         bad = torch.tensor([bool(f) for f in flags])
         expr = interpolate(expression.detach(), bad)
