@@ -5,7 +5,8 @@ loading it could run code):
 
 * **the body model's own motion** — ``poses`` (F, J, 3) or (F, J·3) axis-angle in the body model's
   joint order and conventions, ``transl`` (F, 3) optional, ``joint_names`` (J,) optional (checked
-  against the body model's when present), ``fps`` optional. A subject's fit
+  against the body model's when present), ``fps`` optional, ``up`` (3,) optional (the world's up; estimated
+  from the motion when absent). A subject's fit
   (``results/{dataset}/{subject}/init/params.npz``) is one: driving avatar A with B's fit is motion
   transfer between two captures.
 * **AMASS-style SMPL-family archives** — ``poses`` (F, 72 | 156 | 165) in SMPL, SMPL+H or SMPL-X joint
@@ -30,6 +31,8 @@ from delta import DeltaError
 DEFAULT_FPS = 30.0
 #: Width of an AMASS ``poses`` row -> the SMPL family member whose joint order it follows.
 SMPL_FAMILY = {72: "smpl", 156: "smplh", 165: "smplx"}
+#: AMASS's world is z-up
+AMASS_UP = np.array([0.0, 0.0, 1.0])
 
 
 @dataclasses.dataclass
@@ -44,6 +47,8 @@ class Motion:
     """Frames per second of the motion."""
     source: str
     """What it was read as: "body model" or the SMPL family member retargeted from."""
+    up: np.ndarray | None = None
+    """(3,) the motion world's up where the file or its convention says it (AMASS: z); None: estimated."""
 
     @property
     def num_frames(self) -> int:
@@ -89,6 +94,19 @@ def _finite(name: str, a: np.ndarray, path: Path) -> None:
         raise DeltaError(f"{path}: '{name}' is not finite in {len(frames)} frame(s), the first frame {int(frames[0])}")
 
 
+def _up(d: dict[str, np.ndarray], path: Path) -> np.ndarray | None:
+    """The file's ``up`` (3,) when it has one (a subject's fit writes its capture's), unit length."""
+    if "up" not in d:
+        return None
+    up = np.asarray(d["up"])
+    if up.shape != (3,) or not np.issubdtype(up.dtype, np.number) or not np.isfinite(up).all():
+        raise DeltaError(f"{path}: 'up' is {up.shape} {up.dtype}; expected three finite numbers, the world's up")
+    norm = float(np.linalg.norm(up))
+    if norm < 1e-6:
+        raise DeltaError(f"{path}: 'up' is the zero vector; expected the world's up direction")
+    return up.astype(np.float64) / norm
+
+
 def _transl(d: dict[str, np.ndarray], frames: int, path: Path) -> np.ndarray:
     key = "transl" if "transl" in d else "trans" if "trans" in d else None
     if key is None:
@@ -126,7 +144,7 @@ def read_motion(path: str | os.PathLike, joint_names: list[str], parents: np.nda
     if own:
         poses = poses.reshape(len(poses), J, 3)
         _finite("poses", poses, p)
-        return Motion(poses, _transl(d, len(poses), p), _fps(d, p), "body model")
+        return Motion(poses, _transl(d, len(poses), p), _fps(d, p), "body model", _up(d, p))
     family = SMPL_FAMILY.get(poses.shape[1]) if poses.ndim == 2 else None
     if family is None:
         raise DeltaError(f"{p}: 'poses' has shape {poses.shape}; expected (frames, {J}, 3) or (frames, {3 * J}) "
@@ -136,7 +154,7 @@ def read_motion(path: str | os.PathLike, joint_names: list[str], parents: np.nda
     from delta.applications.retarget import retarget_smpl_family
 
     local = retarget_smpl_family(poses.reshape(len(poses), -1, 3), family, joint_names, parents, joints_template)
-    return Motion(local, _transl(d, len(poses), p), _fps(d, p), family)
+    return Motion(local, _transl(d, len(poses), p), _fps(d, p), family, AMASS_UP.copy())
 
 
 def resample(motion: Motion, fps: float, max_frames: int) -> Motion:
@@ -146,4 +164,4 @@ def resample(motion: Motion, fps: float, max_frames: int) -> Motion:
     idx = np.unique(np.floor(np.arange(0, motion.num_frames, step)).astype(int))
     if max_frames > 0:
         idx = idx[:max_frames]
-    return Motion(motion.poses[idx], motion.transl[idx], motion.fps / step, motion.source)
+    return dataclasses.replace(motion, poses=motion.poses[idx], transl=motion.transl[idx], fps=motion.fps / step)

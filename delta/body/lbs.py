@@ -136,6 +136,16 @@ def skin(
     return torch.einsum("bvij,bvj->bvi", T, homo), T
 
 
+def posed_joints(model: BodyModel, betas: torch.Tensor, rotmats: torch.Tensor,
+                 transl: Optional[torch.Tensor] = None) -> torch.Tensor:  # fmt: skip
+    """(B, J, 3) the joints of :func:`lbs` alone, without skinning a vertex: (B, S') ``betas`` (or (S',),
+    shared), (B, J, 3, 3) rotations, optional (B, 3) translation."""
+    betas = betas.expand(rotmats.shape[0], -1) if betas.ndim == 1 else betas
+    joints = model.joints_template + blend_shapes(betas, model.joints_shapedirs[..., : betas.shape[1]])
+    posed, _ = rigid_transforms(rotmats, joints.expand(rotmats.shape[0], -1, -1), model.parents)
+    return posed if transl is None else posed + transl[:, None]
+
+
 def lbs(
     model: BodyModel,
     betas: torch.Tensor,

@@ -176,6 +176,13 @@ def check_camera(camera, where: str, frame_ids=None) -> None:
         raise DeltaError(f"{where}: camera R is not a rotation: {_values(R)}")
 
 
+def camera_vertical(camera) -> torch.Tensor:
+    """(3,) float64 the camera's image-up direction (v decreasing) in the world: the up a level camera sees."""
+    if isinstance(camera, PinholeCamera):
+        return -camera.R[1].detach().to(torch.float64).cpu()
+    return torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+
+
 def look_at(eye: torch.Tensor, target: torch.Tensor, up: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """World -> camera (R, t) for an OpenCV camera at ``eye`` looking at ``target`` (y down in the image)."""
     forward = target - eye

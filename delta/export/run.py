@@ -13,11 +13,12 @@ import torch
 from delta.export import lineup
 from delta.export.meshes import MeshPart, body_mesh, clothing_nerf_space, pose_clothing, write_glb, write_mesh
 from delta.export.settings import ExportSettings
-from delta.export.video import render_frames, side_by_side, turntable, write_video
+from delta.export.video import capture_upright, render_frames, side_by_side, turntable, write_video
 from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import atomic_path, require_files, save_json
 from delta.metrics import psnr
 from delta.models.avatar import HybridAvatar
+from delta.cameras.models import camera_vertical
 from delta.data.frames import load_full_frames
 from delta.models.image import full_view, pixel_grid, render_image
 from delta.progress import Progress
@@ -173,13 +174,13 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
 
     t = time.perf_counter()
     turn_frame = int(data.train[0])
+    upright = capture_upright(model)
+    summary["upright"] = upright.describe(camera_vertical(model.camera(0)))
+    log.info("up axis from %d fitted frames: %s", upright.frames, summary["upright"])
+    turn = turntable(model, turn_frame, settings.turntable_frames, view, upright)
     summary["turntable"] = {
         "frame": turn_frame,
-        "frames": write_video(
-            out / "turntable.mp4",
-            progress.counted(turntable(model, turn_frame, settings.turntable_frames, view), "turntable"),
-            settings.fps,
-        ),
+        "frames": write_video(out / "turntable.mp4", progress.counted(turn, "turntable"), settings.fps),
     }
     times["turntable"] = time.perf_counter() - t
     t = time.perf_counter()

@@ -12,6 +12,8 @@ import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
 
+from delta.body.upright import Upright, axis_angle_matrix, estimate_upright, level_rotation
+from delta.cameras.models import camera_vertical
 from delta.io import atomic_path
 from delta.models.avatar import HybridAvatar
 from delta.models.image import View, render_image
@@ -20,24 +22,35 @@ from delta.models.image import View, render_image
 ERROR_SCALE = 0.25
 
 
-def rotation_y(angle: float, like: torch.Tensor) -> torch.Tensor:
-    """(3, 3) rotation by ``angle`` radians about the world's vertical (y) axis."""
-    c, s = math.cos(angle), math.sin(angle)
-    return torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]], dtype=like.dtype, device=like.device)
+def moved_params(root_pose: torch.Tensor, transl: torch.Tensor, root_joint: torch.Tensor, centre: torch.Tensor,
+                 rotation: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """Root axis-angle (3,) and translation (3,) that rotate the posed body by the (3, 3) ``rotation``
+    about ``centre``.
 
-
-def turned_params(root_pose: torch.Tensor, transl: torch.Tensor, root_joint: torch.Tensor, centre: torch.Tensor,
-                  angle: float) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
-    """Root axis-angle (3,) and translation (3,) that turn the posed body by ``angle`` about the vertical axis
-    through ``centre``.
-
-    The root's rest -> posed map is x -> R0 (x - J0) + J0 + t; the turned body is R_y (that - c) + c,
-    so R0' = R_y R0 and t' = R_y (J0 + t - c) + c - J0 (J0: the shaped rest root joint).
+    The root's rest -> posed map is x -> R0 (x - J0) + J0 + t; the moved body is A (that - c) + c,
+    so R0' = A R0 and t' = A (J0 + t - c) + c - J0 (J0: the shaped rest root joint).
     """
-    Ry = rotation_y(angle, root_pose)
+    A = rotation.to(root_pose)
     R0 = axis_angle_to_rotation_matrix(root_pose[None])[0]
-    new_root = rotation_matrix_to_axis_angle((Ry @ R0)[None])[0]
-    return new_root, Ry @ (root_joint + transl - centre) + centre - root_joint
+    new_root = rotation_matrix_to_axis_angle((A @ R0)[None])[0]
+    return new_root, A @ (root_joint + transl - centre) + centre - root_joint
+
+
+def view_directions(model: HybridAvatar, frame: int, centre: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(3,) world direction from the frame's camera to ``centre`` and (3,) the camera's image-up direction
+    in the world."""
+    cam = model.camera(frame)
+    if model.pinhole:
+        return centre - cam.center.to(centre), camera_vertical(cam).to(centre)
+    return centre.new_tensor([0.0, 0.0, -1.0]), camera_vertical(cam).to(centre)
+
+
+def capture_upright(model: HybridAvatar) -> Upright:
+    """The capture's up direction and floor, estimated from every frame's fitted body (see
+    :mod:`delta.body.upright`)."""
+    with torch.no_grad():
+        rot, joints = model.skeletons()
+    return estimate_upright(rot.double().cpu(), joints.double().cpu())
 
 
 @contextlib.contextmanager
@@ -113,22 +126,32 @@ def write_video(path: str | os.PathLike, frames: Iterable[np.ndarray], fps: int)
 
 
 @torch.no_grad()
-def turntable(model: HybridAvatar, frame: int, count: int, view: View | None = None) -> Iterator[np.ndarray]:
-    """``count`` renders of ``frame`` turned through one full revolution about its vertical axis
+def turntable(model: HybridAvatar, frame: int, count: int, view: View | None = None,
+              upright: Upright | None = None) -> Iterator[np.ndarray]:  # fmt: skip
+    """``count`` renders of ``frame`` turned through one full revolution about the capture's up axis
+    (``upright``: estimated from the fit when not given), the view rolled so that axis looks vertical
     (the model's crop, or ``view``: the capture's whole frame)."""
+    upright = capture_upright(model) if upright is None else upright
     with baked_trajectory(model, frame):
-        yield from _turntable(model, frame, count, view)
+        yield from _turntable(model, frame, count, view, upright.up)
 
 
-def _turntable(model: HybridAvatar, frame: int, count: int, view: View | None) -> Iterator[np.ndarray]:
+def turntable_rotations(up: torch.Tensor, level: torch.Tensor, count: int) -> list[torch.Tensor]:
+    """The (3, 3) rotation of each turntable frame: a turn by 2πk/count about ``up``, then ``level``."""
+    return [level @ axis_angle_matrix(up, 2 * math.pi * k / count) for k in range(count)]
+
+
+def _turntable(model: HybridAvatar, frame: int, count: int, view: View | None, up: torch.Tensor):
     out = model.pose_body(frame)
     verts = out.vertices[0]
-    centre = 0.5 * (verts.amin(0) + verts.amax(0))
+    centre = verts.mean(0)  # (a box's centre would depend on the world's axes)
     root = int((model.body.parents == -1).nonzero()[0])
     root_joint = out.rest_joints[0, root]
     pose, transl = model.poses[frame, root], model.transl[frame]
-    for k in range(count):
-        new_pose, new_t = turned_params(pose, transl, root_joint, centre, 2 * math.pi * k / count)
+    up = up.to(centre)
+    level = level_rotation(up, *view_directions(model, frame, centre))
+    for rotation in turntable_rotations(up, level, count):
+        new_pose, new_t = moved_params(pose, transl, root_joint, centre, rotation)
         with posed_as(model, frame, torch.cat([new_pose[None], model.poses[frame, 1:]]), new_t):
             yield to_bgr(render_image(model, frame, view=view, soft_silhouette=False)["rgb"])
 

@@ -11,9 +11,10 @@ import pandas as pd
 import torch
 
 from delta.body.keypoints import openpose18_map
-from delta.body.lbs import lbs
+from delta.body.lbs import batch_rodrigues, lbs, posed_joints
 from delta.body.model import load_body_model
-from delta.cameras.models import OrthographicCamera, check_camera
+from delta.body.upright import Upright, estimate_upright
+from delta.cameras.models import OrthographicCamera, camera_vertical, check_camera
 from delta.data.person import confident_keypoints, no_person_message
 from delta.data.record import FrameRecord
 from delta import DeltaError
@@ -120,6 +121,13 @@ def track_face(rec: FrameRecord, model, res, points: FacePoints | None) -> FaceF
     return fit_face(model, points, detected, res.camera, res.betas, res.pose, res.transl)
 
 
+def fitted_upright(model, res) -> Upright:
+    """The capture's up and floor from the fitted bodies of its frames (:mod:`delta.body.upright`)."""
+    good = ~res.flagged if (~res.flagged).any() else torch.ones_like(res.flagged)
+    rot = batch_rodrigues(res.pose[good])
+    return estimate_upright(rot[:, 0], posed_joints(model, res.betas, rot, res.transl[good]))
+
+
 def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, overlays: int = 4,
         cfg: FitConfig = FitConfig()) -> dict:  # fmt: skip
     """Fit and write ``params.npz``, ``report.csv`` (per-frame residuals and flags) and overlay PNGs."""
@@ -152,13 +160,15 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
             res.pose, res.betas, res.transl = face.poses, face.betas, face.transl
             face_arrays = dict(expression=face.expression.numpy(), expression_names=np.array(model.expression_names),
                                face_flags=np.array(face.flags), face_residual_px=face.residual_px.numpy())  # fmt: skip
+        upright = fitted_upright(model, res)
         cam = {"camera_model": np.array(rec.h5.attrs["camera_model"])}
         if isinstance(res.camera, OrthographicCamera):
             cam.update(ortho_scale=res.camera.scale.numpy(), ortho_trans=res.camera.trans.numpy())
         save_npz(out / "params.npz", betas=res.betas.numpy(), poses=res.pose.numpy(), transl=res.transl.numpy(),
                  flagged=res.flagged.numpy(), few_keypoints=res.few_keypoints.numpy(),
                  empty_mask=res.empty_mask.numpy(), started_from=np.array("dataset" if start else "mean_pose"),
-                 frame_ids=frame_ids, joint_names=np.array(model.joint_names), **cam, **face_arrays)  # fmt: skip
+                 frame_ids=frame_ids, joint_names=np.array(model.joint_names), up=upright.up.numpy(),
+                 floor=np.array(upright.floor), **cam, **face_arrays)  # fmt: skip
         confident = confident_keypoints(detected.numpy(), cfg.conf_threshold)
         report = pd.DataFrame({"frame": frame_ids, "flagged": res.flagged.numpy(),
                                "few_keypoints": res.few_keypoints.numpy(), "empty_mask": res.empty_mask.numpy(),
@@ -177,7 +187,8 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
                     "interpolated): %s", record_path, len(flagged), len(frame_ids), flagged)  # fmt: skip
     summary = {"frames": int(len(frame_ids)), "flagged": int(res.flagged.sum()), "flagged_frames": flagged,
                "started_from": "dataset" if start else "mean_pose",
-               "residual_px_mean": float(np.nanmean(res.residual_px.numpy()))}  # fmt: skip
+               "residual_px_mean": float(np.nanmean(res.residual_px.numpy())),
+               "upright": upright.describe(camera_vertical(res.camera))}  # fmt: skip
     log.info("init fit: %s", summary)
     return summary
 

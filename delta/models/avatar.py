@@ -14,7 +14,7 @@ from typing import Optional
 import torch
 from torch import nn
 
-from delta.body.lbs import batch_rodrigues, lbs
+from delta.body.lbs import batch_rodrigues, lbs, posed_joints
 from delta.body.model import BodyModel
 from delta.body.parts import lower_body_vertices
 from delta.cameras.models import OrthographicCamera, PinholeCamera
@@ -183,6 +183,19 @@ class HybridAvatar(nn.Module):
         transl = self.transl[frame] + shift if self.pinhole else self.transl[frame]
         return lbs(self.body, self.betas[None], rot[None], expression, offsets=offsets, transl=transl[None],
                    pose_is_rotmat=True)  # fmt: skip
+
+    def skeletons(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every frame's (F, 3, 3) root rotation and (F, J, 3) posed joints, with the trajectory's correction
+        (what :meth:`pose_body` poses, without skinning a vertex)."""
+        rot = batch_rodrigues(self.poses)
+        transl = self.transl
+        if self.trajectory is not None:
+            frames = torch.arange(self.poses.shape[0], device=self.poses.device)
+            w = self.trajectory.weights[frames]
+            rot = torch.cat([(batch_rodrigues(w @ self.trajectory.rotation) @ rot[:, 0])[:, None], rot[:, 1:]], 1)
+            if self.pinhole:
+                transl = transl + w @ self.trajectory.shift
+        return rot[:, 0], posed_joints(self.body, self.betas, rot, transl)
 
     def posed_mesh(self, frame: int) -> tuple[PosedMesh, torch.Tensor, torch.Tensor]:
         """The posed interior of one frame, with the offsets and posed vertices for the regularisers."""

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 from pathlib import Path
 
@@ -71,10 +72,15 @@ def make_camera(spec: SubjectSpec, height_m: float, centre_y: float):
     distance = 3.2
     f = fill * H * distance / height_m
     K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]], dtype=torch.float64)
-    eye = torch.tensor([0.0, centre_y, distance], dtype=torch.float64)
-    R, t = look_at(eye, torch.tensor([0.0, centre_y, 0.0], dtype=torch.float64),
-                   torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))  # fmt: skip
-    return PinholeCamera(K, R, t, torch.tensor(spec.distortion, dtype=torch.float64), W, H)
+    pitch = math.radians(spec.camera_pitch)
+    target = torch.tensor([0.0, centre_y, 0.0], dtype=torch.float64)
+    eye = target + distance * torch.tensor([0.0, math.sin(pitch), math.cos(pitch)], dtype=torch.float64)
+    R, _ = look_at(eye, target, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
+    roll = math.radians(spec.camera_roll)  # about the optical axis: the subject appears turned clockwise
+    Rz = torch.tensor([[math.cos(roll), -math.sin(roll), 0.0], [math.sin(roll), math.cos(roll), 0.0], [0.0, 0.0, 1.0]],
+                      dtype=torch.float64)  # fmt: skip
+    R = Rz @ R
+    return PinholeCamera(K, R, -R @ eye, torch.tensor(spec.distortion, dtype=torch.float64), W, H)
 
 
 def splits(spec: SubjectSpec) -> dict[str, list[int]]:

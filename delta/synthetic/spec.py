@@ -41,6 +41,12 @@ class SubjectSpec:
     hair_color: tuple[float, float, float] = (0.18, 0.11, 0.07)
     camera: str = "pinhole"
     distortion: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    camera_pitch: float = 0.0
+    """Degrees the (pinhole) camera looks down on the subject from above (negative: up from below), as a
+    phone held high does; the subject stays framed."""
+    camera_roll: float = 0.0
+    """Degrees the (pinhole) camera is rolled about its optical axis (positive: the subject appears
+    turned clockwise in the image), as a hand-held phone is."""
     framing: str = "full"
     """``full``: the whole standing body in view; ``upper``: head, shoulders and chest (the top
     ``UPPER_FRAMING`` of the height), hips and legs out of view: a capture that needs no legs;
@@ -148,11 +154,16 @@ def parse_subject(name: str, raw: dict) -> SubjectSpec:
             raise DeltaError(f"{key}.phenotype: a mapping over {sorted(labels)}")
         if not all(isinstance(v, (int, float)) and 0.0 <= v <= 1.0 for v in ph.values()):
             raise DeltaError(f"{key}.phenotype: values must lie in [0, 1]")
-    for float_key, low, high in (("turns", 0.1, 10.0), ("sway", 0.0, 5.0)):
+    for float_key, low, high in (("turns", 0.1, 10.0), ("sway", 0.0, 5.0), ("camera_pitch", -60.0, 60.0),
+                                 ("camera_roll", -90.0, 90.0)):  # fmt: skip
         if float_key in kw and not (isinstance(kw[float_key], (int, float)) and low <= kw[float_key] <= high):
             raise DeltaError(f"{key}.{float_key}: expected a number in [{low}, {high}]")
     if kw.get("camera") == "orthographic" and any(kw.get("distortion", ())):
         raise DeltaError(f"{key}.distortion: an orthographic camera has no lens distortion")
+    if kw.get("camera") == "orthographic" and (kw.get("camera_pitch") or kw.get("camera_roll")):
+        raise DeltaError(
+            f"{key}: camera_pitch and camera_roll need the pinhole camera (the orthographic one looks along -z)"
+        )
     return SubjectSpec(name=name, **kw)
 
 

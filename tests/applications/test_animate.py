@@ -14,7 +14,7 @@ from delta.applications.motion import Motion
 from delta.applications.settings import AnimateSettings
 from delta.cli import main
 from delta.data.frames import load_full_frames
-from delta.export.video import baked_trajectory, to_bgr
+from delta.export.video import baked_trajectory, capture_upright, to_bgr
 from delta.models.image import full_view, render_image
 from delta.training.run import load_trained
 
@@ -29,8 +29,9 @@ def test_driving_an_avatar_with_its_own_motion_reproduces_its_renders(tiny_train
     model = tr.model
     assert model.pinhole and model.trajectory is None
     frames = [0, 2, len(tr.data.frame_ids) - 1]
+    up = capture_upright(model).up.numpy()  # its own world's up, as the fit's params.npz carries it
     own = Motion(model.poses.detach().double().numpy()[frames], model.transl.detach().double().numpy()[frames],
-                 30.0, "body model")  # fmt: skip
+                 30.0, "body model", up)  # fmt: skip
     view = full_view(load_full_frames(inputs["record"], [0]), model.resolution)
     with baked_trajectory(model, frames[0]):
         driven = list(drive(model, frames[0], own, view, None, None))

@@ -1,17 +1,21 @@
 """Motion files and their retargeting: the readers' checks, SMPL-family poses onto Anny's skeleton
 against an independent forward kinematics of SMPL's T-pose bones, and the rigid placement."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
+from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 from scipy.spatial.transform import Rotation
 
 from delta import DeltaError
-from delta.applications.animate import place
+from delta.applications.animate import onto_floor, place
 from delta.applications.motion import Motion, read_motion, resample
 from delta.applications.retarget import FAMILY_JOINTS, JOINT_MAP, SMPL_BODY, SMPL_BODY_PARENTS, retarget_smpl_family
 from delta.body.lbs import lbs
 from delta.body.model import load_body_model
+from delta.body.upright import angle_deg, axis_angle_matrix, heading, signed_angle
 
 #: SMPL's T-pose bone directions (start joint -> end joint) the test's own forward kinematics uses
 T_BONES = {("left_shoulder", "left_elbow"): (1, 0, 0), ("right_shoulder", "right_elbow"): (-1, 0, 0),
@@ -147,10 +151,19 @@ def test_the_body_models_own_motion_reads_back(tmp_path, anny):
                     names, parents, rest)  # fmt: skip
     np.testing.assert_array_equal(m.poses, poses)
     np.testing.assert_array_equal(m.transl, transl)
-    assert (m.fps, m.source) == (25.0, "body model")
-    flat = read_motion(write(tmp_path / "flat.npz", poses=poses.reshape(7, -1)), names, parents, rest)
+    assert (m.fps, m.source, m.up) == (25.0, "body model", None)
+    flat = read_motion(write(tmp_path / "flat.npz", poses=poses.reshape(7, -1), up=np.array([0.0, -2.0, 0.0])),
+                       names, parents, rest)  # fmt: skip
     np.testing.assert_array_equal(flat.poses, poses)
     assert np.all(flat.transl == 0) and flat.fps == 30.0
+    np.testing.assert_array_equal(flat.up, [0.0, -1.0, 0.0])  # a fit's capture up, unit length
+    for bad, says in (
+        (np.zeros(3), "zero vector"),
+        (np.ones(2), "three finite numbers"),
+        (np.array([0, np.nan, 1]), "finite"),
+    ):
+        with pytest.raises(DeltaError, match=says):
+            read_motion(write(tmp_path / "bad.npz", poses=poses, up=bad), names, parents, rest)
 
 
 def test_an_amass_archive_is_retargeted(tmp_path, anny):
@@ -160,6 +173,7 @@ def test_an_amass_archive_is_retargeted(tmp_path, anny):
     m = read_motion(write(tmp_path / "amass.npz", poses=smplh(body).reshape(5, -1), trans=trans,
                           mocap_framerate=np.array(120.0), gender=np.array("female")), names, parents, rest)  # fmt: skip
     assert m.source == "smplh" and m.fps == 120.0 and m.poses.shape == (5, len(names), 3)
+    np.testing.assert_array_equal(m.up, [0.0, 0.0, 1.0])  # AMASS's world is z-up
     np.testing.assert_allclose(m.poses, retarget_smpl_family(smplh(body), "smplh", names, parents, rest))
     np.testing.assert_array_equal(m.transl, trans)
 
@@ -206,30 +220,59 @@ def test_resampling_keeps_every_kth_frame_and_caps_the_count():
 
 
 # ------------------------------------------------------------------ placement
-def test_placement_starts_at_the_anchor_and_is_blind_to_the_motions_world():
-    """The first frame takes the anchor's root and translation; the same motion recorded in a turned and
-    shifted world (AMASS's z-up) places to the same frames."""
+def test_placement_stands_the_motion_on_the_captures_up_from_the_anchor_and_is_blind_to_its_world():
+    """The motion's up becomes the capture's up; its first frame starts at the anchor's place facing the
+    anchor's way, keeping its own lean; the same motion recorded in a turned and shifted world (AMASS's
+    z-up) places to the same frames; its relative movement is kept."""
     rng = np.random.default_rng(10)
     root = torch.from_numpy(rng.normal(0, 0.7, size=(6, 3)))
     transl = torch.from_numpy(rng.normal(size=(6, 3)))
+    motion_up = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    up = torch.nn.functional.normalize(torch.tensor([0.1, -0.95, 0.3], dtype=torch.float64), dim=0)
     anchor_root, anchor_t = (
-        torch.tensor([0.1, 2.5, -0.2], dtype=torch.float64),
+        torch.tensor([2.9, 0.4, -0.2], dtype=torch.float64),
         torch.tensor([0.3, -0.1, 4.0], dtype=torch.float64),
     )
-    r, t = place(root, transl, anchor_root, anchor_t)
+    r, t = place(root, transl, anchor_root, anchor_t, up, motion_up)
     rot = lambda a: Rotation.from_rotvec(a.numpy())  # noqa: E731
-    np.testing.assert_allclose(rot(r[:1]).as_matrix()[0], rot(anchor_root[None]).as_matrix()[0], atol=1e-9)
+    R, R0 = torch.from_numpy(rot(r).as_matrix()), torch.from_numpy(rot(root).as_matrix())
     np.testing.assert_allclose(t[0], anchor_t, atol=1e-12)
+    # every frame leans from the capture's up as it leaned from the motion's
+    np.testing.assert_allclose(R[:, :, 1] @ up, R0[:, :, 1] @ motion_up, atol=1e-9)
+    # the first frame faces where the anchor faced, about the capture's up
+    anchor = torch.from_numpy(rot(anchor_root[None]).as_matrix()[0])
+    assert signed_angle(heading(R[0], up), heading(anchor, up), up) == pytest.approx(0.0, abs=1e-9)
     W = Rotation.from_euler("x", -90, degrees=True)  # z-up world
     root_w = torch.from_numpy((W * rot(root)).as_rotvec())
     transl_w = torch.from_numpy(W.apply(transl.numpy()) + [5.0, -2.0, 1.0])
-    r2, t2 = place(root_w, transl_w, anchor_root, anchor_t)
+    r2, t2 = place(root_w, transl_w, anchor_root, anchor_t, up, torch.from_numpy(W.apply(motion_up.numpy())))
     np.testing.assert_allclose(rot(r2).as_matrix(), rot(r).as_matrix(), atol=1e-9)
     np.testing.assert_allclose(t2, t, atol=1e-9)
     # the motion's own relative movement is kept: distances between its root positions, its relative turns
     np.testing.assert_allclose(torch.cdist(t, t), torch.cdist(transl, transl), atol=1e-9)
     rel = lambda a: (rot(a[:1]).inv() * rot(a)).magnitude()  # noqa: E731
     np.testing.assert_allclose(rel(r), rel(root), atol=1e-9)
+
+
+def test_a_motion_that_starts_with_a_bow_still_stands_upright():
+    """Frame 0 bows 40° forwards, the rest stand: aligning frame 0 with an upright anchor (the rigid
+    first-frame placement) would tilt the standing frames by 40°; the up-aligned one keeps them upright,
+    and the lift puts the lowest joint of most frames on the capture's floor."""
+    y = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    x = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    bow = rotation_matrix_to_axis_angle(axis_angle_matrix(x, math.radians(40.0))[None])[0]
+    root = torch.zeros(5, 3, dtype=torch.float64)
+    root[0] = bow
+    transl = torch.zeros(5, 3, dtype=torch.float64)
+    r, t = place(root, transl, torch.zeros(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64), y, y)
+    ups = torch.from_numpy(Rotation.from_rotvec(r.numpy()).as_matrix())[:, :, 1]
+    assert [round(angle_deg(u, y), 6) for u in ups] == [40.0, 0.0, 0.0, 0.0, 0.0]
+    joints = torch.tensor([[[0.0, 0.9, 0.0], [0.0, 0.05, 0.1]]], dtype=torch.float64).repeat(5, 1, 1) + t[:, None]
+    joints[2, :, 1] += 0.4  # a jump
+    lifted, lift = onto_floor(t, joints, y, floor=-0.3)
+    assert lift == pytest.approx(-0.35)
+    assert float((joints[:, :, 1] + lift).amin(1).median()) == pytest.approx(-0.3)
+    np.testing.assert_allclose(lifted - t, torch.tensor([[0.0, -0.35, 0.0]]).double().expand(5, 3), atol=1e-12)
 
 
 def test_a_pickle_named_npz_is_refused(tmp_path, anny):

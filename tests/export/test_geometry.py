@@ -16,7 +16,8 @@ from delta.export import lineup, marching
 from delta.export.meshes import MeshPart, clean
 from delta.export.settings import ExportSettings
 from delta.export.skinning import forward_skin, prepare_forward
-from delta.export.video import turned_params
+from delta.body.upright import axis_angle_matrix
+from delta.export.video import moved_params
 from tests.conftest import soft_tree_model
 
 D = torch.float64
@@ -155,19 +156,22 @@ def test_rasterised_triangles_cover_their_area_and_overlaps_do_not_cancel():
     assert lineup.iou(np.zeros((2, 2), bool), np.zeros((2, 2), bool)) == 1.0
 
 
-def test_turning_the_root_turns_the_whole_posed_body_about_the_centre():
+def test_moving_the_root_rotates_the_whole_posed_body_about_the_centre():
     model, _, _, _ = _posed_tree()
     gen = torch.Generator().manual_seed(5)
     betas, pose = torch.randn(1, 2, generator=gen, dtype=D), 0.5 * torch.randn(1, 4, 3, generator=gen, dtype=D)
     transl = torch.randn(1, 3, generator=gen, dtype=D)
     out = lbs(model, betas, pose, transl=transl)
     centre = out.vertices[0].mean(0)
-    angle = 1.1
-    root, t = turned_params(pose[0, 0], transl[0], out.rest_joints[0, 0], centre, angle)
-    turned = lbs(model, betas, torch.cat([root[None, None], pose[:, 1:]], 1), transl=t[None])
-    c, s = math.cos(angle), math.sin(angle)
-    Ry = torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=D)
-    torch.testing.assert_close(turned.vertices[0], (out.vertices[0] - centre) @ Ry.T + centre, rtol=0, atol=1e-6)
+    axis = torch.tensor([0.3, 0.9, -0.2], dtype=D)
+    A = axis_angle_matrix(axis, 1.1)
+    root, t = moved_params(pose[0, 0], transl[0], out.rest_joints[0, 0], centre, A)
+    moved = lbs(model, betas, torch.cat([root[None, None], pose[:, 1:]], 1), transl=t[None])
+    torch.testing.assert_close(moved.vertices[0], (out.vertices[0] - centre) @ A.T + centre, rtol=0, atol=1e-6)
+    # Rodrigues against the matrix exponential of the cross-product matrix
+    k = axis / axis.norm()
+    K = torch.tensor([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]], dtype=D)
+    torch.testing.assert_close(A, torch.linalg.matrix_exp(1.1 * K), rtol=0, atol=1e-12)
 
 
 def test_mesh_part_colours_survive_the_trimesh_conversion():

@@ -133,6 +133,10 @@ def test_fit_starts_from_the_records_parameters_for_the_same_model(body, anny_fi
         with np.load(tmp_path / owner / "params.npz") as p:
             same = np.allclose(p["poses"], pose.numpy(), atol=1e-6) and np.allclose(p["transl"], transl.numpy())
             assert str(p["started_from"]) == expect and same == (owner == "anny")
+            if owner == "anny":  # the capture's up: the camera looks along +z at a body standing on its y
+                np.testing.assert_allclose(p["up"], [0.0, 1.0, 0.0], atol=0.02)
+                assert float(p["floor"]) < float(transl[:, 1].min()) - 0.5  # the feet, ~0.75 m under the root
+        assert summary["upright"]["frames"] == 2
 
 
 def test_smplx_fit_recovers_keypoints(tmp_path):

@@ -77,3 +77,20 @@ def test_camera_gradients():
     s = torch.tensor(0.9, dtype=torch.float64, requires_grad=True)
     t = torch.tensor([0.1, 0.2], dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda s_, t_: OrthographicCamera(s_, t_, 64, 64).project(X.detach())[0], (s, t))
+
+
+@pytest.mark.parametrize("pitch,roll", [(0.0, 0.0), (20.0, 15.0), (-12.0, -30.0)])
+def test_a_generated_camera_looks_down_by_its_pitch_and_is_rolled_by_its_roll(pitch, roll):
+    from delta.synthetic.generate import make_camera
+    from delta.synthetic.spec import parse_subject
+
+    spec = parse_subject("s", {"camera_pitch": pitch, "camera_roll": roll, "resolution": 256})
+    cam = make_camera(spec, 2.0, 1.0)
+    optical = cam.R[2]  # the optical axis in the world
+    assert np.degrees(np.arcsin(-float(optical[1]))) == pytest.approx(pitch, abs=1e-9)  # below the horizon
+    target = torch.tensor([[0.0, 1.0, 0.0], [0.0, 1.3, 0.0]], dtype=torch.float64)  # a vertical through it
+    uv, _ = cam.project(target)
+    np.testing.assert_allclose(uv[0].numpy(), [128.0, 128.0], atol=1e-9)  # framed at the centre
+    du, dv = (uv[1] - uv[0]).tolist()
+    # the world's vertical appears turned clockwise by the roll (image v grows downwards)
+    assert np.degrees(np.arctan2(-du, -dv)) == pytest.approx(-roll, abs=1e-6)

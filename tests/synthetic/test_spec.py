@@ -31,6 +31,8 @@ def test_defaults():
         ({"frames": 10}, r"unknown key\(s\) \['frames'\]"),
         ({"codec": "h265"}, r"codec: unknown value"),
         ({"framing": "feet"}, r"framing: unknown value 'feet'; known: \['full', 'upper', 'head'\]"),
+        ({"camera_pitch": 75}, r"camera_pitch: expected a number in \[-60.0, 60.0\]"),
+        ({"camera": "orthographic", "camera_roll": 10}, r"camera_pitch and camera_roll need the pinhole camera"),
     ],
 )
 def test_bad_specs_are_named(raw, message):
