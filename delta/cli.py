@@ -144,7 +144,7 @@ def cmd_prepare(args: argparse.Namespace) -> None:
     st = settings.from_arguments(PrepareSettings, args, "prepare")
     adapters = {"synthetic": lambda: synthetic_source(args.root, args.subject),
                 "peoplesnapshot": lambda: peoplesnapshot_source(args.root, args.subject, st.frames),
-                "video": lambda: video_source(args.root, args.subject, st.frames)}  # fmt: skip
+                "video": lambda: video_source(args.root, args.subject, st.frames, st.max_frames)}  # fmt: skip
     source = adapters[st.kind]()
     if st.use_provided is not None:  # the config chose to ignore some of what the dataset ships
         for name in list(source.provided):
@@ -158,26 +158,32 @@ def cmd_prepare(args: argparse.Namespace) -> None:
         save_json(args.summary, summary)
 
 
+def _step_frames(args: argparse.Namespace):
+    from delta.preprocess.steps import step_frames
+
+    frames = json_or_file(args.frames, "--frames") if args.frames else None
+    return step_frames(args.video, frames, json_or_file(args.max_frames, "--max-frames") if args.max_frames else None)
+
+
 def cmd_matte(args: argparse.Namespace) -> None:
-    from delta.preprocess.steps import run_matting, video_length
+    from delta.preprocess.steps import run_matting
 
     _threads(args.threads)
-    run_matting(args.video, video_length(args.video), args.model, args.path, args.out, args.threads)
+    run_matting(args.video, _step_frames(args), args.model, args.path, args.out, args.threads)
 
 
 def cmd_parse(args: argparse.Namespace) -> None:
-    from delta.preprocess.steps import run_parsing, video_length
+    from delta.preprocess.steps import run_parsing
 
     _threads(args.threads)
-    run_parsing(args.video, video_length(args.video), args.model, args.path, args.out, args.threads)
+    run_parsing(args.video, _step_frames(args), args.model, args.path, args.out, args.threads)
 
 
 def cmd_keypoints(args: argparse.Namespace) -> None:
-    from delta.preprocess.steps import run_keypoints, video_length
+    from delta.preprocess.steps import run_keypoints
 
     _threads(args.threads)
-    run_keypoints(args.video, video_length(args.video), args.model, args.path, args.out, args.threads,
-                  args.face_path)  # fmt: skip
+    run_keypoints(args.video, _step_frames(args), args.model, args.path, args.out, args.threads, args.face_path)
 
 
 def cmd_convert_mediapipe(args: argparse.Namespace) -> None:
@@ -483,8 +489,12 @@ def build_parser() -> argparse.ArgumentParser:
     for name, func, models in (("matte", cmd_matte, ["mediapipe", "rvm", "modnet"]),
                                ("parse", cmd_parse, ["default", "u2net_cloth", "bisenet_face"]),
                                ("keypoints", cmd_keypoints, ["mediapipe"])):  # fmt: skip
-        p = sub.add_parser(name, help=f"run an ONNX {name} model over every frame of a video")
+        p = sub.add_parser(name, help=f"run an ONNX {name} model over a subject's frames of a video")
         p.add_argument("--video", required=True)
+        p.add_argument("--frames", default="", help='the subject\'s ranges as JSON, {"train": [first, last, step], '
+                       '"test": [...]} (default: every frame)')  # fmt: skip
+        p.add_argument("--max-frames", default="", help='JSON {"train": n, "test": m}: each range thinned evenly '
+                       "to at most that many frames, as the record does")  # fmt: skip
         p.add_argument("--model", required=True, choices=models)
         p.add_argument("--path", required=True, help="the ONNX file")
         p.add_argument("--out", required=True)

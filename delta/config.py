@@ -158,14 +158,9 @@ def _video_frames(path: Path) -> int | None:
     """The frame count of a video file, None when it is absent."""
     if not path.is_file():
         return None
-    import cv2
+    from delta.data.video import probe_video
 
-    cap = cv2.VideoCapture(str(path))
-    n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else 0
-    cap.release()
-    if n <= 0:
-        raise DeltaError(f"{path}: cannot be read as a video (no frames)")
-    return n
+    return probe_video(path).frames
 
 
 def _check_frame_ranges(config: dict, base: Path, generated: set[str]) -> list[str]:

@@ -281,6 +281,20 @@ def video_input(wildcards):
     )
 
 
+def step_selection(wildcards):
+    """The model steps' frame selection flags: a video subject's ranges and preprocess.max_frames (they
+    analyse only the frames the record keeps); none for other datasets (every frame)."""
+    if dataset_kind(wildcards.dataset) != "video":
+        return []
+    ranges = DATASETS[wildcards.dataset]["subjects"][wildcards.subject] or {}
+    return [
+        "--frames",
+        json.dumps(ranges),
+        "--max-frames",
+        json.dumps(PRE["max_frames"]),
+    ]
+
+
 def prepare_root(wildcards):
     """The folder the dataset adapter reads."""
     if dataset_kind(wildcards.dataset) == "synthetic":
@@ -298,7 +312,7 @@ def prepare_settings(wildcards):
     )
     return json.dumps(
         {"kind": kind, "resolution": PRE["resolution"], "crop_margin": PRE["crop_margin"],
-         "score_size": PRE["score_size"], "frames": frames,
+         "score_size": PRE["score_size"], "frames": frames, "max_frames": PRE["max_frames"],
          "use_provided": [a for a in used_provided(wildcards.dataset) if a != "face_points" or tracks_face(wildcards)]},
         sort_keys=True,
     )  # fmt: skip

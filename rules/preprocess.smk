@@ -42,9 +42,10 @@ rule matte:
         mem_mb=4000,
     params:
         model=PRE["matting"]["model"],
+        select=step_selection,
     shell:
         "delta matte --video {input.video:q} --model {params.model:q} --path {input.model:q} --out {output:q}"
-        " --threads {threads} > {log:q} 2>&1"
+        " {params.select:q} --threads {threads} > {log:q} 2>&1"
 
 
 rule parse:
@@ -64,9 +65,10 @@ rule parse:
         mem_mb=4000,
     params:
         model=PRE["parsing"]["model"],
+        select=step_selection,
     shell:
         "delta parse --video {input.video:q} --model {params.model:q} --path {input.model:q} --out {output:q}"
-        " --threads {threads} > {log:q} 2>&1"
+        " {params.select:q} --threads {threads} > {log:q} 2>&1"
 
 
 rule keypoints:
@@ -86,12 +88,13 @@ rule keypoints:
         mem_mb=2000,
     params:
         model=PRE["keypoints"]["model"],
+        select=step_selection,
         face=lambda w, input: (
             ["--face-path", input.face] if PRE["face_landmarks"] else []
         ),
     shell:
         "delta keypoints --video {input.video:q} --model {params.model:q} --path {input.model:q} {params.face:q}"
-        " --out {output:q} > {log:q} 2>&1"
+        " {params.select:q} --out {output:q} > {log:q} 2>&1"
 
 
 rule convert_mediapipe:

@@ -28,7 +28,8 @@ from delta import metrics as M
 from delta.data.sources import synthetic_source
 from delta.eval.evaluate import EvalSettings, Perceptual, body_errors, clothing_distance, gt_body_vertices, score_image
 from delta.models.image import View, render_image
-from delta.preprocess.frames import Undistorter, iter_video, whole
+from delta.data.video import iter_video
+from delta.preprocess.frames import Undistorter, whole
 
 
 @dataclasses.dataclass

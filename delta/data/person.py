@@ -59,3 +59,44 @@ def no_person_message(where, frames: int, keypoints: np.ndarray | None, masks: n
     return (f"{where}: no person found: 0 of {frames} frames have >= {min_keypoints} keypoints with confidence "
             f">= {threshold:g} and a {mask_kind} person mask ({int((keypoints >= min_keypoints).sum())} have the "
             f"keypoints, at most {most} in a frame; {int(masks.sum())} have a {mask_kind} mask{note})")  # fmt: skip
+
+
+OTHER_PERSON = 0.1
+"""A connected region of the person mask without a keypoint of the tracked person, at least this share of
+the tracked person's region: somebody else."""
+
+
+def one_person(mask: np.ndarray, keypoints: np.ndarray | None,
+               threshold: float = CONF_THRESHOLD) -> tuple[np.ndarray, int]:  # fmt: skip
+    """The (H, W) person mask (0-255) with everybody but the tracked person removed, and how many others
+    were removed.
+
+    The tracked person is the 8-connected region (alpha > 127) holding most of the (K, 3) keypoints'
+    confident points (the largest region without keypoints, or where none lands). Other regions that
+    hold a keypoint stay (a hand the matting cut off at the wrist); so do small ones (speckle, a bag);
+    regions of ``OTHER_PERSON`` of the tracked region's area or more without a keypoint are other
+    people, and go.
+    """
+    on = (np.asarray(mask) > 127).astype(np.uint8)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(on, connectivity=8)
+    if count <= 2:
+        return mask, 0
+    area = stats[:, cv2.CC_STAT_AREA].copy()
+    area[0] = 0
+    held = np.zeros(count, np.int64)
+    if keypoints is not None:
+        kp = np.nan_to_num(np.asarray(keypoints, dtype=np.float64))
+        good = (kp[:, 2] >= threshold) & (kp[:, 2] > 0)
+        H, W = on.shape
+        u = np.clip(np.floor(kp[good, 0]).astype(int), 0, W - 1)
+        v = np.clip(np.floor(kp[good, 1]).astype(int), 0, H - 1)
+        inside = (kp[good, 0] >= 0) & (kp[good, 0] < W) & (kp[good, 1] >= 0) & (kp[good, 1] < H)
+        np.add.at(held, labels[v[inside], u[inside]], 1)
+        held[0] = 0
+    main = int(np.lexsort((area, held))[-1])  # most keypoints, then the largest
+    others = [k for k in range(1, count) if k != main and held[k] == 0 and area[k] >= OTHER_PERSON * area[main]]
+    if not others:
+        return mask, 0
+    out = np.array(mask, copy=True)
+    out[np.isin(labels, others)] = 0
+    return out, len(others)

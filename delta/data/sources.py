@@ -20,6 +20,7 @@ import torch
 from delta import DeltaError
 from delta.body.face_points import FacePoints
 from delta.cameras.models import OrthographicCamera, PinholeCamera, check_camera
+from delta.data.video import frame_range, probe_video, select_frames
 from delta.data import peoplesnapshot as ps
 
 log = logging.getLogger(__name__)
@@ -95,15 +96,6 @@ def _h5_frames(path: Path, key: str, width: int, height: int, video,
     return get, f.close, int(dset.shape[0])
 
 
-def _range_frames(spec: list[int], split: int, key: str) -> list[tuple[int, int]]:
-    if not (isinstance(spec, list) and len(spec) == 3 and all(isinstance(v, int) for v in spec)):
-        raise DeltaError(f"{key}: expected [start, end, step] (inclusive end), got {spec!r}")
-    start, end, step = spec
-    if step < 1 or end < start or start < 0:
-        raise DeltaError(f"{key}: [start, end, step] = {spec} is not a valid range")
-    return [(i, split) for i in range(start, end + 1, step)]
-
-
 def peoplesnapshot_source(root: str | Path, subject: str, cfg: dict) -> Source:
     """People Snapshot: ``{root}/{subject}/{subject}.mp4``, masks.hdf5, camera.pkl, keypoints.hdf5."""
     d = Path(root) / subject
@@ -119,7 +111,7 @@ def peoplesnapshot_source(root: str | Path, subject: str, cfg: dict) -> Source:
     if "train" not in cfg or "test" not in cfg:
         raise DeltaError(f"{key}: give 'train' and 'test' frame ranges [start, end, step] (standard ones are "
                          f"known for {sorted(ps.STANDARD_SPLITS)})")  # fmt: skip
-    frames = _range_frames(cfg.get("train"), 0, f"{key}.train") + _range_frames(cfg.get("test"), 1, f"{key}.test")
+    frames = frame_range(cfg.get("train"), 0, f"{key}.train") + frame_range(cfg.get("test"), 1, f"{key}.test")
     kp_all = ps.read_keypoints(d / "keypoints.hdf5")
     masks, close_m, n_masks = _h5_frames(d / "masks.hdf5", "masks", camera.width, camera.height, need[0], 255.0)
     closers = [close_m]
@@ -191,28 +183,27 @@ def read_camera_json(path: Path, width: int, height: int) -> PinholeCamera:
                          torch.from_numpy(dist), width, height)  # fmt: skip
 
 
-def video_source(root: str | Path, subject: str, cfg: dict) -> Source:
+def video_source(root: str | Path, subject: str, cfg: dict, max_frames: dict | None = None) -> Source:
     """Any video ``{root}/{subject}.mp4``, with an optional ``{root}/{subject}.camera.json``
-    (``{"K": 3x3, "dist": [k1, k2, p1, p2, k3]}``); annotations come from the model steps."""
-    import cv2
-
+    (``{"K": 3x3, "dist": [k1, k2, p1, p2, k3]}``); annotations come from the model steps. Its ranges are
+    thinned to ``max_frames`` ({"train": n, "test": m}) each; a display rotation is applied."""
     video = Path(root) / f"{subject}.mp4"
-    cap = cv2.VideoCapture(str(video))
-    if not cap.isOpened():
-        raise DeltaError(f"cannot open video {video} (missing, empty or not a video)")
-    n, W, H = (int(cap.get(p)) for p in (cv2.CAP_PROP_FRAME_COUNT, cv2.CAP_PROP_FRAME_WIDTH, cv2.CAP_PROP_FRAME_HEIGHT))
-    cap.release()
+    info = probe_video(video)
+    W, H = info.width, info.height
     cam_file = Path(root) / f"{subject}.camera.json"
     camera = default_camera(W, H)
     if cam_file.is_file():
         camera = read_camera_json(cam_file, W, H)
     check_camera(camera, str(cam_file) if cam_file.is_file() else f"{video} (default camera)")
-    key = f"datasets.*.subjects.{subject}"
-    frames = _range_frames(cfg.get("train", [0, n - 1, 1]), 0, f"{key}.train")
-    if "test" in cfg:
-        frames += _range_frames(cfg["test"], 1, f"{key}.test")
-    return Source(video=video, camera=camera, frames=frames, num_video_frames=n, provided={},
-                  origin={"camera": "file" if cam_file.is_file() else "default"})  # fmt: skip
+    frames, thinned = select_frames(cfg, info.frames, f"datasets.*.subjects.{subject}", max_frames)
+    origin = {"camera": "file" if cam_file.is_file() else "default"}
+    if info.rotation:
+        origin["rotation"] = f"{info.rotation} degrees, applied"
+        log.info("%s: stored with a %d degree display rotation: frames are read upright, %dx%d", video, info.rotation,
+                 W, H)  # fmt: skip
+    if thinned:
+        origin["thinned"] = ", ".join(f"{k} {a} -> {b}" for k, (a, b) in thinned.items())
+    return Source(video=video, camera=camera, frames=frames, num_video_frames=info.frames, provided={}, origin=origin)
 
 
 def synthetic_source(capture: str | Path, subject: str) -> Source:

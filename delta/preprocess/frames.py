@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections import Counter
 import logging
 from pathlib import Path
 from typing import Iterator, Optional
@@ -21,7 +22,9 @@ import torch
 from delta import DeltaError
 from delta.cameras.crop import CropBox, crop_camera
 from delta.cameras.models import PinholeCamera
+from delta.data.quality import BLUR_RATIO, EDGES, blurred, cut_edges, sharpness
 from delta.data.person import (
+    one_person,
     CONF_THRESHOLD,
     MIN_KEYPOINTS,
     PLAUSIBLE,
@@ -31,30 +34,10 @@ from delta.data.person import (
 )
 from delta.data.record import MASKS, FullFrameWriter, RecordWriter, write_camera_attrs
 from delta.data.sources import Source
+from delta.data.video import iter_video
 from delta.io import atomic_path
 
 log = logging.getLogger(__name__)
-
-
-def iter_video(path: Path, wanted: set[int]) -> Iterator[tuple[int, np.ndarray]]:
-    """Yield (index, RGB frame) for the wanted indices, decoding sequentially; errors name the file."""
-    cap = cv2.VideoCapture(str(path))
-    if not cap.isOpened():
-        raise DeltaError(f"cannot open video {path} (missing, empty or not a video)")
-    last = max(wanted) if wanted else -1
-    i = 0
-    try:
-        while i <= last:
-            ok, frame = cap.read()
-            if not ok:
-                if i == 0:
-                    raise DeltaError(f"{path}: the video has no readable frame")
-                raise DeltaError(f"{path}: the video ends at frame {i}, but frame {last} was asked for")
-            if i in wanted:
-                yield i, cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)
-            i += 1
-    finally:
-        cap.release()
 
 
 class Undistorter:
@@ -142,6 +125,8 @@ class PrepareSettings:
     """Margin added around the person's box on each side, as a fraction of its side."""
     frames: dict = dataclasses.field(default_factory=dict)
     """The subject's frame ranges, ``{"train": [first, last, step], "test": [...]}`` (video, People Snapshot)."""
+    max_frames: dict = dataclasses.field(default_factory=lambda: {"train": 300, "test": 100})
+    """A video subject's ranges are each thinned evenly to at most this many frames (0: all)."""
     use_provided: Optional[tuple[str, ...]] = dataclasses.field(
         default=None, metadata={"choices": ("person", "clothing", "skin", "hair", "keypoints", "face_points")}
     )
@@ -184,9 +169,32 @@ def prepare(source: Source, out_path: str | Path, size: int, margin: float = 0.0
         source.close()
 
 
+#: what a source says of itself, whatever it provides
+NOTED = ("camera", "smpl", "rotation", "thinned")
+
+
+def noted(source: Source) -> dict[str, str]:
+    """Where the record's arrays come from, and what was done to the video (rotation, thinning)."""
+    return {k: v for k, v in source.origin.items() if k in source.provided or k in NOTED}
+
+
 def whole(img: np.ndarray, full_size: tuple[int, int], interp: int) -> np.ndarray:
     """A whole (undistorted) frame or mask resized to the scoring size (W, H)."""
     return img if img.shape[1::-1] == tuple(full_size) else cv2.resize(img, full_size, interpolation=interp)
+
+
+class OnePerson:
+    """The source's person masks with everybody but the tracked person removed
+    (:func:`~delta.data.person.one_person`); ``removed``: frame -> how many others went."""
+
+    def __init__(self, person, keypoints):
+        self.person, self.keypoints, self.removed = person, keypoints, {}
+
+    def __call__(self, i: int) -> np.ndarray:
+        mask, others = one_person(self.person(i), self.keypoints(i) if self.keypoints is not None else None)
+        if others:
+            self.removed[i] = others
+        return mask
 
 
 def _prepare(source: Source, out_path, size: int, margin: float, full_size: tuple[int, int]) -> dict:
@@ -198,11 +206,12 @@ def _prepare(source: Source, out_path, size: int, margin: float, full_size: tupl
         raise DeltaError(f"{source.video}: no person masks: the dataset ships none and no matting ran "
                          "(set preprocess.matting.model and preprocess.matting.path)")  # fmt: skip
     und = Undistorter(source.camera)
-    person = source.provided["person"]
     keypoints = source.provided.get("keypoints")
+    person = OnePerson(source.provided["person"], keypoints)
     # one streamed pass over the masks: which frames show nobody, which show a person, the box around everybody
     empty: list[int] = []
     plausible, confident = [], []
+    edges: dict[int, tuple[str, ...]] = {}
 
     def shown():
         for i, _ in source.frames:
@@ -211,6 +220,7 @@ def _prepare(source: Source, out_path, size: int, margin: float, full_size: tupl
             if keypoints is not None:
                 confident.append(int(confident_keypoints(keypoints(i))))
             if (m > 127).any():
+                edges[i] = cut_edges(m)
                 yield m
             else:
                 empty.append(i)
@@ -233,7 +243,25 @@ def _prepare(source: Source, out_path, size: int, margin: float, full_size: tupl
                     "%d with an implausible person mask %s", source.video, len(few), MIN_KEYPOINTS, CONF_THRESHOLD,
                     few, len(odd), odd)  # fmt: skip
     skipped = set(empty)
-    frames = [(i, s) for i, s in source.frames if i not in skipped]
+    # blur is judged on frames that show the person, framed as most frames are (a person half out of the
+    # image shows less of its texture: it would look blurred beside the whole)
+    framing = Counter(edges.values()).most_common(1)[0][0] if edges else ()
+    showing = {i for i in ids[enough].tolist() if edges.get(i) == framing} - skipped
+    blur = blurred({i: sharpness(rgb, person(i)) for i, rgb in iter_video(source.video, showing)})
+    dropped = sorted({i for i, s in source.frames if s == 0 and i in blur})
+    if not any(s == 0 and i not in skipped and i not in dropped for i, s in source.frames):
+        dropped = []  # every training frame blurred: a blurred avatar rather than none
+    frames = [(i, s) for i, s in source.frames if i not in skipped and not (s == 0 and i in dropped)]
+    if blur:
+        log.warning("%s: %d motion-blurred frames (sharpness below %g of the median): %s; the training frames among "
+                    "them are left out", source.video, len(blur), BLUR_RATIO, blur)  # fmt: skip
+    if person.removed:
+        log.warning("%s: somebody else in %d frames (%s): only the tracked person is kept (the mask region with "
+                    "their keypoints)", source.video, len(person.removed), sorted(person.removed))  # fmt: skip
+    cut = {e: sum(e in v for v in edges.values()) for e in EDGES if any(e in v for v in edges.values())}
+    if cut:
+        log.info("%s: the person runs off the image in %d frames (by edge: %s); the crop ends there", source.video,
+                 sum(bool(v) for v in edges.values()), cut)  # fmt: skip
     camera = crop_camera(und.camera(source.camera), box)
     masks = tuple(m for m in MASKS if m in source.provided)
     with atomic_path(out_path) as tmp, h5py.File(tmp, "w") as h5:
@@ -277,13 +305,15 @@ def _prepare(source: Source, out_path, size: int, margin: float, full_size: tupl
         for name, values in source.body_params.items():  # per-frame rows for the kept frames; per-subject as is
             per_frame = values.ndim >= 2 and len(values) == source.num_video_frames
             h5.create_dataset(name, data=values[ids] if per_frame else values, track_times=False)
-        origin = {k: v for k, v in source.origin.items() if k in source.provided or k in ("camera", "smpl")}
+        origin = noted(source)
         h5.attrs["sources"] = json.dumps({**origin, "images": f"video:{source.video.name}"}, sort_keys=True)
         h5.attrs["crop"] = np.array([box.u0, box.v0, box.size, box.out])
         h5.attrs["source_size"] = np.array([source.camera.width, source.camera.height])
         h5.attrs["skipped_empty"] = np.array(empty, dtype=np.int64)
     summary = {"frames": len(frames), "skipped_empty": empty, "few_keypoints": few, "implausible_mask": odd,
+               "blurred": blur, "skipped_blurred": dropped, "other_people": sorted(person.removed),
+               "cut_by_edge": {"frames": sorted(i for i, v in edges.items() if v), "edges": cut},
                "crop": [box.u0, box.v0, box.size, box.out], "full_size": list(full_size),
-               "sources": {k: v for k, v in source.origin.items() if k in source.provided or k in ("camera", "smpl")}}  # fmt: skip
+               "sources": noted(source)}  # fmt: skip
     log.info("prepared %s", summary)
     return summary

@@ -16,7 +16,7 @@ import numpy as np
 from delta import DeltaError
 from delta.io import atomic_path
 from delta.preprocess import onnx_models as om
-from delta.preprocess.frames import iter_video
+from delta.data.video import iter_video, probe_video, select_frames
 
 log = logging.getLogger(__name__)
 
@@ -58,50 +58,80 @@ def _model(kind: str, table: dict, path: str, threads: int, key: str):
 def _masks_file(out: Path, n: int, shape: tuple[int, int], names: tuple[str, ...]):
     f = h5py.File(out, "w")
     kw = dict(chunks=(1, *shape), compression="gzip", compression_opts=3, track_times=False)
-    return f, {k: f.create_dataset(k, (n, *shape), np.uint8, **kw) for k in names}
+    return f, {k: f.create_dataset(k, (n, *shape), np.uint8, maxshape=(None, *shape), **kw) for k in names}
 
 
-def video_length(video: str | Path) -> int:
-    import cv2
-
-    cap = cv2.VideoCapture(str(video))
-    if not cap.isOpened():
-        raise DeltaError(f"cannot open video {video} (missing, empty or not a video)")
-    n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT))
-    cap.release()
-    if n <= 0:
-        raise DeltaError(f"{video}: the video has no frame")
-    return n
+def step_frames(video: str | Path, frames: dict | None, max_frames: dict | None = None) -> set[int] | None:
+    """The frames a step analyses: a video subject's selected frames (its ``frames`` ranges thinned to
+    ``max_frames``, as the record selects them); None (every frame) without ranges."""
+    if frames is None:
+        return None
+    info = probe_video(video)
+    selected, _ = select_frames(frames, info.frames, f"datasets.*.subjects.{Path(video).stem}", max_frames)
+    return {i for i, _ in selected}
 
 
-def run_matting(video: Path, num_frames: int, kind: str, path: str, out: str | Path, threads: int = 1) -> None:
-    """Person alpha (0-255) for every frame of the video, in order (RVM is recurrent)."""
+def _rows(video: Path, wanted: set[int] | None) -> int:
+    """Rows of a step's arrays: one per video frame up to the last one analysed (the header's count
+    for every frame; grown if the video holds more)."""
+    return max(wanted) + 1 if wanted else probe_video(video).frames
+
+
+def _decoded(video: Path, wanted: set[int] | None, what: str):
+    """(index, RGB) of the analysed frames, read until the video ends, with a warning for wanted frames
+    it does not hold (a header that overstates the count): their rows stay empty."""
+    last = -1
+    for i, rgb in iter_video(video, wanted, to_end=True):
+        last = i
+        yield i, rgb
+    missing = sorted(f for f in (wanted or ()) if f > last)
+    if missing:
+        log.warning("%s: %s: the video ends after frame %d; %d frame(s) asked for are not there, from %d on",
+                    video, what, last, len(missing), missing[0])  # fmt: skip
+
+
+def run_matting(video: Path, wanted: set[int] | None, kind: str, path: str, out: str | Path, threads: int = 1) -> None:
+    """Person alpha (0-255) for the ``wanted`` frames of the video (None: all), in order (RVM is
+    recurrent); one row per video frame, empty where no frame was analysed."""
     model = _model(kind, MATTING, path, threads, "preprocess.matting.model")
+    rows = _rows(Path(video), wanted)
+    count = 0
     with atomic_path(out) as tmp:
         f = None
         try:
-            for i, rgb in iter_video(Path(video), set(range(num_frames))):
+            for i, rgb in _decoded(Path(video), wanted, "matting"):
                 if f is None:
-                    f, d = _masks_file(tmp, num_frames, rgb.shape[:2], ("person",))
+                    f, d = _masks_file(tmp, rows, rgb.shape[:2], ("person",))
+                _grow(d, i)
                 d["person"][i] = np.round(np.clip(model(rgb), 0, 1) * 255).astype(np.uint8)
+                count += 1
             f.attrs["model"] = f"{kind}:{Path(path).name}"
         finally:
             if f is not None:
                 f.close()
-    log.info("matting (%s) of %d frames -> %s", kind, num_frames, out)
+    log.info("matting (%s) of %d frames -> %s", kind, count, out)
 
 
-def run_parsing(video: Path, num_frames: int, kind: str, path: str, out: str | Path, threads: int = 1) -> None:
+def _grow(datasets: dict, i: int) -> None:
+    for dset in datasets.values():
+        if i >= dset.shape[0]:
+            dset.resize(i + 1, axis=0)
+
+
+def run_parsing(video: Path, wanted: set[int] | None, kind: str, path: str, out: str | Path, threads: int = 1) -> None:
     """Clothing, skin and hair (default), clothing (U²-Net cloth) or hair and face skin (BiSeNet face
-    parsing) masks, 0/1, per frame."""
+    parsing) masks, 0/1, for the ``wanted`` frames (None: all)."""
     model = _model(kind, PARSING, path, threads, "preprocess.parsing.model")
     names = PARSED[kind]
+    rows = _rows(Path(video), wanted)
+    count = 0
     with atomic_path(out) as tmp:
         f = None
         try:
-            for i, rgb in iter_video(Path(video), set(range(num_frames))):
+            for i, rgb in _decoded(Path(video), wanted, "parsing"):
                 if f is None:
-                    f, d = _masks_file(tmp, num_frames, rgb.shape[:2], names)
+                    f, d = _masks_file(tmp, rows, rgb.shape[:2], names)
+                _grow(d, i)
                 result = model(rgb)
                 if kind == "default":
                     for name in names:
@@ -111,36 +141,45 @@ def run_parsing(video: Path, num_frames: int, kind: str, path: str, out: str | P
                 else:
                     d["hair"][i] = om.hair_mask(result)
                     d["skin"][i] = om.face_skin_mask(result)
+                count += 1
             f.attrs["model"] = f"{kind}:{Path(path).name}"
         finally:
             if f is not None:
                 f.close()
-    log.info("parsing (%s) of %d frames -> %s", kind, num_frames, out)
+    log.info("parsing (%s) of %d frames -> %s", kind, count, out)
 
 
-def run_keypoints(video: Path, num_frames: int, kind: str, path: str, out: str | Path, threads: int = 1,
+def run_keypoints(video: Path, wanted: set[int] | None, kind: str, path: str, out: str | Path, threads: int = 1,
                   face_path: str | None = None) -> None:  # fmt: skip
     """OpenPose-18 keypoints (N, 18, 3) and, with ``face_path``, face-mesh landmarks (N, 468, 3),
-    as (u, v, confidence), per frame from MediaPipe's pose (and face) landmark models."""
+    as (u, v, confidence), for the ``wanted`` frames (None: all) from MediaPipe's pose (and face)
+    landmark models; zero rows elsewhere."""
     from delta.preprocess.pose_landmarks import FaceLandmarker, PoseLandmarker
 
     if kind != "mediapipe":
         raise DeltaError(f"preprocess.keypoints.model: unknown model '{kind}'; known: ['mediapipe']")
     model = PoseLandmarker(path, threads=threads, config_key="preprocess.keypoints.path")
     face = FaceLandmarker(face_path, threads=threads) if face_path else None
-    keypoints = np.zeros((num_frames, 18, 3), np.float32)
-    faces = np.zeros((num_frames, 468, 3), np.float32)
-    for i, rgb in iter_video(Path(video), set(range(num_frames))):
+    keypoints, faces = [], []
+    for i, rgb in _decoded(Path(video), wanted, "keypoints"):
         pose = model(rgb)
-        keypoints[i] = pose.openpose18()
+        keypoints.append((i, pose.openpose18()))
         if face is not None:
-            faces[i] = face(rgb, pose)
+            faces.append((i, face(rgb, pose)))
+    rows = max(_rows(Path(video), wanted), max((i for i, _ in keypoints), default=-1) + 1)
+
+    def table(items, shape):
+        out = np.zeros((rows, *shape), np.float32)
+        for i, a in items:
+            out[i] = a
+        return out
+
     with atomic_path(out) as tmp, h5py.File(tmp, "w") as f:
-        f.create_dataset("keypoints", data=keypoints, track_times=False)
+        f.create_dataset("keypoints", data=table(keypoints, (18, 3)), track_times=False)
         if face is not None:
-            f.create_dataset("face_landmarks", data=faces, track_times=False)
+            f.create_dataset("face_landmarks", data=table(faces, (468, 3)), track_times=False)
         f.attrs["model"] = f"{kind}:{Path(path).name}"
-    log.info("keypoints (%s) of %d frames -> %s", kind, num_frames, out)
+    log.info("keypoints (%s) of %d frames -> %s", kind, len(keypoints), out)
 
 
 def attach(source, path: str | Path) -> None:

@@ -163,7 +163,8 @@ def test_whole_frames_are_scored_at_the_capture_size_as_an_independent_scorer_wo
     from delta.data.frames import load_full_frames
     from delta.data.sources import synthetic_source
     from delta.models.image import full_view
-    from delta.preprocess.frames import iter_video, prepare
+    from delta.data.video import iter_video
+    from delta.preprocess.frames import prepare
 
     t = tiny_trained["loose"]
     record = tmp_path / "frames.h5"
