@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections import Counter
 import logging
+from collections import Counter
 from pathlib import Path
 from typing import Iterator, Optional
 
@@ -22,16 +22,16 @@ import torch
 from delta import DeltaError
 from delta.cameras.crop import CropBox, crop_camera
 from delta.cameras.models import PinholeCamera
-from delta.data.quality import BLUR_RATIO, EDGES, blurred, cut_edges, sharpness
 from delta.data.person import (
-    one_person,
     CONF_THRESHOLD,
     MIN_KEYPOINTS,
     PLAUSIBLE,
     confident_keypoints,
     no_person_message,
+    one_person,
     plausible_mask,
 )
+from delta.data.quality import BLUR_RATIO, EDGES, blurred, cut_edges, sharpness
 from delta.data.record import MASKS, FullFrameWriter, RecordWriter, write_camera_attrs
 from delta.data.sources import Source
 from delta.data.video import iter_video
