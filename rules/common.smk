@@ -110,6 +110,7 @@ PATHS = {
     "export_dir": "results/{dataset}/{subject}/export",
     "export_json": "results/{dataset}/{subject}/export/export.json",
     "export_glb": "results/{dataset}/{subject}/export/avatar.glb",
+    "export_animated": "results/{dataset}/{subject}/export/avatar_animated.glb",
     "turntable": "results/{dataset}/{subject}/export/turntable.mp4",
     "novel_pose": "results/{dataset}/{subject}/export/novel_pose.mp4",
     "sidebyside": "results/{dataset}/{subject}/export/sidebyside",

@@ -29,6 +29,7 @@ rule export_avatar:
     output:
         json=PATHS["export_json"],
         glb=PATHS["export_glb"],
+        animated=PATHS["export_animated"],
         turntable=report(
             PATHS["turntable"],
             caption="../workflow/report/turntable.rst",

@@ -5,7 +5,8 @@ down, a hand-held one rolls. A turntable turned about the camera's vertical then
 through a cone, and a motion placed by its first frame inherits that frame's lean. Gravity is
 constant over a static camera's capture, and a person stands, walks and dances about it: the
 body's own vertical axis (the root's rotation of the canonical up, y) over all frames, averaged
-robustly so that a bow or a lean does not drag it, is the capture's up. The floor is where the
+robustly so that a bow or a lean does not drag it, is the capture's up, unless it agrees with the
+camera's own vertical within a few degrees: then the camera is level and its vertical is up. The floor is where the
 lowest joint sits in most frames, measured along that up.
 
 Canonical frame of every body model here: y up, the body faces +z. Shapes: F frames, J joints.
@@ -18,6 +19,9 @@ import math
 
 import torch
 
+#: the bodies' up within this angle (degrees) of the camera's vertical: the camera is taken as level
+#: (``benchmarks/upright.csv``: the estimate is 2-7 degrees off for cameras pitched and rolled by up to 30)
+LEVEL_SNAP_DEG = 3.0
 #: angle (degrees) beyond which a frame's body axis no longer counts towards the up direction
 #: (Tukey's biweight: full weight at 0, none from here on)
 OUTLIER_DEG = 30.0
@@ -35,6 +39,8 @@ class Upright:
     """Median angle between a frame's body axis and ``up``: how much the body leans about it."""
     frames: int
     """Frames the estimate came from."""
+    source: str = "bodies"
+    """What ``up`` is: the bodies' estimate, or the camera's vertical that it agreed with."""
 
     def tilt_deg(self, reference: torch.Tensor) -> float:
         """Angle in degrees between ``up`` and a reference direction (e.g. the camera's vertical)."""
@@ -42,7 +48,7 @@ class Upright:
 
     def describe(self, camera_up: torch.Tensor | None = None) -> dict:
         out = {"up": [round(float(c), 5) for c in self.up], "floor_m": round(self.floor, 4),
-               "spread_deg": round(self.spread_deg, 2), "frames": self.frames}  # fmt: skip
+               "spread_deg": round(self.spread_deg, 2), "frames": self.frames, "source": self.source}  # fmt: skip
         if camera_up is not None:
             out["tilt_from_camera_vertical_deg"] = round(self.tilt_deg(camera_up), 2)
         return out
@@ -88,12 +94,22 @@ def floor_height(joints: torch.Tensor, up: torch.Tensor) -> float:
     return float((joints @ up.to(joints)).amin(-1).median())
 
 
-def estimate_upright(root_rotations: torch.Tensor, joints: torch.Tensor) -> Upright:
-    """The capture's :class:`Upright` from (F, 3, 3) root rotations and (F, J, 3) posed joints."""
+def estimate_upright(root_rotations: torch.Tensor, joints: torch.Tensor, level: torch.Tensor | None = None,
+                     snap_deg: float = LEVEL_SNAP_DEG) -> Upright:  # fmt: skip
+    """The capture's :class:`Upright` from (F, 3, 3) root rotations and (F, J, 3) posed joints.
+
+    ``level`` (3,): the camera's own vertical. Within ``snap_deg`` of it the estimate takes it: a camera
+    is level more often than not (a tripod, a phone held upright), and the fitted bodies say which way
+    is up to a few degrees only (their lean, the depth a single view cannot see)."""
     axes = body_axes(root_rotations.to(torch.float64))
     up = robust_direction(axes)
+    source = "bodies"
+    if level is not None:
+        level = level.to(up) / level.norm()
+        if angle_deg(up, level) < snap_deg:
+            up, source = level, f"camera (level: the bodies agree within {snap_deg:g} deg)"
     spread = torch.rad2deg(torch.arccos((axes @ up).clamp(-1.0, 1.0))).median()
-    return Upright(up, floor_height(joints.to(torch.float64), up), float(spread), int(root_rotations.shape[0]))
+    return Upright(up, floor_height(joints.to(torch.float64), up), float(spread), int(root_rotations.shape[0]), source)
 
 
 def axis_angle_matrix(axis: torch.Tensor, angle: float | torch.Tensor) -> torch.Tensor:

@@ -18,6 +18,7 @@ import numpy as np
 import pymeshlab
 import torch
 import trimesh
+from scipy.spatial import cKDTree
 
 from delta.body.lbs import LBSOutput, lbs
 from delta.deformers.knn import SkinningFrame
@@ -143,6 +144,26 @@ def pose_clothing(model: HybridAvatar, part: MeshPart, out: LBSOutput) -> MeshPa
     x = torch.from_numpy(part.vertices).to(model.canonical_vertices)
     posed = forward_skin(frame, x, rs.k, rs.sigma)
     return MeshPart(_np(posed), part.faces, part.colors)
+
+
+@torch.no_grad()
+def rest_body(model: HybridAvatar) -> tuple[MeshPart, LBSOutput]:
+    """The body with albedo colours in the rest pose (every rotation the identity): the bind pose of a
+    skinned export."""
+    pose = torch.zeros(1, model.body.num_joints, 3).to(model.betas)
+    out = lbs(model.body, model.betas[None], pose, offsets=model.offsets())
+    return MeshPart(_np(out.vertices[0]), model.body.faces.cpu().numpy().astype(np.int64), _np(model.albedo())), out
+
+
+def borrowed_weights(body_vertices: np.ndarray, weights: np.ndarray, points: np.ndarray, k: int = 4) -> np.ndarray:
+    """(N, J) skinning weights of ``points`` from the (V, J) ``weights`` of their k nearest body vertices
+    (V, 3), blended by inverse distance."""
+    if len(points) == 0:
+        return np.zeros((0, weights.shape[1]))
+    d, idx = cKDTree(body_vertices).query(points, k=k)
+    inv = 1.0 / np.maximum(d, 1e-6)
+    w = (inv[..., None] * weights[idx]).sum(1)
+    return w / w.sum(1, keepdims=True)
 
 
 def write_mesh(path: str | os.PathLike, part: MeshPart) -> None:

@@ -11,7 +11,18 @@ import numpy as np
 import torch
 
 from delta.export import lineup
-from delta.export.meshes import MeshPart, body_mesh, clothing_nerf_space, pose_clothing, write_glb, write_mesh
+from delta.body.lbs import posed_joints
+from delta.export.animated import INFLUENCES, world_transform, write_animated_glb
+from delta.export.meshes import (
+    MeshPart,
+    body_mesh,
+    clothing_nerf_space,
+    pose_clothing,
+    rest_body,
+    borrowed_weights,
+    write_glb,
+    write_mesh,
+)
 from delta.export.settings import ExportSettings
 from delta.export.video import capture_upright, render_frames, side_by_side, turntable, write_video
 from delta.geometry.raymesh import ray_mesh_hits
@@ -71,6 +82,34 @@ def rendered_hits(model: HybridAvatar, frame: int) -> np.ndarray:
     mesh = model.posed_mesh(frame)[0]
     origins, dirs = model.camera(frame).rays(pixels)
     return ray_mesh_hits(mesh.vertices, mesh.faces, origins, dirs).hit.reshape(n, n).cpu().numpy()
+
+
+@torch.no_grad()
+def write_capture_animation(model: HybridAvatar, frame_ids: np.ndarray, path: Path, fps: int,
+                            clothing: MeshPart | None) -> dict:  # fmt: skip
+    """``avatar_animated.glb``: the body (and the clothing surface, skinned by its nearest body vertices'
+    weights) bound in the rest pose and animated by every frame of the capture in order, at ``fps``
+    frames a second, standing on the capture's floor (:mod:`delta.export.animated`)."""
+    body, rest_out = rest_body(model)
+    weights = model.body.weights.detach().cpu().double().numpy()
+    meshes = {"body": {"vertices": body.vertices, "faces": body.faces, "colors": body.colors, "weights": weights}}
+    if clothing is not None and not clothing.empty:
+        worn = pose_clothing(model, clothing, rest_out)
+        meshes["clothing"] = {"vertices": worn.vertices, "faces": worn.faces, "colors": worn.colors,
+                              "weights": borrowed_weights(body.vertices, weights, worn.vertices)}  # fmt: skip
+    ids = np.asarray(frame_ids)
+    order = np.unique(ids, return_index=True)[1]  # by frame, each once (a frame in two splits)
+    rot, transl = (t.detach().cpu().double() for t in model.local_rotations())
+    joints = posed_joints(model.body.to(dtype=torch.float64, device="cpu"), model.betas.detach().cpu().double(),
+                          rot[order[:1]], transl[order[:1]])  # fmt: skip
+    rest_joints = rest_out.rest_joints[0].detach().cpu().double().numpy()
+    sole = float(rest_joints[:, 1].min() - body.vertices[:, 1].min())  # canonical y is up
+    world = world_transform(capture_upright(model), joints[0, 0].numpy(), sole)
+    if model.body.posedirs is not None:
+        log.info("%s: the body model's pose correctives are not in the file (glTF has none)", path.name)
+    write_animated_glb(path, meshes, rest_joints, model.body.parents.cpu().numpy(), model.body.joint_names, rot[order].numpy(),
+                       transl[order].numpy(), (ids[order] - ids[order][0]) / float(fps), world)  # fmt: skip
+    return {"frames": int(len(order)), "meshes": sorted(meshes), "fps": fps, "influences": INFLUENCES}
 
 
 def check_frame(model: HybridAvatar, frame: int, clothing: MeshPart | None, img: dict) -> dict:
@@ -150,6 +189,10 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
             log.warning("the NeRF's density never reaches %.3g: the clothing mesh is empty", settings.threshold)
         times["clothing"] = time.perf_counter() - t
     write_glb(out / "avatar.glb", parts)
+    t = time.perf_counter()
+    summary["animated"] = write_capture_animation(model, data.frame_ids, out / "avatar_animated.glb", settings.fps,
+                                                  clothing)  # fmt: skip
+    times["animated"] = time.perf_counter() - t
 
     t = time.perf_counter()
     rows = []

@@ -50,7 +50,8 @@ def capture_upright(model: HybridAvatar) -> Upright:
     :mod:`delta.body.upright`)."""
     with torch.no_grad():
         rot, joints = model.skeletons()
-    return estimate_upright(rot.double().cpu(), joints.double().cpu())
+        level = camera_vertical(model.camera(0))
+    return estimate_upright(rot.double().cpu(), joints.double().cpu(), level)
 
 
 @contextlib.contextmanager

@@ -125,7 +125,9 @@ def fitted_upright(model, res) -> Upright:
     """The capture's up and floor from the fitted bodies of its frames (:mod:`delta.body.upright`)."""
     good = ~res.flagged if (~res.flagged).any() else torch.ones_like(res.flagged)
     rot = batch_rodrigues(res.pose[good])
-    return estimate_upright(rot[:, 0], posed_joints(model, res.betas, rot, res.transl[good]))
+    return estimate_upright(
+        rot[:, 0], posed_joints(model, res.betas, rot, res.transl[good]), camera_vertical(res.camera)
+    )
 
 
 def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, overlays: int = 4,

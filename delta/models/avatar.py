@@ -184,9 +184,9 @@ class HybridAvatar(nn.Module):
         return lbs(self.body, self.betas[None], rot[None], expression, offsets=offsets, transl=transl[None],
                    pose_is_rotmat=True)  # fmt: skip
 
-    def skeletons(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Every frame's (F, 3, 3) root rotation and (F, J, 3) posed joints, with the trajectory's correction
-        (what :meth:`pose_body` poses, without skinning a vertex)."""
+    def local_rotations(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every frame's (F, J, 3, 3) local joint rotations and (F, 3) translation, with the trajectory's
+        correction (what :meth:`pose_body` poses)."""
         rot = batch_rodrigues(self.poses)
         transl = self.transl
         if self.trajectory is not None:
@@ -195,6 +195,11 @@ class HybridAvatar(nn.Module):
             rot = torch.cat([(batch_rodrigues(w @ self.trajectory.rotation) @ rot[:, 0])[:, None], rot[:, 1:]], 1)
             if self.pinhole:
                 transl = transl + w @ self.trajectory.shift
+        return rot, transl
+
+    def skeletons(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every frame's (F, 3, 3) root rotation and (F, J, 3) posed joints, without skinning a vertex."""
+        rot, transl = self.local_rotations()
         return rot[:, 0], posed_joints(self.body, self.betas, rot, transl)
 
     def posed_mesh(self, frame: int) -> tuple[PosedMesh, torch.Tensor, torch.Tensor]:

@@ -120,3 +120,17 @@ def test_levelling_rolls_the_up_axis_onto_the_image_vertical(pitch, roll):
     uv, _ = cam.project(centre + (ends - centre) @ level.T)
     assert abs(float(uv[1, 0] - uv[0, 0])) < 1e-6 and uv[1, 1] < uv[0, 1]  # straight up the image
     torch.testing.assert_close(level @ (centre - cam.center), centre - cam.center)  # a turn about the ray
+
+
+def test_a_level_camera_is_taken_when_the_bodies_agree_with_it():
+    """The bodies' up within LEVEL_SNAP_DEG of the camera's vertical: the camera's vertical (a level camera,
+    the common case, is exact where the bodies are a few degrees off); beyond, the bodies'."""
+    y = torch.tensor([0.0, 1.0, 0.0], dtype=D)
+    x = torch.tensor([1.0, 0.0, 0.0], dtype=D)
+    joints = torch.zeros(3, 2, 3, dtype=D)
+    for lean, took in ((2.0, True), (5.0, False)):
+        roots = axis_angle_matrix(x, math.radians(lean)).expand(3, 3, 3)
+        est = estimate_upright(roots, joints, level=2 * y)
+        assert (est.source != "bodies") == took
+        assert angle_deg(est.up, y) == pytest.approx(0.0 if took else lean, abs=1e-6)
+    assert estimate_upright(roots, joints).source == "bodies"

@@ -90,6 +90,34 @@ def test_glb_holds_body_and_clothing(shell_export):
     assert len(scene.geometry["clothing"].faces) == summary["clothing"]["faces"]
 
 
+def test_the_animated_glb_plays_the_capture_upright_on_its_floor(shell_export, shell_avatar):
+    """Read back and skinned by glTF's rules: at the posed frame's key the body is body_posed.ply and the
+    clothing clothing_posed.ply (its weights borrowed from the nearest body vertices), in the upright world."""
+    from delta.export.animated import world_transform
+    from delta.export.video import capture_upright
+    from tests.export.test_animated_glb import read_glb, skinned
+
+    out, summary = shell_export
+    model, data = shell_avatar.model, shell_avatar.data
+    doc, arrays = read_glb((out / "avatar_animated.glb").read_bytes())
+    frames = sorted(set(data.frame_ids.tolist()))
+    assert summary["animated"]["frames"] == len(frames) and [m["name"] for m in doc["meshes"]] == ["body", "clothing"]
+    world = np.array(doc["nodes"][0]["matrix"]).reshape(4, 4).T
+    up = capture_upright(model)
+    np.testing.assert_allclose(world[:3, :3] @ up.up.numpy(), [0, 1, 0], atol=1e-6)
+    key = frames.index(int(data.frame_ids[summary["posed_frame"]]))
+    back = lambda v: (v - world[:3, 3]) @ world[:3, :3]  # noqa: E731  (the capture's world again)
+    body = trimesh.load(out / "body_posed.ply", process=False)
+    np.testing.assert_allclose(back(skinned(doc, arrays, key, 0)), body.vertices, atol=2e-3)
+    cloth = trimesh.load(out / "clothing_posed.ply", process=False)
+    err = np.linalg.norm(back(skinned(doc, arrays, key, 1)) - cloth.vertices, axis=1)
+    assert np.median(err) < 0.01  # kNN forward skinning vs the nearest vertices' weights: close, not equal
+    # standing on y = 0: the soles of the frames, by the median, are on the floor
+    lowest = [skinned(doc, arrays, k, 0)[:, 1].min() for k in range(len(frames))]
+    assert abs(float(np.median(lowest))) < 0.015
+    assert world_transform(up, np.zeros(3), 0.05)[1, 3] == pytest.approx(0.05 - up.floor)
+
+
 def test_videos_and_images_have_the_right_frames_and_size(shell_export, shell_avatar):
     out, summary = shell_export
     n, split = shell_avatar.model.resolution, shell_avatar.data.split
