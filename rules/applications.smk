@@ -13,6 +13,7 @@ rule animate:
             labels={"subject": "{subject}", "motion": "{motion}"},
         ),
         summary=PATHS["animation_json"],
+        glb=PATHS["animation_glb"],
     log:
         log_path("animate", "{dataset}_{subject}_{motion}"),
     benchmark:

@@ -118,6 +118,7 @@ PATHS = {
     "animate_dir": "results/{dataset}/{subject}/animate/{motion}",
     "animation": "results/{dataset}/{subject}/animate/{motion}/animation.mp4",
     "animation_json": "results/{dataset}/{subject}/animate/{motion}/animation.json",
+    "animation_glb": "results/{dataset}/{subject}/animate/{motion}/animation.glb",
     "dress_dir": "results/{dataset}/{subject}/dress/{exterior}",
     "dressed": "results/{dataset}/{subject}/dress/{exterior}/dressed.png",
     "dressed_turntable": "results/{dataset}/{subject}/dress/{exterior}/turntable.mp4",

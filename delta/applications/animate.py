@@ -7,7 +7,8 @@ anchor frame's place facing the anchor frame's way, and the whole motion is lift
 floor (:func:`onto_floor`). A motion recorded in any world (AMASS's z-up, another capture's camera)
 thus stands upright on the floor where the avatar stood, seen by that frame's camera. Each frame is
 rendered as a pose the capture never held (stage 2's F_e without a time code) at the capture's
-whole-frame scoring size, written as ``animation.mp4``; with ``meshes`` set, the posed body and
+whole-frame scoring size, written as ``animation.mp4``, and as ``animation.glb`` (skinned and animated, upright
+on y = 0: :mod:`delta.export.animated`); with ``meshes`` set, the posed body and
 clothing meshes of every frame too. ``animation.json`` says what was driven by what, and how it was
 placed."""
 
@@ -38,6 +39,7 @@ from delta.body.upright import (
 from delta.cameras.models import camera_vertical
 from delta.data.frames import load_full_frames
 from delta.export.meshes import MeshPart, body_mesh, pose_clothing, read_mesh, write_mesh
+from delta.export.run import write_avatar_animation
 from delta.export.video import baked_trajectory, capture_upright, posed_as, to_bgr, write_video
 from delta.io import require_files, save_json
 from delta.models.image import full_view, render_image
@@ -128,7 +130,10 @@ def animate_avatar(model_path: str | Path, record: str | Path, body_path: str | 
         frames = drive(model, anchor, motion, view, out / "meshes" if settings.meshes else None, surface, upright,
                        placed)  # fmt: skip
         count = write_video(out / "animation.mp4", frames, max(int(round(motion.fps)), 1))
-    summary = {"placement": placed, "model": str(model_path), "motion": str(motion_path), "motion_kind": motion.source,
+        poses, transl, _ = placed_motion(model, anchor, motion, upright)
+        glb = write_avatar_animation(model, batch_rodrigues(poses), transl, np.arange(motion.num_frames) / motion.fps,
+                                     out / "animation.glb", surface)  # fmt: skip
+    summary = {"placement": placed, "glb": glb, "model": str(model_path), "motion": str(motion_path), "motion_kind": motion.source,
                "frames": count, "fps": motion.fps, "anchor": anchor, "anchor_frame_id": int(tr.data.frame_ids[anchor]),
                "resolution": "{}x{}".format(*full.size), "meshes": bool(settings.meshes),
                "clothing_mesh": surface is not None and not surface.empty, "settings": vars(settings).copy(),
@@ -140,29 +145,32 @@ def animate_avatar(model_path: str | Path, record: str | Path, body_path: str | 
 
 
 @torch.no_grad()
+def placed_motion(model, anchor: int, motion: Motion, upright: Upright) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    """(F, J, 3) poses and (F, 3) translations of ``motion`` placed upright on the capture's floor from the
+    ``anchor`` frame's place and heading (:func:`place`, :func:`onto_floor`), and how it was placed."""
+    ref = model.poses.data
+    up = upright.up.to(ref)
+    m_up, m_up_from = motion_up(motion)
+    poses = torch.from_numpy(motion.poses).to(ref)
+    root, transl = place(poses[:, 0], torch.from_numpy(motion.transl).to(ref), ref[anchor, 0], model.transl.data[anchor],
+                         up, m_up.to(ref))  # fmt: skip
+    poses[:, 0] = root
+    joints = posed_joints(model.body, model.betas.detach(), batch_rodrigues(poses), transl)
+    transl, lift = onto_floor(transl, joints, up, upright.floor)
+    return poses, transl, {"motion_up": [round(float(c), 5) for c in m_up], "motion_up_from": m_up_from,
+                           "lift_m": round(lift, 4)}  # fmt: skip
+
+
+@torch.no_grad()
 def drive(model, anchor: int, motion: Motion, view, mesh_dir: Path | None, clothing: MeshPart | None,
           upright: Upright | None = None, about: dict | None = None):  # fmt: skip
     """Rendered frames (uint8 BGR) of ``model`` posed by ``motion``, placed upright on the capture's floor
     (``upright``: estimated from the model when not given) from the ``anchor`` frame's place and camera;
     with ``mesh_dir``, each frame's posed meshes are written there; ``about`` gets how it was placed."""
     upright = capture_upright(model) if upright is None else upright
-    ref = model.poses.data
-    up = upright.up.to(ref)
-    m_up, m_up_from = motion_up(motion)
-    poses = torch.from_numpy(motion.poses).to(ref)
-    root, transl = place(
-        poses[:, 0],
-        torch.from_numpy(motion.transl).to(ref),
-        ref[anchor, 0],
-        model.transl.data[anchor],
-        up,
-        m_up.to(ref),
-    )
-    poses[:, 0] = root
-    joints = posed_joints(model.body, model.betas.detach(), batch_rodrigues(poses), transl)
-    transl, lift = onto_floor(transl, joints, up, upright.floor)
+    poses, transl, how = placed_motion(model, anchor, motion, upright)
     if about is not None:
-        about.update(motion_up=[round(float(c), 5) for c in m_up], motion_up_from=m_up_from, lift_m=round(lift, 4))
+        about.update(how)
     progress = Progress(f"animation ({view.width}x{view.height})", motion.num_frames)
     for f in range(motion.num_frames):
         with posed_as(model, anchor, poses[f], transl[f], timeless=True):

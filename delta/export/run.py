@@ -85,11 +85,24 @@ def rendered_hits(model: HybridAvatar, frame: int) -> np.ndarray:
 
 
 @torch.no_grad()
-def write_capture_animation(model: HybridAvatar, frame_ids: np.ndarray, path: Path, fps: int,
+def write_capture_animation(model: HybridAvatar, frame_ids: np.ndarray, path: Path, fps: float,
                             clothing: MeshPart | None) -> dict:  # fmt: skip
-    """``avatar_animated.glb``: the body (and the clothing surface, skinned by its nearest body vertices'
-    weights) bound in the rest pose and animated by every frame of the capture in order, at ``fps``
-    frames a second, standing on the capture's floor (:mod:`delta.export.animated`)."""
+    """``avatar_animated.glb``: the avatar animated by every frame of the capture in order, at ``fps``
+    frames a second (:func:`write_avatar_animation`)."""
+    ids = np.asarray(frame_ids)
+    order = np.unique(ids, return_index=True)[1]  # by frame, each once (a frame in two splits)
+    rot, transl = (t.detach().cpu().double() for t in model.local_rotations())
+    times = (ids[order] - ids[order][0]) / float(fps)
+    return write_avatar_animation(model, rot[order], transl[order], times, path, clothing)
+
+
+@torch.no_grad()
+def write_avatar_animation(model: HybridAvatar, rotations: torch.Tensor, transl: torch.Tensor, times: np.ndarray,
+                           path: Path, clothing: MeshPart | None) -> dict:  # fmt: skip
+    """A skinned, animated GLB of the avatar: the body (and the clothing surface in the NeRF's space,
+    skinned by its nearest body vertices' weights) bound in the rest pose, moved by (F, J, 3, 3) local
+    rotations and (F, 3) translations in the capture's world at ``times`` (F,) seconds, standing on the
+    capture's floor (:mod:`delta.export.animated`)."""
     body, rest_out = rest_body(model)
     weights = model.body.weights.detach().cpu().double().numpy()
     meshes = {"body": {"vertices": body.vertices, "faces": body.faces, "colors": body.colors, "weights": weights}}
@@ -97,19 +110,17 @@ def write_capture_animation(model: HybridAvatar, frame_ids: np.ndarray, path: Pa
         worn = pose_clothing(model, clothing, rest_out)
         meshes["clothing"] = {"vertices": worn.vertices, "faces": worn.faces, "colors": worn.colors,
                               "weights": borrowed_weights(body.vertices, weights, worn.vertices)}  # fmt: skip
-    ids = np.asarray(frame_ids)
-    order = np.unique(ids, return_index=True)[1]  # by frame, each once (a frame in two splits)
-    rot, transl = (t.detach().cpu().double() for t in model.local_rotations())
-    joints = posed_joints(model.body.to(dtype=torch.float64, device="cpu"), model.betas.detach().cpu().double(),
-                          rot[order[:1]], transl[order[:1]])  # fmt: skip
+    rotations, transl = rotations.detach().cpu().double(), transl.detach().cpu().double()
+    cpu_body = model.body.to(dtype=torch.float64, device="cpu")
+    start = posed_joints(cpu_body, model.betas.detach().cpu().double(), rotations[:1], transl[:1])[0, 0]
     rest_joints = rest_out.rest_joints[0].detach().cpu().double().numpy()
     sole = float(rest_joints[:, 1].min() - body.vertices[:, 1].min())  # canonical y is up
-    world = world_transform(capture_upright(model), joints[0, 0].numpy(), sole)
+    world = world_transform(capture_upright(model), start.numpy(), sole)
     if model.body.posedirs is not None:
         log.info("%s: the body model's pose correctives are not in the file (glTF has none)", path.name)
-    write_animated_glb(path, meshes, rest_joints, model.body.parents.cpu().numpy(), model.body.joint_names, rot[order].numpy(),
-                       transl[order].numpy(), (ids[order] - ids[order][0]) / float(fps), world)  # fmt: skip
-    return {"frames": int(len(order)), "meshes": sorted(meshes), "fps": fps, "influences": INFLUENCES}
+    write_animated_glb(path, meshes, rest_joints, model.body.parents.cpu().numpy(), model.body.joint_names,
+                       rotations.numpy(), transl.numpy(), np.asarray(times, np.float64), world)  # fmt: skip
+    return {"frames": int(len(times)), "meshes": sorted(meshes), "influences": INFLUENCES}
 
 
 def check_frame(model: HybridAvatar, frame: int, clothing: MeshPart | None, img: dict) -> dict:
@@ -190,8 +201,8 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
         times["clothing"] = time.perf_counter() - t
     write_glb(out / "avatar.glb", parts)
     t = time.perf_counter()
-    summary["animated"] = write_capture_animation(model, data.frame_ids, out / "avatar_animated.glb", settings.fps,
-                                                  clothing)  # fmt: skip
+    summary["animated"] = {**write_capture_animation(model, data.frame_ids, out / "avatar_animated.glb", settings.fps,
+                                                     clothing), "fps": settings.fps}  # fmt: skip
     times["animated"] = time.perf_counter() - t
 
     t = time.perf_counter()

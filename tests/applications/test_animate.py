@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+import trimesh
 
 from delta import DeltaError
 from delta.applications.animate import animate_avatar, drive
@@ -17,6 +18,7 @@ from delta.data.frames import load_full_frames
 from delta.export.video import baked_trajectory, capture_upright, to_bgr
 from delta.models.image import full_view, render_image
 from delta.training.run import load_trained
+from tests.export.test_animated_glb import read_glb, skinned
 
 pytestmark = pytest.mark.slow
 
@@ -81,6 +83,14 @@ def test_an_amass_archive_drives_the_avatar_through_the_command(tiny_trained, tm
     assert len(got) == 4 and got[0].shape == (H, W, 3)
     assert np.abs(got[0].astype(int) - got[-1].astype(int)).mean() > 0.5  # the arms came down
     assert sorted(p.name for p in (out / "meshes").iterdir()) == [f"body_{k:05d}.ply" for k in range(4)]
+    # the GLB plays the same motion: its key k is the written body mesh of frame k, in its upright world
+    doc, arrays = read_glb((out / "animation.glb").read_bytes())
+    assert about["glb"]["frames"] == 4 and len(arrays[doc["animations"][0]["samplers"][0]["input"]]) == 4
+    world = np.array(doc["nodes"][0]["matrix"]).reshape(4, 4).T
+    for k in (0, 3):
+        mesh = trimesh.load(out / "meshes" / f"body_{k:05d}.ply", process=False)
+        back = (skinned(doc, arrays, k) - world[:3, 3]) @ world[:3, :3]
+        np.testing.assert_allclose(back, mesh.vertices, atol=2e-3)
 
 
 def test_bad_requests_get_clear_errors(tiny_trained, tmp_path):
