@@ -72,7 +72,8 @@ def one_person(mask: np.ndarray, keypoints: np.ndarray | None,
     were removed.
 
     The tracked person is the 8-connected region (alpha > 127) holding most of the (K, 3) keypoints'
-    confident points (the largest region without keypoints, or where none lands). Other regions that
+    confident points (the largest of those); without a confident keypoint on the mask nothing tells who
+    is tracked, and the mask is left as it is (the frame is flagged for its keypoints). Other regions that
     hold a keypoint stay (a hand the matting cut off at the wrist); so do small ones (speckle, a bag);
     regions of ``OTHER_PERSON`` of the tracked region's area or more without a keypoint are other
     people, and go.
@@ -93,6 +94,8 @@ def one_person(mask: np.ndarray, keypoints: np.ndarray | None,
         inside = (kp[good, 0] >= 0) & (kp[good, 0] < W) & (kp[good, 1] >= 0) & (kp[good, 1] < H)
         np.add.at(held, labels[v[inside], u[inside]], 1)
         held[0] = 0
+    if held.max() == 0:  # no keypoint tells who is tracked (a frame the fit flags): nothing to go by
+        return mask, 0
     main = int(np.lexsort((area, held))[-1])  # most keypoints, then the largest
     others = [k for k in range(1, count) if k != main and held[k] == 0 and area[k] >= OTHER_PERSON * area[main]]
     if not others:

@@ -263,3 +263,21 @@ def test_somebody_else_in_the_picture_is_removed_and_said(tiny_captures, tmp_pat
         one = cv2.resize(alone[i].astype(np.uint8), full.shape[:0:-1], interpolation=cv2.INTER_NEAREST) > 0
         assert (full[k] & ~one).sum() <= 0.02 * one.sum()  # nothing of the second person
         assert (one & ~full[k]).sum() <= 0.02 * one.sum()  # all of the tracked one
+
+
+def test_one_person_goes_by_the_keypoints_and_by_nothing_else():
+    from delta.data.person import one_person
+
+    mask = np.zeros((50, 80), np.uint8)
+    mask[5:45, 5:25] = 255  # the tracked person (its keypoints)
+    mask[10:40, 50:70] = 255  # somebody else, 75 % of its size
+    mask[30:32, 40:42] = 255  # a speck
+    kp = np.array([[15, 20, 0.9], [12, 30, 0.8], [60, 20, 0.1]])  # the third is not confident
+    out, others = one_person(mask, kp)
+    assert others == 1 and out[20, 60] == 0 and out[20, 10] == 255 and out[31, 41] == 255
+    kp[0, :2] = [60, 20]  # a hand on the other region: it stays (a hand the matting cut off)
+    out, others = one_person(mask, kp)
+    assert others == 0 and out[20, 60] == 255
+    for nobody in (None, np.zeros((3, 3))):  # no confident keypoint: nothing to go by, nothing removed
+        out, others = one_person(mask, nobody)
+        assert others == 0 and np.array_equal(out, mask)
