@@ -134,3 +134,18 @@ def test_a_level_camera_is_taken_when_the_bodies_agree_with_it():
         assert (est.source != "bodies") == took
         assert angle_deg(est.up, y) == pytest.approx(0.0 if took else lean, abs=1e-6)
     assert estimate_upright(roots, joints).source == "bodies"
+
+
+def test_extremes_stay_finite():
+    """A camera looking straight down the up axis has no roll to level (identity, not NaN); one frame, a
+    body upside down, opposite axes in equal numbers all give a unit direction."""
+    y = torch.tensor([0.0, 1.0, 0.0], dtype=D)
+    level = level_rotation(y, -y, torch.tensor([0.0, 0.0, 1.0], dtype=D))
+    assert torch.isfinite(level).all()
+    torch.testing.assert_close(level, torch.eye(3, dtype=D))
+    flipped = axis_angle_matrix(torch.tensor([1.0, 0.0, 0.0], dtype=D), math.pi)[None]
+    one = estimate_upright(flipped, torch.zeros(1, 2, 3, dtype=D))
+    assert angle_deg(one.up, -y) < 1e-9 and one.frames == 1
+    both = torch.stack([y, -y, y, -y])
+    assert robust_direction(both).norm() == pytest.approx(1.0)
+    assert torch.isfinite(rotation_between(y, -y)).all() and torch.isfinite(rotation_between(y, 1e-9 * y)).all()
