@@ -145,3 +145,19 @@ def test_the_anny_body_keeps_its_posing_with_eight_influences(anny_files):
     assert err.max() < 1e-3
     four = np.linalg.norm(skinned(doc, arrays, 1, only_first_set=True) - out.vertices[1].numpy(), axis=1)
     assert np.median(four) < 1e-5 and 1e-3 < np.percentile(four, 99) < 5e-3 and four.max() < 0.03
+
+
+def test_a_one_frame_animation_and_a_mesh_without_faces():
+    """A photograph's avatar (one frame) still makes a valid file; an empty clothing mesh is left out."""
+    model = dataclasses.replace(soft_tree_model(D), posedirs=None)
+    pose = torch.zeros(1, model.num_joints, 3, dtype=D)
+    rest = lbs(model, torch.zeros(1, 2, dtype=D), pose)
+    meshes = {"body": {"vertices": rest.vertices[0].numpy(), "faces": model.faces.numpy(),
+                       "colors": np.zeros((model.num_vertices, 3)), "weights": model.weights.numpy()},
+              "clothing": {"vertices": np.zeros((0, 3)), "faces": np.zeros((0, 3), np.int64), "colors": np.zeros((0, 3)),
+                           "weights": np.zeros((0, model.num_joints))}}  # fmt: skip
+    blob = animated_glb(meshes, rest.rest_joints[0].numpy(), model.parents.numpy(), model.joint_names,
+                        batch_rodrigues(pose).numpy(), np.zeros((1, 3)), np.zeros(1), np.eye(4))  # fmt: skip
+    doc, arrays = read_glb(blob)
+    assert [m["name"] for m in doc["meshes"]] == ["body"]
+    np.testing.assert_allclose(skinned(doc, arrays, 0), rest.vertices[0].numpy(), atol=1e-6)
