@@ -127,12 +127,13 @@ def animate_avatar(model_path: str | Path, record: str | Path, body_path: str | 
     upright = capture_upright(model)
     placed = {"upright": upright.describe(camera_vertical(model.camera(0)))}
     with baked_trajectory(model, anchor):
-        frames = drive(model, anchor, motion, view, out / "meshes" if settings.meshes else None, surface, upright,
-                       placed)  # fmt: skip
+        poses, transl, how = placed_motion(model, anchor, motion, upright)
+        placed.update(how)
+        frames = render_motion(model, anchor, poses, transl, view, out / "meshes" if settings.meshes else None,
+                               surface)  # fmt: skip
         count = write_video(out / "animation.mp4", frames, max(int(round(motion.fps)), 1))
-        poses, transl, _ = placed_motion(model, anchor, motion, upright)
         glb = write_avatar_animation(model, batch_rodrigues(poses), transl, np.arange(motion.num_frames) / motion.fps,
-                                     out / "animation.glb", surface)  # fmt: skip
+                                     out / "animation.glb", surface, upright)  # fmt: skip
     summary = {"placement": placed, "glb": glb, "model": str(model_path), "motion": str(motion_path), "motion_kind": motion.source,
                "frames": count, "fps": motion.fps, "anchor": anchor, "anchor_frame_id": int(tr.data.frame_ids[anchor]),
                "resolution": "{}x{}".format(*full.size), "meshes": bool(settings.meshes),
@@ -161,18 +162,24 @@ def placed_motion(model, anchor: int, motion: Motion, upright: Upright) -> tuple
                            "lift_m": round(lift, 4)}  # fmt: skip
 
 
-@torch.no_grad()
 def drive(model, anchor: int, motion: Motion, view, mesh_dir: Path | None, clothing: MeshPart | None,
-          upright: Upright | None = None, about: dict | None = None):  # fmt: skip
+          upright: Upright | None = None):  # fmt: skip
     """Rendered frames (uint8 BGR) of ``model`` posed by ``motion``, placed upright on the capture's floor
-    (``upright``: estimated from the model when not given) from the ``anchor`` frame's place and camera;
-    with ``mesh_dir``, each frame's posed meshes are written there; ``about`` gets how it was placed."""
+    (``upright``: estimated from the model when not given) from the ``anchor`` frame's place and camera
+    (:func:`placed_motion`, :func:`render_motion`)."""
     upright = capture_upright(model) if upright is None else upright
-    poses, transl, how = placed_motion(model, anchor, motion, upright)
-    if about is not None:
-        about.update(how)
-    progress = Progress(f"animation ({view.width}x{view.height})", motion.num_frames)
-    for f in range(motion.num_frames):
+    poses, transl, _ = placed_motion(model, anchor, motion, upright)
+    return render_motion(model, anchor, poses, transl, view, mesh_dir, clothing)
+
+
+@torch.no_grad()
+def render_motion(model, anchor: int, poses: torch.Tensor, transl: torch.Tensor, view, mesh_dir: Path | None,
+                  clothing: MeshPart | None):  # fmt: skip
+    """Rendered frames (uint8 BGR) of ``model`` given the (F, J, 3) ``poses`` and (F, 3) ``transl`` in the
+    ``anchor`` frame's slot, seen by its camera; with ``mesh_dir``, each frame's posed meshes are written
+    there."""
+    progress = Progress(f"animation ({view.width}x{view.height})", len(poses))
+    for f in range(len(poses)):
         with posed_as(model, anchor, poses[f], transl[f], timeless=True):
             if mesh_dir is not None:
                 body, out = body_mesh(model, anchor)

@@ -136,12 +136,17 @@ def skin(
     return torch.einsum("bvij,bvj->bvi", T, homo), T
 
 
+def shaped_joints(model: BodyModel, betas: torch.Tensor) -> torch.Tensor:
+    """(B, J, 3) rest joints of (B, S') shape coefficients (S' <= S)."""
+    return model.joints_template + blend_shapes(betas, model.joints_shapedirs[..., : betas.shape[1]])
+
+
 def posed_joints(model: BodyModel, betas: torch.Tensor, rotmats: torch.Tensor,
                  transl: Optional[torch.Tensor] = None) -> torch.Tensor:  # fmt: skip
     """(B, J, 3) the joints of :func:`lbs` alone, without skinning a vertex: (B, S') ``betas`` (or (S',),
     shared), (B, J, 3, 3) rotations, optional (B, 3) translation."""
     betas = betas.expand(rotmats.shape[0], -1) if betas.ndim == 1 else betas
-    joints = model.joints_template + blend_shapes(betas, model.joints_shapedirs[..., : betas.shape[1]])
+    joints = shaped_joints(model, betas)
     posed, _ = rigid_transforms(rotmats, joints.expand(rotmats.shape[0], -1, -1), model.parents)
     return posed if transl is None else posed + transl[:, None]
 
@@ -169,7 +174,7 @@ def lbs(
     S = betas.shape[1]
     # 1. identity (and expression) blend shapes, shape-dependent joints
     v_shaped = model.v_template + blend_shapes(betas, model.shapedirs[..., :S])
-    joints = model.joints_template + blend_shapes(betas, model.joints_shapedirs[..., :S])
+    joints = shaped_joints(model, betas)
     if expression is not None and model.exprdirs is not None:
         E = expression.shape[1]
         v_shaped = v_shaped + blend_shapes(expression, model.exprdirs[..., :E])

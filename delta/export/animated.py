@@ -68,10 +68,10 @@ def quaternions(rotations: np.ndarray) -> np.ndarray:
     over the frames (a key and its negation are the same rotation, but not to an interpolator)."""
     q = rotation_matrix_to_quaternion(torch.from_numpy(np.ascontiguousarray(rotations, dtype=np.float64)))
     q = q.numpy()[..., [1, 2, 3, 0]]  # kornia's (w, x, y, z)
-    for f in range(1, len(q)):
-        flip = (q[f] * q[f - 1]).sum(-1) < 0
-        q[f, flip] *= -1
-    return q
+    # each key takes the sign nearer the previous key's (as flipped): the running product of the signs
+    steps = np.where((q[1:] * q[:-1]).sum(-1) < 0, -1.0, 1.0)
+    signs = np.concatenate([np.ones((1,) + q.shape[1:-1]), np.cumprod(steps, 0)])
+    return q * signs[..., None]
 
 
 class _Buffer:
@@ -80,8 +80,7 @@ class _Buffer:
     def __init__(self):
         self.data, self.views, self.accessors = bytearray(), [], []
 
-    def add(self, array: np.ndarray, component: int, target: int | None = None, bounds: bool = False,
-            normalized: bool = False) -> int:  # fmt: skip
+    def add(self, array: np.ndarray, component: int, target: int | None = None, bounds: bool = False) -> int:
         array = np.ascontiguousarray(array)
         while len(self.data) % 4:
             self.data.append(0)
@@ -93,8 +92,6 @@ class _Buffer:
         width = 1 if array.ndim == 1 else int(np.prod(array.shape[1:]))
         acc = {"bufferView": len(self.views) - 1, "componentType": component, "count": int(array.shape[0]),
                "type": _TYPES[width]}  # fmt: skip
-        if normalized:
-            acc["normalized"] = True
         if bounds:
             flat = array.reshape(len(array), -1)
             acc["min"], acc["max"] = flat.min(0).tolist(), flat.max(0).tolist()

@@ -12,6 +12,7 @@ import torch
 
 from delta.export import lineup
 from delta.body.lbs import posed_joints
+from delta.body.upright import Upright
 from delta.export.animated import INFLUENCES, world_transform, write_animated_glb
 from delta.export.meshes import (
     MeshPart,
@@ -86,23 +87,23 @@ def rendered_hits(model: HybridAvatar, frame: int) -> np.ndarray:
 
 @torch.no_grad()
 def write_capture_animation(model: HybridAvatar, frame_ids: np.ndarray, path: Path, fps: float,
-                            clothing: MeshPart | None) -> dict:  # fmt: skip
+                            clothing: MeshPart | None, upright: Upright) -> dict:  # fmt: skip
     """``avatar_animated.glb``: the avatar animated by every frame of the capture in order, at ``fps``
     frames a second (:func:`write_avatar_animation`)."""
     ids = np.asarray(frame_ids)
     order = np.unique(ids, return_index=True)[1]  # by frame, each once (a frame in two splits)
     rot, transl = (t.detach().cpu().double() for t in model.local_rotations())
     times = (ids[order] - ids[order][0]) / float(fps)
-    return write_avatar_animation(model, rot[order], transl[order], times, path, clothing)
+    return write_avatar_animation(model, rot[order], transl[order], times, path, clothing, upright)
 
 
 @torch.no_grad()
 def write_avatar_animation(model: HybridAvatar, rotations: torch.Tensor, transl: torch.Tensor, times: np.ndarray,
-                           path: Path, clothing: MeshPart | None) -> dict:  # fmt: skip
+                           path: Path, clothing: MeshPart | None, upright: Upright) -> dict:  # fmt: skip
     """A skinned, animated GLB of the avatar: the body (and the clothing surface in the NeRF's space,
     skinned by its nearest body vertices' weights) bound in the rest pose, moved by (F, J, 3, 3) local
     rotations and (F, 3) translations in the capture's world at ``times`` (F,) seconds, standing on the
-    capture's floor (:mod:`delta.export.animated`)."""
+    capture's ``upright`` floor (:mod:`delta.export.animated`)."""
     body, rest_out = rest_body(model)
     weights = model.body.weights.detach().cpu().double().numpy()
     meshes = {"body": {"vertices": body.vertices, "faces": body.faces, "colors": body.colors, "weights": weights}}
@@ -115,7 +116,7 @@ def write_avatar_animation(model: HybridAvatar, rotations: torch.Tensor, transl:
     start = posed_joints(cpu_body, model.betas.detach().cpu().double(), rotations[:1], transl[:1])[0, 0]
     rest_joints = rest_out.rest_joints[0].detach().cpu().double().numpy()
     sole = float(rest_joints[:, 1].min() - body.vertices[:, 1].min())  # canonical y is up
-    world = world_transform(capture_upright(model), start.numpy(), sole)
+    world = world_transform(upright, start.numpy(), sole)
     if model.body.posedirs is not None:
         log.info("%s: the body model's pose correctives are not in the file (glTF has none)", path.name)
     write_animated_glb(path, meshes, rest_joints, model.body.parents.cpu().numpy(), model.body.joint_names,
@@ -201,8 +202,11 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
         times["clothing"] = time.perf_counter() - t
     write_glb(out / "avatar.glb", parts)
     t = time.perf_counter()
+    upright = capture_upright(model)  # the animated GLB stands on it, the turntable turns about it
+    summary["upright"] = upright.describe(camera_vertical(model.camera(0)))
+    log.info("up axis from %d fitted frames: %s", upright.frames, summary["upright"])
     summary["animated"] = {**write_capture_animation(model, data.frame_ids, out / "avatar_animated.glb", settings.fps,
-                                                     clothing), "fps": settings.fps}  # fmt: skip
+                                                     clothing, upright), "fps": settings.fps}  # fmt: skip
     times["animated"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -228,9 +232,6 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
 
     t = time.perf_counter()
     turn_frame = int(data.train[0])
-    upright = capture_upright(model)
-    summary["upright"] = upright.describe(camera_vertical(model.camera(0)))
-    log.info("up axis from %d fitted frames: %s", upright.frames, summary["upright"])
     turn = turntable(model, turn_frame, settings.turntable_frames, view, upright)
     summary["turntable"] = {
         "frame": turn_frame,

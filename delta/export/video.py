@@ -40,9 +40,8 @@ def view_directions(model: HybridAvatar, frame: int, centre: torch.Tensor) -> tu
     """(3,) world direction from the frame's camera to ``centre`` and (3,) the camera's image-up direction
     in the world."""
     cam = model.camera(frame)
-    if model.pinhole:
-        return centre - cam.center.to(centre), camera_vertical(cam).to(centre)
-    return centre.new_tensor([0.0, 0.0, -1.0]), camera_vertical(cam).to(centre)
+    view = centre - cam.center.to(centre) if model.pinhole else centre.new_tensor([0.0, 0.0, -1.0])
+    return view, camera_vertical(cam).to(centre)
 
 
 def capture_upright(model: HybridAvatar) -> Upright:

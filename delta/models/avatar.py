@@ -177,25 +177,24 @@ class HybridAvatar(nn.Module):
         if self.trajectory is None:
             return lbs(self.body, self.betas[None], self.poses[frame : frame + 1], expression, offsets=offsets,
                        transl=self.transl[frame : frame + 1])  # fmt: skip
-        turn, shift = self.trajectory(frame)
-        rot = batch_rodrigues(self.poses[frame])  # (J, 3, 3)
-        rot = torch.cat([(batch_rodrigues(turn[None]) @ rot[:1]), rot[1:]])
-        transl = self.transl[frame] + shift if self.pinhole else self.transl[frame]
-        return lbs(self.body, self.betas[None], rot[None], expression, offsets=offsets, transl=transl[None],
-                   pose_is_rotmat=True)  # fmt: skip
+        frames = torch.tensor([frame], device=self.poses.device)
+        rot, transl = self._corrected(batch_rodrigues(self.poses[frames]), self.transl[frames], frames)
+        return lbs(self.body, self.betas[None], rot, expression, offsets=offsets, transl=transl, pose_is_rotmat=True)
+
+    def _corrected(self, rot: torch.Tensor, transl: torch.Tensor, frames: torch.Tensor):
+        """(B, J, 3, 3) rotations and (B, 3) translations of ``frames`` (B,) with the trajectory's correction:
+        its turn before the root's own rotation, its shift added to a pinhole camera's translation."""
+        turn, shift = self.trajectory(frames)
+        rot = torch.cat([(batch_rodrigues(turn) @ rot[:, 0])[:, None], rot[:, 1:]], 1)
+        return rot, transl + shift if self.pinhole else transl
 
     def local_rotations(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Every frame's (F, J, 3, 3) local joint rotations and (F, 3) translation, with the trajectory's
         correction (what :meth:`pose_body` poses)."""
         rot = batch_rodrigues(self.poses)
-        transl = self.transl
-        if self.trajectory is not None:
-            frames = torch.arange(self.poses.shape[0], device=self.poses.device)
-            w = self.trajectory.weights[frames]
-            rot = torch.cat([(batch_rodrigues(w @ self.trajectory.rotation) @ rot[:, 0])[:, None], rot[:, 1:]], 1)
-            if self.pinhole:
-                transl = transl + w @ self.trajectory.shift
-        return rot, transl
+        if self.trajectory is None:
+            return rot, self.transl
+        return self._corrected(rot, self.transl, torch.arange(self.poses.shape[0], device=self.poses.device))
 
     def skeletons(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Every frame's (F, 3, 3) root rotation and (F, J, 3) posed joints, without skinning a vertex."""

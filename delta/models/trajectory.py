@@ -43,7 +43,7 @@ class Trajectory(nn.Module):
         # derived from the record's frame times, not saved (as the avatar's own frame_time)
         self.register_buffer("weights", hat_weights(frame_time.float(), knots), persistent=False)
 
-    def forward(self, frame: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """The frame's (3,) root rotation and (3,) placement shift."""
+    def forward(self, frame: int | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The frame's (3,) root rotation and (3,) placement shift ((B, 3) each for (B,) frame indices)."""
         w = self.weights[frame]
         return w @ self.rotation, w @ self.shift

@@ -90,32 +90,41 @@ def _decoded(video: Path, wanted: set[int] | None, what: str):
                     video, what, last, len(missing), missing[0])  # fmt: skip
 
 
-def run_matting(video: Path, wanted: set[int] | None, kind: str, path: str, out: str | Path, threads: int = 1) -> None:
-    """Person alpha (0-255) for the ``wanted`` frames of the video (None: all), in order (RVM is
-    recurrent); one row per video frame, empty where no frame was analysed."""
-    model = _model(kind, MATTING, path, threads, "preprocess.matting.model")
+def _mask_step(video: Path, wanted: set[int] | None, names: tuple[str, ...], compute, out: str | Path, model: str,
+               what: str) -> int:  # fmt: skip
+    """Write the masks ``names`` that ``compute(rgb) -> {name: (H, W) uint8}`` gives for the ``wanted``
+    frames (None: all), one row per video frame, empty where no frame was analysed; returns how many
+    frames were analysed."""
     rows = _rows(Path(video), wanted)
     count = 0
     with atomic_path(out) as tmp:
         f = None
         try:
-            for i, rgb in _decoded(Path(video), wanted, "matting"):
+            for i, rgb in _decoded(Path(video), wanted, what):
                 if f is None:
-                    f, d = _masks_file(tmp, rows, rgb.shape[:2], ("person",))
-                _grow(d, i)
-                d["person"][i] = np.round(np.clip(model(rgb), 0, 1) * 255).astype(np.uint8)
+                    f, d = _masks_file(tmp, rows, rgb.shape[:2], names)
+                for name, mask in compute(rgb).items():
+                    if i >= d[name].shape[0]:  # the video holds more frames than its header said
+                        d[name].resize(i + 1, axis=0)
+                    d[name][i] = mask
                 count += 1
-            f.attrs["model"] = f"{kind}:{Path(path).name}"
+            f.attrs["model"] = model
         finally:
             if f is not None:
                 f.close()
+    return count
+
+
+def run_matting(video: Path, wanted: set[int] | None, kind: str, path: str, out: str | Path, threads: int = 1) -> None:
+    """Person alpha (0-255) for the ``wanted`` frames of the video (None: all), in order (RVM is
+    recurrent); one row per video frame, empty where no frame was analysed."""
+    model = _model(kind, MATTING, path, threads, "preprocess.matting.model")
+
+    def alpha(rgb):
+        return {"person": np.round(np.clip(model(rgb), 0, 1) * 255).astype(np.uint8)}
+
+    count = _mask_step(video, wanted, ("person",), alpha, out, f"{kind}:{Path(path).name}", "matting")
     log.info("matting (%s) of %d frames -> %s", kind, count, out)
-
-
-def _grow(datasets: dict, i: int) -> None:
-    for dset in datasets.values():
-        if i >= dset.shape[0]:
-            dset.resize(i + 1, axis=0)
 
 
 def run_parsing(video: Path, wanted: set[int] | None, kind: str, path: str, out: str | Path, threads: int = 1) -> None:
@@ -123,29 +132,16 @@ def run_parsing(video: Path, wanted: set[int] | None, kind: str, path: str, out:
     parsing) masks, 0/1, for the ``wanted`` frames (None: all)."""
     model = _model(kind, PARSING, path, threads, "preprocess.parsing.model")
     names = PARSED[kind]
-    rows = _rows(Path(video), wanted)
-    count = 0
-    with atomic_path(out) as tmp:
-        f = None
-        try:
-            for i, rgb in _decoded(Path(video), wanted, "parsing"):
-                if f is None:
-                    f, d = _masks_file(tmp, rows, rgb.shape[:2], names)
-                _grow(d, i)
-                result = model(rgb)
-                if kind == "default":
-                    for name in names:
-                        d[name][i] = result[name]
-                elif kind == "u2net_cloth":
-                    d["clothing"][i] = om.clothing_mask(result)
-                else:
-                    d["hair"][i] = om.hair_mask(result)
-                    d["skin"][i] = om.face_skin_mask(result)
-                count += 1
-            f.attrs["model"] = f"{kind}:{Path(path).name}"
-        finally:
-            if f is not None:
-                f.close()
+
+    def parts(rgb):
+        result = model(rgb)
+        if kind == "default":
+            return {name: result[name] for name in names}
+        if kind == "u2net_cloth":
+            return {"clothing": om.clothing_mask(result)}
+        return {"hair": om.hair_mask(result), "skin": om.face_skin_mask(result)}
+
+    count = _mask_step(video, wanted, names, parts, out, f"{kind}:{Path(path).name}", "parsing")
     log.info("parsing (%s) of %d frames -> %s", kind, count, out)
 
 

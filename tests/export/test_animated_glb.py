@@ -161,3 +161,18 @@ def test_a_one_frame_animation_and_a_mesh_without_faces():
     doc, arrays = read_glb(blob)
     assert [m["name"] for m in doc["meshes"]] == ["body"]
     np.testing.assert_allclose(skinned(doc, arrays, 0), rest.vertices[0].numpy(), atol=1e-6)
+
+
+def test_quaternion_keys_keep_one_sign_through_a_turn_past_a_half():
+    """A joint turning steadily through 1.6 turns: consecutive keys are the nearer of q and -q (an
+    interpolator would otherwise take the long way round), and each is still its rotation."""
+    from delta.body.upright import axis_angle_matrix
+    from delta.export.animated import quaternions
+
+    axis = torch.tensor([0.2, 1.0, -0.3], dtype=D)
+    angles = np.linspace(0, 3.2 * np.pi, 40)
+    R = torch.stack([axis_angle_matrix(axis, float(a)) for a in angles])[:, None].numpy()
+    q = quaternions(R)
+    assert ((q[1:] * q[:-1]).sum(-1) > 0).all()
+    back = np.stack([quat_matrix(k) for k in q[:, 0]])
+    np.testing.assert_allclose(back, R[:, 0], atol=1e-9)
