@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from delta.eval.geometry import closest_point_on_triangles, mesh_distance, point_mesh_distance, point_to_surface
+from delta.eval.geometry import mesh_distance, point_mesh_distance, point_to_surface
+from delta.geometry.closest import closest_point_on_triangles
 
 A, B, C = np.array([0.0, 0, 0]), np.array([1.0, 0, 0]), np.array([0.0, 1, 0])
 # (point in the triangle's plane, its closest point on ABC): one per Voronoi region, and on the boundary
