@@ -79,6 +79,22 @@ def cmd_attach_expressions(args: argparse.Namespace) -> None:
     log.info("%s: '%s' with %d expressions -> %s", args.body, model.name, model.num_expression, args.out)
 
 
+def cmd_embed_face_landmarks(args: argparse.Namespace) -> None:
+    import torch
+
+    from delta.body.model import load_body_model
+    from delta.preprocess.face_tracking import FaceTracker
+    from delta.synthetic.landmark_embedding import calibrate, calibration_views
+
+    _threads(args.threads)
+    body = load_body_model(args.body, dtype=torch.float64)
+    tracker = FaceTracker(args.detector, args.landmarks, threads=args.threads)
+    embedding = calibrate(body, tracker, calibration_views(body.num_shape, shapes=args.shapes))
+    embedding.save(args.out, body.name)
+    log.info("%s: %d face-mesh landmarks embedded on '%s' -> %s", args.landmarks, len(embedding.landmarks),
+             body.name, args.out)  # fmt: skip
+
+
 def cmd_load_smplx(args: argparse.Namespace) -> None:
     import torch
 
@@ -139,7 +155,7 @@ def cmd_prepare(args: argparse.Namespace) -> None:
     from delta.data.sources import peoplesnapshot_source, synthetic_source, video_source
     from delta.io import save_json
     from delta.preprocess.frames import PrepareSettings, prepare, scoring_size
-    from delta.preprocess.steps import attach
+    from delta.preprocess.steps import attach, embed_landmarks
 
     st = settings.from_arguments(PrepareSettings, args, "prepare")
     adapters = {"synthetic": lambda: synthetic_source(args.root, args.subject),
@@ -152,6 +168,8 @@ def cmd_prepare(args: argparse.Namespace) -> None:
                 del source.provided[name]
     for step_file in args.steps:
         attach(source, step_file)
+    if args.face_embedding:  # a tracked head: its face landmarks placed on the body mesh
+        embed_landmarks(source, args.face_embedding)
     full = scoring_size(st.kind, source.camera.width, source.camera.height, st.score_size)
     summary = prepare(source, args.out, st.resolution, st.crop_margin, full)
     if args.summary:
@@ -169,21 +187,23 @@ def cmd_matte(args: argparse.Namespace) -> None:
     from delta.preprocess.steps import run_matting
 
     _threads(args.threads)
-    run_matting(args.video, _step_frames(args), args.model, args.path, args.out, args.threads)
+    run_matting(args.video, _step_frames(args), args.model, args.path, args.out, args.threads, args.framing)
 
 
 def cmd_parse(args: argparse.Namespace) -> None:
     from delta.preprocess.steps import run_parsing
 
     _threads(args.threads)
-    run_parsing(args.video, _step_frames(args), args.model, args.path, args.out, args.threads)
+    run_parsing(args.video, _step_frames(args), args.model, args.path, args.out, args.threads, args.framing)
 
 
 def cmd_keypoints(args: argparse.Namespace) -> None:
     from delta.preprocess.steps import run_keypoints
 
     _threads(args.threads)
-    run_keypoints(args.video, _step_frames(args), args.model, args.path, args.out, args.threads, args.face_path)
+    run_keypoints(
+        args.video, _step_frames(args), args.model, args.path, args.out, args.threads, args.face_path, args.framing
+    )
 
 
 def cmd_convert_mediapipe(args: argparse.Namespace) -> None:
@@ -444,6 +464,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     p.set_defaults(func=cmd_attach_expressions)
 
+    p = sub.add_parser("embed-face-landmarks", help="place MediaPipe's face-mesh landmarks on the body mesh, "
+                       "calibrated from rendered faces")  # fmt: skip
+    p.add_argument("--body", required=True)
+    p.add_argument("--detector", required=True, help="face_detection_short_range.onnx")
+    p.add_argument("--landmarks", required=True, help="face_landmark.onnx")
+    p.add_argument("--shapes", type=int, default=3, help="body shapes rendered (the mean and random ones)")
+    p.add_argument("--out", required=True)
+    p.add_argument("--threads", type=int, default=1)
+    p.set_defaults(func=cmd_embed_face_landmarks)
+
     p = sub.add_parser("load-smplx", help="read the user's SMPLX_NEUTRAL.npz/.pkl into the project's format")
     p.add_argument("--src", required=True)
     p.add_argument("--out", required=True)
@@ -484,6 +514,7 @@ def build_parser() -> argparse.ArgumentParser:
     settings.add_arguments(p, PrepareSettings)
     p.add_argument("--out", required=True)
     p.add_argument("--summary")
+    p.add_argument("--face-embedding", help="where the face-mesh landmarks sit on the body mesh (a tracked head)")
     p.set_defaults(func=cmd_prepare)
 
     for name, func, models in (("matte", cmd_matte, ["mediapipe", "rvm", "modnet"]),
@@ -499,6 +530,12 @@ def build_parser() -> argparse.ArgumentParser:
         p.add_argument("--path", required=True, help="the ONNX file")
         p.add_argument("--out", required=True)
         p.add_argument("--threads", type=int, default=1)
+        p.add_argument(
+            "--framing",
+            default="full",
+            choices=["full", "head"],
+            help="head: a head-and-shoulders close-up, found by tracking its face (MediaPipe models)",
+        )
         if name == "keypoints":
             p.add_argument("--face-path", help="face_landmark.onnx: also write face-mesh landmarks")
         p.set_defaults(func=func)

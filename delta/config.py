@@ -166,6 +166,7 @@ def _video_frames(path: Path) -> int | None:
 def _check_frame_ranges(config: dict, base: Path, generated: set[str]) -> list[str]:
     """Every non-synthetic subject has a ``train`` and a ``test`` range within its video."""
     from delta.data.peoplesnapshot import STANDARD_SPLITS
+    from delta.data.video import FRAMINGS
 
     out = []
     for dataset, spec in config["datasets"].items():
@@ -175,9 +176,13 @@ def _check_frame_ranges(config: dict, base: Path, generated: set[str]) -> list[s
         for subject, cfg in spec["subjects"].items():
             key = f"datasets.{dataset}.subjects.{subject}"
             ranges = {**(STANDARD_SPLITS.get(subject, {}) if kind == "peoplesnapshot" else {}), **(cfg or {})}
-            unknown = sorted(set(ranges) - {"train", "test"})
+            allowed = {"train", "test", "framing"} if kind == "video" else {"train", "test"}
+            unknown = sorted(set(ranges) - allowed)
             if unknown:
-                out.append(f"config key '{key}': unknown key(s) {unknown}; allowed: ['test', 'train']")
+                out.append(f"config key '{key}': unknown key(s) {unknown}; allowed: {sorted(allowed)}")
+            if ranges.get("framing", "full") not in FRAMINGS:
+                out.append(f"config key '{key}.framing': '{ranges['framing']}'; expected one of {list(FRAMINGS)} "
+                           "(head: a head-and-shoulders close-up, its face tracked)")  # fmt: skip
             missing = [s for s in ("train", "test") if s not in ranges]
             if missing:
                 out.append(f"config key '{key}': no {' and no '.join(repr(m) for m in missing)} frame range "

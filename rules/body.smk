@@ -63,6 +63,27 @@ rule face_body_model:
         " > {log:q} 2>&1"
 
 
+rule face_landmark_embedding:
+    input:
+        body=PATHS["body"],
+        detector=PATHS["mediapipe_detector"],
+        landmarks=PATHS["mediapipe_face"],
+    output:
+        PATHS["face_embedding"],
+    log:
+        log_path("face_landmark_embedding", "{model}_sub{level}"),
+    benchmark:
+        benchmark_path("face_landmark_embedding", "{model}_sub{level}")
+    conda:
+        "../workflow/envs/delta.yaml"
+    resources:
+        mem_mb=4000,
+        runtime=10,
+    shell:
+        "delta embed-face-landmarks --body {input.body:q} --detector {input.detector:q}"
+        " --landmarks {input.landmarks:q} --out {output:q} > {log:q} 2>&1"
+
+
 rule load_smplx:
     input:
         BODY["smplx_path"],

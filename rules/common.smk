@@ -82,6 +82,7 @@ PATHS = {
     "anny_shape_space": "resources/body/anny_pca.npz",
     "anny_expressions": "resources/body/anny_expressions.npz",
     "face_body": "resources/body/{model}_sub{level}_face.npz",
+    "face_embedding": "resources/body/{model}_sub{level}_face_landmarks.npz",
     # synthetic captures: the video is all a real capture has; ground truth lies apart in gt/
     "syn_video": "data/synthetic/{subject}/{subject}.mp4",
     "syn_params": "data/synthetic/{subject}/gt/params.npz",
@@ -95,6 +96,7 @@ PATHS = {
     "keypoints": "results/{dataset}/{subject}/keypoints.h5",
     "mediapipe_pose": f"{PRE['models_dir']}/mediapipe/pose_landmark_full.onnx",
     "mediapipe_face": f"{PRE['models_dir']}/mediapipe/face_landmark.onnx",
+    "mediapipe_detector": f"{PRE['models_dir']}/mediapipe/face_detection_short_range.onnx",
     "parsing": "results/{dataset}/{subject}/parsing.h5",
     "record_summary": "results/{dataset}/{subject}/frames.json",
     "init_params": "results/{dataset}/{subject}/init/params.npz",
@@ -150,12 +152,42 @@ def benchmark_path(rule, name="all"):
 
 
 # ------------------------------------------------------- input functions
-def tracks_face(wildcards):
-    """A subject whose face is tracked and modelled: a synthetic talking face (its record carries face points)."""
+def subject_framing(wildcards):
+    """A video subject's framing (``datasets.*.subjects.*.framing``): ``head`` for a head-and-shoulders
+    close-up, whose face the model steps track; ``full`` otherwise and for other datasets.
+    """
     dataset, subject = wildcards.get("dataset"), wildcards.get("subject")
+    if dataset not in DATASETS or dataset_kind(dataset) != "video":
+        return "full"
+    return (DATASETS[dataset]["subjects"].get(subject) or {}).get("framing", "full")
+
+
+def tracks_face(wildcards):
+    """A subject whose face is tracked and modelled: a synthetic talking face (its record carries face
+    points), or a video's head close-up (its face-mesh landmarks placed on the body mesh).
+    """
+    dataset, subject = wildcards.get("dataset"), wildcards.get("subject")
+    if subject_framing(wildcards) == "head":
+        return True
     if dataset != "synthetic" or subject not in SYNTHETIC:
         return False
     return SYNTHETIC[subject].expressions != "none"
+
+
+def head_models(wildcards):
+    """The face models a head close-up's steps track it with (beside the pose model); none otherwise."""
+    if subject_framing(wildcards) != "head":
+        return []
+    return [PATHS["mediapipe_detector"], PATHS["mediapipe_face"]]
+
+
+def face_embedding(wildcards):
+    """The face-mesh landmarks' places on the body mesh, for a video's head close-up; nothing otherwise."""
+    if subject_framing(wildcards) != "head":
+        return []
+    return PATHS["face_embedding"].format(
+        model=BODY["name"], level=BODY["upsample_level"]
+    )
 
 
 def body_model_file(wildcards=None):
@@ -220,7 +252,12 @@ def prepare_inputs(wildcards):
         files = ("syn_video", "syn_params", "syn_frames", "syn_splits")
         return {k: PATHS[k].format(subject=wildcards.subject) for k in files} | steps
     if kind == "video":
-        return {"video": video_input(wildcards)} | steps
+        embedding = face_embedding(wildcards)
+        return (
+            {"video": video_input(wildcards)}
+            | steps
+            | ({"face_embedding": embedding} if embedding else {})
+        )
     root = Path(DATASETS[wildcards.dataset]["root"]) / wildcards.subject
     return steps | {
         "video": str(root / f"{wildcards.subject}.mp4"),
@@ -291,9 +328,11 @@ def step_selection(wildcards):
     ranges = DATASETS[wildcards.dataset]["subjects"][wildcards.subject] or {}
     return [
         "--frames",
-        json.dumps(ranges),
+        json.dumps({k: v for k, v in ranges.items() if k in ("train", "test")}),
         "--max-frames",
         json.dumps(PRE["max_frames"]),
+        "--framing",
+        subject_framing(wildcards),
     ]
 
 
@@ -310,7 +349,13 @@ def prepare_settings(wildcards):
     frames = (
         {}
         if kind == "synthetic"
-        else DATASETS[wildcards.dataset]["subjects"][wildcards.subject]
+        else {
+            k: v
+            for k, v in (
+                DATASETS[wildcards.dataset]["subjects"][wildcards.subject] or {}
+            ).items()
+            if k in ("train", "test")
+        }
     )
     return json.dumps(
         {"kind": kind, "resolution": PRE["resolution"], "crop_margin": PRE["crop_margin"],

@@ -20,15 +20,20 @@ rule prepare_frames:
         root=prepare_root,
         settings=prepare_settings,
         steps=lambda w: list(step_files(w).values()),
+        embedding=lambda w: (
+            ["--face-embedding", face_embedding(w)] if face_embedding(w) else []
+        ),
     shell:
         "delta prepare --root {params.root:q} --subject {wildcards.subject:q} --settings {params.settings:q}"
-        " --steps {params.steps:q} --out {output.record:q} --summary {output.summary:q} > {log:q} 2>&1"
+        " --steps {params.steps:q} {params.embedding:q} --out {output.record:q} --summary {output.summary:q}"
+        " > {log:q} 2>&1"
 
 
 rule matte:
     input:
         video=video_input,
         model=matting_model(),
+        head=head_models,
     output:
         PATHS["matting"],
     log:
@@ -52,6 +57,7 @@ rule parse:
     input:
         video=video_input,
         model=parsing_model(),
+        head=head_models,
     output:
         PATHS["parsing"],
     log:
@@ -76,6 +82,7 @@ rule keypoints:
         video=video_input,
         model=PATHS["mediapipe_pose"],
         face=PATHS["mediapipe_face"] if PRE["face_landmarks"] else [],
+        head=head_models,
     output:
         PATHS["keypoints"],
     log:
@@ -101,6 +108,7 @@ rule convert_mediapipe:
     output:
         pose=PATHS["mediapipe_pose"],
         face=PATHS["mediapipe_face"],
+        detector=PATHS["mediapipe_detector"],
     log:
         log_path("convert_mediapipe"),
     benchmark:

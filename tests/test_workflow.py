@@ -430,3 +430,56 @@ def test_a_talking_subject_alone_gets_the_face_body_model(tmp_path):
     # the talker's record keeps its face points; tight's prepare job is the one it always was
     assert '"use_provided": ["person", "clothing", "skin", "hair", "keypoints", "face_points"]' in out
     assert '"use_provided": ["person", "clothing", "skin", "hair", "keypoints"]' in out
+
+
+def _tiny_video(path: Path, frames: int = 8, size: int = 64) -> None:
+    import numpy as np
+
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), 25, (size, size))
+    for k in range(frames):
+        writer.write(np.full((size, size, 3), 20 * k % 255, np.uint8))
+    writer.release()
+
+
+def test_a_video_close_up_tracks_its_face_and_gets_the_face_body_model(tmp_path):
+    """A video subject marked ``framing: head`` runs its model steps on the tracked face, its record places
+    the face-mesh landmarks on the body mesh (the embedding rule), and its stages read the face body model;
+    the full-body subject beside it is run as before."""
+    work = workflow_copy(tmp_path)
+    (work / "clips").mkdir()
+    for name in ("talk", "walk"):
+        _tiny_video(work / "clips" / f"{name}.mp4")
+    cfg = {"datasets": {"clips": {"kind": "video", "root": "clips", "subjects": {
+        "talk": {"train": [0, 5, 1], "test": [6, 7, 1], "framing": "head"},
+        "walk": {"train": [0, 5, 1], "test": [6, 7, 1]}}}}}  # fmt: skip
+    (work / "clips.yaml").write_text(yaml.safe_dump(cfg))
+    targets = [f"results/clips/{s}/init/params.npz" for s in ("talk", "walk")]
+    res = snakemake(work, *targets, "--configfile", "clips.yaml", "--dry-run", "--printshellcmds")
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out[-3000:]
+    for step in ("matte", "parse", "keypoints"):
+        lines = {s: re.search(rf"delta {step} --video clips/{s}\.mp4[^\n]*", out).group(0) for s in ("talk", "walk")}
+        assert "--framing head" in lines["talk"] and "--framing full" in lines["walk"], (step, lines)
+        assert '"framing"' not in lines["talk"]  # the frame ranges hold the ranges only
+    embedding = "resources/body/anny_sub1_face_landmarks.npz"
+    assert "delta embed-face-landmarks" in out
+    prepare = {
+        s: re.search(rf"delta prepare --root clips --subject {s} [^\n]*", out).group(0) for s in ("talk", "walk")
+    }
+    assert f"--face-embedding {embedding}" in prepare["talk"] and "--face-embedding" not in prepare["walk"]
+    fits = dict(re.findall(r"delta fit-init --record results/clips/(\w+)/frames\.h5 --body (\S+)", out))
+    assert fits == {"talk": "resources/body/anny_sub1_face.npz", "walk": "resources/body/anny_sub1.npz"}
+
+
+def test_a_video_subjects_framing_is_checked_before_any_job(tmp_path):
+    work = workflow_copy(tmp_path)
+    (work / "clips").mkdir()
+    _tiny_video(work / "clips" / "talk.mp4")
+    cfg = {"datasets": {"clips": {"kind": "video", "root": "clips",
+                                  "subjects": {"talk": {"train": [0, 5, 1], "test": [6, 7, 1], "framing": "face"}}}}}  # fmt: skip
+    (work / "clips.yaml").write_text(yaml.safe_dump(cfg))
+    res = snakemake(work, "results/clips/talk/frames.h5", "--configfile", "clips.yaml", "--dry-run")
+    assert res.returncode != 0
+    assert "config key 'datasets.clips.subjects.talk.framing': 'face'; expected one of ['full', 'head']" in (
+        res.stdout + res.stderr
+    )

