@@ -299,7 +299,9 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     done = 0
     for stage, steps in todo:
         params = [transl] * pinhole + cam_params + [pose] + [betas] * (stage > 1)
-        opt = torch.optim.Adam(params, lr=cfg.lr)
+        # steps scale with the body's distance: what moves a far body a little throws a close-up's face off
+        scale = distance_scale(camera, points(betas, pose, transl)[0]) if pinhole else 1.0
+        opt = torch.optim.Adam(params, lr=cfg.lr * scale)
         for _ in range(steps):
             opt.zero_grad()
             value = loss(stage)
@@ -311,6 +313,17 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
             if done % PROGRESS_EVERY == 0 or done == progress.total:
                 progress.report(done, f"fit stage {stage + 1}")
     return _result(points, betas, pose, transl, camera, cam_params, detected, few, empty)
+
+
+#: the distance (m) at which the fit's translation steps are ``FitConfig.lr``; nearer bodies take smaller ones
+REFERENCE_DISTANCE = 3.0
+
+
+def distance_scale(camera, keypoints: torch.Tensor) -> float:
+    """The median camera depth of (F, K, 3) posed keypoints over ``REFERENCE_DISTANCE``, within [0.02, 1]."""
+    with torch.no_grad():
+        depth = camera.project(keypoints.detach().reshape(-1, 3))[1]
+    return float((depth.median() / REFERENCE_DISTANCE).clamp(0.02, 1.0))
 
 
 def _best_heading(

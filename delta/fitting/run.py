@@ -10,17 +10,18 @@ import numpy as np
 import pandas as pd
 import torch
 
-from delta.body.keypoints import openpose18_map
+from delta.body.keypoints import KeypointMap, openpose18_map
 from delta.body.lbs import batch_rodrigues, lbs, posed_joints
 from delta.body.model import load_body_model
 from delta.body.upright import Upright, estimate_upright
-from delta.cameras.models import OrthographicCamera, camera_vertical, check_camera
+from delta.cameras.models import OrthographicCamera, PinholeCamera, camera_vertical, check_camera
 from delta.data.person import confident_keypoints, no_person_message
 from delta.data.record import FrameRecord
 from delta import DeltaError
 from delta.body.face_points import FacePoints
 from delta.fitting.face import FaceFit, fit_face
 from delta.fitting.fit import FitConfig, FitStart, fit
+from delta.fitting.start import face_start
 from delta.io import atomic_path, save_npz
 
 log = logging.getLogger(__name__)
@@ -113,6 +114,23 @@ def face_points(rec: FrameRecord, model, body_path) -> FacePoints | None:
     return points
 
 
+def with_face_points(kp_map: KeypointMap, detected: torch.Tensor, rec: FrameRecord,
+                     points: FacePoints | None) -> tuple[KeypointMap, torch.Tensor]:  # fmt: skip
+    """The body fit's keypoints joined by the record's face points (none: as they are). A close-up's
+    body keypoints are the few a face shows; its hundreds of face points place, size and turn the head,
+    which the silhouette alone leaves loose (the expressions come after, in the face fit)."""
+    if points is None:
+        return kp_map, detected
+    K, V = points.num_points, kp_map.vertex_weights.shape[1]
+    vw = torch.zeros(K, V, dtype=kp_map.vertex_weights.dtype)
+    vw.scatter_add_(1, points.vertex_ids, points.bary.to(vw.dtype))
+    joined = KeypointMap(tuple(kp_map.names) + tuple(f"face_{k}" for k in range(K)),
+                         torch.cat([kp_map.joint_weights, kp_map.joint_weights.new_zeros(K, kp_map.joint_weights.shape[1])]),
+                         torch.cat([kp_map.vertex_weights, vw]))  # fmt: skip
+    face = torch.from_numpy(rec.h5["face_points"][:]).to(detected.dtype)
+    return joined, torch.cat([detected, face], 1)
+
+
 def track_face(rec: FrameRecord, model, res, points: FacePoints | None) -> FaceFit | None:
     """Per-frame expressions and head rotations from the record's face points (None when it has none)."""
     if points is None:
@@ -142,7 +160,7 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
         model = load_body_model(body_path, dtype=torch.float64)
         kp_map = openpose18_map(model)
         points = face_points(rec, model, body_path)
-        start = dataset_start(rec, model)
+        start, started_from = dataset_start(rec, model), "dataset"
         if rec.h5.attrs["camera_model"] == "pinhole":
             camera = rec.camera(0)
         elif start is not None:  # the dataset's cameras go with its parameters
@@ -150,12 +168,16 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
         else:
             camera = OrthographicCamera(torch.tensor(1.0, dtype=torch.float64), torch.zeros(2, dtype=torch.float64),
                                         rec.size, rec.size)  # fmt: skip
+        if start is None and points is not None and isinstance(camera, PinholeCamera):  # a close-up: from its face
+            start, started_from = face_start(model, points, torch.from_numpy(rec.h5["face_points"][:]), camera), "face"
+        started_from = started_from if start is not None else "mean_pose"
         knees = [model.joint_names.index(n) for n in _KNEES if n in model.joint_names]
         exterior = exterior_masks(rec)
         # a novel-pose sequence (split 2) is not the training sequence's continuation
         sequence = torch.from_numpy((rec.h5["split"][:] == 2).astype(np.int64))
-        res = fit(model, kp_map, detected, camera, cfg, knees=knees, masks=masks, start=start, exterior=exterior,
-                  sequence=sequence)  # fmt: skip
+        fit_map, fit_detected = with_face_points(kp_map, detected, rec, points)
+        res = fit(model, fit_map, fit_detected, camera, cfg, knees=knees, masks=masks, start=start,
+                  exterior=exterior, sequence=sequence)  # fmt: skip
         check_result(rec.path, res, frame_ids)
         face, face_arrays = track_face(rec, model, res, points), {}
         if face is not None:
@@ -168,7 +190,7 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
             cam.update(ortho_scale=res.camera.scale.numpy(), ortho_trans=res.camera.trans.numpy())
         save_npz(out / "params.npz", betas=res.betas.numpy(), poses=res.pose.numpy(), transl=res.transl.numpy(),
                  flagged=res.flagged.numpy(), few_keypoints=res.few_keypoints.numpy(),
-                 empty_mask=res.empty_mask.numpy(), started_from=np.array("dataset" if start else "mean_pose"),
+                 empty_mask=res.empty_mask.numpy(), started_from=np.array(started_from),
                  frame_ids=frame_ids, joint_names=np.array(model.joint_names), up=upright.up.numpy(),
                  floor=np.array(upright.floor), **cam, **face_arrays)  # fmt: skip
         confident = confident_keypoints(detected.numpy(), cfg.conf_threshold)
@@ -188,7 +210,7 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
         log.warning("%s: %d of %d frames flagged (too few keypoints or an empty mask; their parameters are "
                     "interpolated): %s", record_path, len(flagged), len(frame_ids), flagged)  # fmt: skip
     summary = {"frames": int(len(frame_ids)), "flagged": int(res.flagged.sum()), "flagged_frames": flagged,
-               "started_from": "dataset" if start else "mean_pose",
+               "started_from": started_from,
                "residual_px_mean": float(np.nanmean(res.residual_px.numpy())),
                "upright": upright.describe(camera_vertical(res.camera))}  # fmt: skip
     log.info("init fit: %s", summary)

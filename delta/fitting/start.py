@@ -88,3 +88,55 @@ def init_ortho_scale(kp: torch.Tensor, detected: torch.Tensor, height: int) -> t
     model_size, pix_size, _, _, usable = _torso_extent(kp, detected)
     scale = 2 * pix_size / height / model_size
     return interpolate(torch.where(usable, scale, torch.ones_like(scale)), ~usable)
+
+
+#: a frame's face needs this many confident points for its own head pose (fewer: its neighbours')
+MIN_FACE_POINTS = 6
+
+
+def face_start(model, points, detected: torch.Tensor, camera: PinholeCamera, conf: float = 0.5):
+    """Where a close-up's fit starts: the mean-shaped body at rest, turned and placed per frame so that its
+    face points (a :class:`delta.body.face_points.FacePoints`) reproject onto the (F, K, 3) detections —
+    the perspective-n-point solution (EPnP, then refined by Levenberg-Marquardt). The head's turn is
+    given to the whole body, which the fit then undoes where the shoulders say otherwise. Frames with
+    fewer than ``MIN_FACE_POINTS`` points take their neighbours' values; None when no frame has them.
+    Returns a :class:`delta.fitting.fit.FitStart`."""
+    import cv2
+
+    from delta.body.lbs import lbs
+    from delta.fitting.fit import FitStart
+
+    dtype = torch.float64
+    betas = torch.zeros(model.num_shape, dtype=dtype)
+    with torch.no_grad():
+        rest = lbs(model, betas[None], torch.zeros(1, model.num_joints, 3, dtype=dtype))
+    X = points(rest.vertices)[0].numpy()
+    j0 = rest.joints[0, 0].numpy()
+    K = camera.K.to(dtype).numpy()
+    Rc, tc = camera.R.to(dtype).numpy(), camera.t.to(dtype).numpy()
+    F = detected.shape[0]
+    root, transl = np.zeros((F, 3)), np.zeros((F, 3))
+    missing = torch.ones(F, dtype=torch.bool)
+    for f in range(F):
+        seen = detected[f, :, 2].numpy() >= conf
+        if seen.sum() < MIN_FACE_POINTS:
+            continue
+        obj, img = X[seen].astype(np.float64), detected[f, seen, :2].numpy().astype(np.float64)
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, flags=cv2.SOLVEPNP_EPNP)
+        if not ok:
+            continue
+        ok, rvec, tvec = cv2.solvePnP(obj, img, K, None, rvec, tvec, useExtrinsicGuess=True,
+                                      flags=cv2.SOLVEPNP_ITERATIVE)  # fmt: skip
+        if not ok or tvec[2, 0] <= 0:
+            continue
+        Rp = cv2.Rodrigues(rvec)[0]
+        # camera(R_root (X - j0) + j0 + transl) = Rp X + tp
+        R_root = Rc.T @ Rp
+        root[f] = cv2.Rodrigues(R_root)[0][:, 0]
+        transl[f] = Rc.T @ (tvec[:, 0] - tc + Rp @ j0) - j0
+        missing[f] = False
+    if missing.all():
+        return None
+    pose = torch.zeros(F, model.num_joints, 3, dtype=dtype)
+    pose[:, 0] = interpolate(torch.from_numpy(root), missing)
+    return FitStart(betas, pose, interpolate(torch.from_numpy(transl), missing))

@@ -76,3 +76,28 @@ def test_a_body_model_without_expressions_is_named(talking, tmp_path):
         fit_run.run(talking["record"], talking["body"], tmp_path, overlays=0)
     with h5py.File(talking["record"]) as f:
         assert f["face_points"].shape[1] == f["face_point_vertices"].shape[0]
+
+
+def test_face_points_join_the_body_fits_keypoints(talking):
+    """The body fit sees the face points as keypoints on the mesh: the joined map evaluates them where the
+    embedding puts them, and their detections follow the body keypoints'."""
+    from delta.body.keypoints import openpose18_map
+
+    body = load_body_model(talking["face_body"], dtype=torch.float64)
+    kp_map = openpose18_map(body)
+    with FrameRecord(talking["record"]) as rec:
+        points = fit_run.face_points(rec, body, talking["face_body"])
+        detected = torch.from_numpy(rec.h5["keypoints"][:])
+        joined, both = fit_run.with_face_points(kp_map, detected, rec, points)
+        recorded = rec.h5["face_points"][:]
+    K = points.num_points
+    assert len(joined.names) == 18 + K and both.shape == (len(detected), 18 + K, 3)
+    torch.testing.assert_close(both[:, :18], detected)
+    np.testing.assert_array_equal(both[:, 18:].numpy(), recorded)
+    gen = torch.Generator().manual_seed(0)
+    pose = 0.2 * torch.randn(2, body.num_joints, 3, generator=gen, dtype=torch.float64)
+    expr = torch.rand(2, body.num_expression, generator=gen, dtype=torch.float64)
+    out = lbs(body, torch.zeros(2, body.num_shape, dtype=torch.float64), pose, expr)
+    torch.testing.assert_close(joined(out.joints, out.vertices)[:, 18:], points(out.vertices))
+    torch.testing.assert_close(joined(out.joints, out.vertices)[:, :18], kp_map(out.joints, out.vertices))
+    assert fit_run.with_face_points(kp_map, detected, rec, None)[0] is kp_map
