@@ -60,9 +60,13 @@ def calibration_views(num_shape: int, yaws=(-24, -12, 0, 12, 24), pitches=(-10, 
     return [View(torch.from_numpy(b), y, p) for b in betas for y in yaws for p in pitches]
 
 
+HEAD_DISTANCE = 0.8
+"""m from the face's centre to the calibration camera"""
+
+
 def head_camera(centre: np.ndarray, width_m: float, view: View, resolution: int) -> PinholeCamera:
     """A camera 0.8 m from ``centre`` whose image is ``width_m`` / 0.55 wide there, turned as ``view`` says."""
-    distance = 0.8
+    distance = HEAD_DISTANCE
     f = 0.55 * resolution * distance / width_m
     y, p = math.radians(view.yaw), math.radians(view.pitch)
     target = torch.from_numpy(centre).double()
@@ -71,6 +75,45 @@ def head_camera(centre: np.ndarray, width_m: float, view: View, resolution: int)
     R, _ = look_at(eye, target, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))
     K = torch.tensor([[f, 0, resolution / 2], [0, f, resolution / 2], [0, 0, 1]], dtype=torch.float64)
     return PinholeCamera(K, R, -R @ eye, torch.zeros(5, dtype=torch.float64), resolution, resolution)
+
+
+#: the calibration renders' skin and background colours
+SKIN = (0.85, 0.68, 0.58)
+BACKGROUND = (0.8, 0.8, 0.78)
+
+
+@dataclasses.dataclass
+class HeadRender:
+    image: np.ndarray
+    """(H, W, 3) uint8 RGB."""
+    vertices: np.ndarray
+    """(V, 3) the rendered mesh's vertices."""
+    camera: PinholeCamera
+    face_width_px: float
+    """The face region's width in the image at its centre's distance."""
+
+
+def render_head(model: BodyModel, view: View, resolution: int = 512, expression: torch.Tensor | None = None,
+                skin=SKIN, background=BACKGROUND, seed: int = 0) -> HeadRender:  # fmt: skip
+    """The generator's textured body at rest (shape ``view.betas``, with an ``expression`` (E,) if given),
+    its face filling about half the image, seen from ``view``; skin, eyes, brows and lips painted on the
+    neutral face (they move with the expression, as a face's do)."""
+    zero = torch.zeros(1, model.num_joints, 3, dtype=torch.float64)
+    betas = view.betas[None].double()
+    with torch.no_grad():
+        rest = lbs(model, betas, zero).vertices[0].numpy()
+        posed = rest if expression is None else lbs(model, betas, zero, expression[None].double()).vertices[0].numpy()
+    faces, regions = model.faces.numpy(), model.regions.numpy()
+    face = regions == REGION["face"]
+    span = np.ptp(rest[face], 0)
+    camera = head_camera(rest[face].mean(0), float(max(span[0], span[1])), view, resolution)
+    features = textures.FaceFeatures(rest, regions)
+    normals = trimesh.Trimesh(rest, faces, process=False).vertex_normals
+    scene = SceneMesh(posed, faces, np.zeros(len(faces), np.int64), rest, normals, regions.astype(np.uint8))
+    frame = render(scene, camera, lambda o, p, lab: textures.skin_albedo(p, lab.astype(np.int64), skin, features, seed),
+                   textures.shading, background)  # fmt: skip
+    width = float(span[0] * camera.K[0, 0] / HEAD_DISTANCE)
+    return HeadRender(np.round(frame.image * 255).astype(np.uint8), posed, camera, width)
 
 
 def _surface_hits(mesh: trimesh.Trimesh, camera: PinholeCamera, uv: np.ndarray):
@@ -101,7 +144,7 @@ def nearest_triangles(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
 
 
 def calibrate(model: BodyModel, tracker, views: list[View], resolution: int = 512,
-              max_spread: float = MAX_SPREAD, skin=(0.85, 0.68, 0.58)) -> LandmarkEmbedding:  # fmt: skip
+              max_spread: float = MAX_SPREAD, skin=SKIN) -> LandmarkEmbedding:  # fmt: skip
     """Embed ``tracker``'s landmarks (a callable: RGB uint8 frame -> (L, 3) (u, v, confidence)) on ``model``."""
     if not hasattr(tracker, "reset"):
         raise DeltaError("calibrate: the tracker needs reset() (each view is a new face)")
@@ -114,18 +157,10 @@ def calibrate(model: BodyModel, tracker, views: list[View], resolution: int = 51
         raise DeltaError(f"body model '{model.name}' has no face region to calibrate landmarks on")
     hits: list[list[np.ndarray]] = []
     for view in views:
-        with torch.no_grad():
-            rest = lbs(model, view.betas[None].double(), zero).vertices[0].numpy()
-        span = np.ptp(rest[face], 0)
-        camera = head_camera(rest[face].mean(0), float(max(span[0], span[1])), view, resolution)
-        mesh = trimesh.Trimesh(rest, faces, process=False)
-        features = textures.FaceFeatures(rest, regions)
-        scene = SceneMesh(rest, faces, np.zeros(len(faces), np.int64), rest, mesh.vertex_normals,
-                          regions.astype(np.uint8))  # fmt: skip
-        frame = render(scene, camera, lambda o, p, lab: textures.skin_albedo(p, lab.astype(np.int64), skin, features, 0),
-                       textures.shading, (0.8, 0.8, 0.78))  # fmt: skip
+        shot = render_head(model, view, resolution, skin=skin)
+        mesh, camera = trimesh.Trimesh(shot.vertices, faces, process=False), shot.camera
         tracker.reset()
-        found = tracker(np.round(frame.image * 255).astype(np.uint8))
+        found = tracker(shot.image)
         if not hits:
             hits = [[] for _ in range(len(found))]
         if found[0, 2] <= 0:

@@ -9,8 +9,8 @@ import torch
 from delta import DeltaError
 from delta.body.face_points import LandmarkEmbedding
 from delta.body.lbs import lbs
-from delta.body.model import REGION, load_body_model
-from delta.synthetic.landmark_embedding import View, calibrate, calibration_views, head_camera
+from delta.body.model import load_body_model
+from delta.synthetic.landmark_embedding import View, calibrate, calibration_views, render_head
 
 pytestmark = pytest.mark.slow
 
@@ -34,29 +34,6 @@ def embedding(body, tracker):
     return calibrate(body, tracker, views, resolution=384)
 
 
-def _render(body, view: View, expression=None, resolution=384):
-    import trimesh
-
-    from delta.synthetic import textures
-    from delta.synthetic.raycast import SceneMesh, render
-
-    zero = torch.zeros(1, body.num_joints, 3, dtype=torch.float64)
-    e = None if expression is None else expression[None]
-    with torch.no_grad():
-        verts = lbs(body, view.betas[None].double(), zero, e).vertices[0].numpy()
-        rest = lbs(body, view.betas[None].double(), zero).vertices[0].numpy()  # texture space: the neutral face
-    faces, regions = body.faces.numpy(), body.regions.numpy()
-    face = regions == REGION["face"]
-    span = np.ptp(rest[face], 0)
-    camera = head_camera(rest[face].mean(0), float(max(span[:2])), view, resolution)
-    features = textures.FaceFeatures(rest, regions)
-    scene = SceneMesh(verts, faces, np.zeros(len(faces), np.int64), rest,
-                      trimesh.Trimesh(rest, faces, process=False).vertex_normals, regions.astype(np.uint8))  # fmt: skip
-    frame = render(scene, camera, lambda o, p, lab: textures.skin_albedo(p, lab.astype(np.int64), (0.7, 0.52, 0.42),
-                   features, 5), textures.shading, (0.55, 0.6, 0.65))  # fmt: skip
-    return np.round(frame.image * 255).astype(np.uint8), torch.from_numpy(verts), camera, float(span[0])
-
-
 def test_the_places_reproject_onto_the_detections_of_unseen_shapes_and_views(body, tracker, embedding):
     assert 300 < len(embedding.landmarks) <= 468
     kept = set(embedding.landmarks.tolist())
@@ -66,12 +43,12 @@ def test_the_places_reproject_onto_the_detections_of_unseen_shapes_and_views(bod
     rng = np.random.default_rng(7)
     for yaw, pitch in ((-15, 3), (9, -5), (26, 0)):
         view = View(torch.from_numpy(rng.normal(0, 0.7, body.num_shape)), yaw, pitch)
-        image, verts, camera, width = _render(body, view)
+        shot = render_head(body, view, 384, skin=(0.7, 0.52, 0.42), background=(0.55, 0.6, 0.65), seed=5)
         tracker.reset()
-        found = tracker(image)
+        found = tracker(shot.image)
         assert (found[:, 2] > 0.5).all()
-        uv = camera.project(embedding.points(verts[None])[0])[0].numpy()
-        face_px = width * camera.K[0, 0].item() / 0.8
+        uv = shot.camera.project(embedding.points(torch.from_numpy(shot.vertices)[None])[0])[0].numpy()
+        face_px = shot.face_width_px
         gap = np.linalg.norm(uv - found[embedding.landmarks, :2], axis=1)
         assert np.median(gap) < 0.02 * face_px, (yaw, np.median(gap), face_px)  # 2 % of the face width
 
@@ -89,9 +66,10 @@ def test_the_face_fit_recovers_a_jaw_opening_from_the_detectors_points(tracker, 
     for k, amount in enumerate((0.0, 0.35, 0.7)):
         e = torch.zeros(face_body.num_expression, dtype=torch.float64)
         e[jaw] = amount
-        image, verts, camera, width = _render(face_body, View(torch.zeros(face_body.num_shape), 8 * (k - 1), 0), e)
+        shot = render_head(face_body, View(torch.zeros(face_body.num_shape), 8 * (k - 1), 0), 384, e)
+        verts, camera = torch.from_numpy(shot.vertices), shot.camera
         tracker.reset()
-        found = torch.from_numpy(tracker(image)[embedding.landmarks][None]).double()
+        found = torch.from_numpy(tracker(shot.image)[embedding.landmarks][None]).double()
         # one frame in its own camera, from the neutral face at the true place
         fit = fit_face(face_body, embedding.points, found, camera, torch.zeros(face_body.num_shape,
                        dtype=torch.float64), zero_pose, torch.zeros(1, 3, dtype=torch.float64))  # fmt: skip

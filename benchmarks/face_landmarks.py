@@ -1,0 +1,99 @@
+"""How well MediaPipe's face-mesh landmarks are placed on the body mesh, and how the face tracker and the
+close-up mask fare on real clips.
+
+Synthetic rows (``case = held_out_view``): the body rendered as the calibration renders it, from views
+and shapes the calibration never saw; the tracker's points against the embedded points of the rendered
+mesh projected (median and 90th percentile, pixels and share of the face's width). Real rows
+(``case = real_clip``): every frame of each clip tracked from the start, the share of frames with a face,
+the frames that began without a tracked face (detected afresh), milliseconds a frame for the tracker and for the GrabCut mask.
+
+    python benchmarks/face_landmarks.py --body resources/body/anny_sub1.npz \
+        --embedding resources/body/anny_sub1_face_landmarks.npz --models resources/models/mediapipe \
+        --real ../shared/real --out benchmarks/face_landmarks.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from delta.body.face_points import LandmarkEmbedding
+from delta.body.model import load_body_model
+from delta.data.video import iter_video
+from delta.preprocess.face_tracking import FaceTracker, head_mask
+from delta.synthetic.landmark_embedding import View, render_head
+
+HELD_OUT = ((-25, 0), (-12, 6), (0, -12), (8, 10), (18, -4), (30, 0))
+
+
+def held_out(body, embedding, tracker, seeds: int, resolution: int) -> list[dict]:
+    rows = []
+    for seed in range(seeds):
+        rng = np.random.default_rng(100 + seed)
+        betas = torch.from_numpy(rng.normal(0, 0.7, body.num_shape))
+        for yaw, pitch in HELD_OUT:
+            shot = render_head(body, View(betas, yaw, pitch), resolution, skin=tuple(rng.uniform(0.35, 0.9, 3)),
+                               background=tuple(rng.uniform(0.2, 0.9, 3)), seed=seed + 10)  # fmt: skip
+            tracker.reset()
+            found = tracker(shot.image)
+            row = dict(case="held_out_view", shape_seed=seed, yaw_deg=yaw, pitch_deg=pitch,
+                       face_width_px=round(shot.face_width_px, 1), found=bool(found[0, 2] > 0.5))  # fmt: skip
+            if row["found"]:
+                uv = shot.camera.project(embedding.points(torch.from_numpy(shot.vertices)[None])[0])[0].numpy()
+                gap = np.linalg.norm(uv - found[embedding.landmarks, :2], axis=1)
+                row.update(median_px=round(float(np.median(gap)), 2), p90_px=round(float(np.percentile(gap, 90)), 2),
+                           median_share_of_face=round(float(np.median(gap)) / shot.face_width_px, 4))  # fmt: skip
+            rows.append(row)
+    return rows
+
+
+def real_clip(video: Path, tracker) -> dict:
+    tracker.reset()
+    frames, found, detections, t_track, t_mask = 0, 0, 0, 0.0, 0.0
+    for _, rgb in iter_video(video, None):
+        had = tracker.crop is not None
+        t0 = time.perf_counter()
+        face = tracker(rgb)
+        t1 = time.perf_counter()
+        frames += 1
+        detections += not had
+        if face[0, 2] > 0:
+            found += 1
+            head_mask(rgb, face)
+            t_mask += time.perf_counter() - t1
+        t_track += t1 - t0
+    return dict(case="real_clip", clip=video.name, frames=frames, found_share=round(found / max(frames, 1), 4),
+                detections=detections, track_ms=round(1000 * t_track / max(frames, 1), 2),
+                mask_ms=round(1000 * t_mask / max(found, 1), 1))  # fmt: skip
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--body", required=True)
+    ap.add_argument("--embedding", required=True)
+    ap.add_argument("--models", required=True, help="the folder of the converted MediaPipe models")
+    ap.add_argument("--real", help="a folder of real clips (head_*.mp4 are tracked)")
+    ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--resolution", type=int, default=512)
+    ap.add_argument("--out", required=True)
+    args = ap.parse_args()
+    body = load_body_model(args.body, dtype=torch.float64)
+    embedding = LandmarkEmbedding.load(args.embedding, body.num_vertices)
+    models = Path(args.models)
+    tracker = FaceTracker(models / "face_detection_short_range.onnx", models / "face_landmark.onnx")
+    rows = held_out(body, embedding, tracker, args.seeds, args.resolution)
+    if args.real:
+        rows += [real_clip(v, tracker) for v in sorted(Path(args.real).glob("head_*.mp4"))]
+    table = pd.DataFrame(rows)
+    table.insert(0, "landmarks_kept", len(embedding.landmarks))
+    table.to_csv(args.out, index=False)
+    print(table.to_string(index=False))
+
+
+if __name__ == "__main__":
+    main()
