@@ -315,7 +315,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     return _result(points, betas, pose, transl, camera, cam_params, detected, few, empty)
 
 
-#: the distance (m) at which the fit's translation steps are ``FitConfig.lr``; nearer bodies take smaller ones
+#: the distance (m) at which the fit steps at ``FitConfig.lr``; a nearer body takes proportionally smaller steps
 REFERENCE_DISTANCE = 3.0
 
 
