@@ -114,11 +114,12 @@ def face_points(rec: FrameRecord, model, body_path) -> FacePoints | None:
     return points
 
 
-def with_face_points(kp_map: KeypointMap, detected: torch.Tensor, rec: FrameRecord,
-                     points: FacePoints | None) -> tuple[KeypointMap, torch.Tensor]:  # fmt: skip
-    """The body fit's keypoints joined by the record's face points (none: as they are). A close-up's
-    body keypoints are the few a face shows; its hundreds of face points place, size and turn the head,
-    which the silhouette alone leaves loose (the expressions come after, in the face fit)."""
+def with_face_points(kp_map: KeypointMap, detected: torch.Tensor, points: FacePoints | None,
+                     face_seen: torch.Tensor | None) -> tuple[KeypointMap, torch.Tensor]:  # fmt: skip
+    """The body fit's keypoints joined by the record's face points (``points`` on the mesh, ``face_seen``
+    (F, K, 3) their detections; None: as they are). A close-up's body keypoints are the few a face shows;
+    its hundreds of face points place, size and turn the head, which the silhouette alone leaves loose
+    (the expressions come after, in the face fit)."""
     if points is None:
         return kp_map, detected
     K, V = points.num_points, kp_map.vertex_weights.shape[1]
@@ -127,16 +128,14 @@ def with_face_points(kp_map: KeypointMap, detected: torch.Tensor, rec: FrameReco
     joined = KeypointMap(tuple(kp_map.names) + tuple(f"face_{k}" for k in range(K)),
                          torch.cat([kp_map.joint_weights, kp_map.joint_weights.new_zeros(K, kp_map.joint_weights.shape[1])]),
                          torch.cat([kp_map.vertex_weights, vw]))  # fmt: skip
-    face = torch.from_numpy(rec.h5["face_points"][:]).to(detected.dtype)
-    return joined, torch.cat([detected, face], 1)
+    return joined, torch.cat([detected, face_seen.to(detected.dtype)], 1)
 
 
-def track_face(rec: FrameRecord, model, res, points: FacePoints | None) -> FaceFit | None:
+def track_face(model, res, points: FacePoints | None, face_seen: torch.Tensor | None) -> FaceFit | None:
     """Per-frame expressions and head rotations from the record's face points (None when it has none)."""
     if points is None:
         return None
-    detected = torch.from_numpy(rec.h5["face_points"][:]).double()
-    return fit_face(model, points, detected, res.camera, res.betas, res.pose, res.transl)
+    return fit_face(model, points, face_seen.double(), res.camera, res.betas, res.pose, res.transl)
 
 
 def fitted_upright(model, res) -> Upright:
@@ -160,6 +159,7 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
         model = load_body_model(body_path, dtype=torch.float64)
         kp_map = openpose18_map(model)
         points = face_points(rec, model, body_path)
+        face_seen = torch.from_numpy(rec.h5["face_points"][:]).double() if points is not None else None
         start, started_from = dataset_start(rec, model), "dataset"
         if rec.h5.attrs["camera_model"] == "pinhole":
             camera = rec.camera(0)
@@ -169,17 +169,17 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
             camera = OrthographicCamera(torch.tensor(1.0, dtype=torch.float64), torch.zeros(2, dtype=torch.float64),
                                         rec.size, rec.size)  # fmt: skip
         if start is None and points is not None and isinstance(camera, PinholeCamera):  # a close-up: from its face
-            start, started_from = face_start(model, points, torch.from_numpy(rec.h5["face_points"][:]), camera), "face"
+            start, started_from = face_start(model, points, face_seen, camera), "face"
         started_from = started_from if start is not None else "mean_pose"
         knees = [model.joint_names.index(n) for n in _KNEES if n in model.joint_names]
         exterior = exterior_masks(rec)
         # a novel-pose sequence (split 2) is not the training sequence's continuation
         sequence = torch.from_numpy((rec.h5["split"][:] == 2).astype(np.int64))
-        fit_map, fit_detected = with_face_points(kp_map, detected, rec, points)
+        fit_map, fit_detected = with_face_points(kp_map, detected, points, face_seen)
         res = fit(model, fit_map, fit_detected, camera, cfg, knees=knees, masks=masks, start=start,
                   exterior=exterior, sequence=sequence)  # fmt: skip
         check_result(rec.path, res, frame_ids)
-        face, face_arrays = track_face(rec, model, res, points), {}
+        face, face_arrays = track_face(model, res, points, face_seen), {}
         if face is not None:
             res.pose, res.betas, res.transl = face.poses, face.betas, face.transl
             face_arrays = dict(expression=face.expression.numpy(), expression_names=np.array(model.expression_names),

@@ -41,11 +41,17 @@ class PoseResult:
 
     def openpose18(self) -> np.ndarray:
         """(18, 3) keypoints (u, v, confidence); confidence 0 when no person was found."""
-        out = np.zeros((18, 3), np.float32)
-        for k, ids in enumerate(OPENPOSE18_FROM_BLAZEPOSE):
-            out[k, :2] = self.landmarks[list(ids), :2].mean(0)
-            out[k, 2] = self.landmarks[list(ids), 2].min() * (self.presence > 0.5)
-        return out
+        return openpose18(self.landmarks, self.presence)
+
+
+def openpose18(landmarks: np.ndarray, presence: float) -> np.ndarray:
+    """(18, 3) OpenPose keypoints (u, v, confidence) of (33, 3) BlazePose landmarks; confidence 0 unless
+    ``presence`` > 0.5."""
+    out = np.zeros((18, 3), np.float32)
+    for k, ids in enumerate(OPENPOSE18_FROM_BLAZEPOSE):
+        out[k, :2] = landmarks[list(ids), :2].mean(0)
+        out[k, 2] = landmarks[list(ids), 2].min() * (presence > 0.5)
+    return out
 
 
 class PoseLandmarker:

@@ -25,6 +25,11 @@ log = logging.getLogger(__name__)
 HEAD_MODELS = ("face_detection_short_range.onnx", "face_landmark.onnx")
 
 
+def head_model_paths(path) -> tuple[Path, ...]:
+    """The face detector and face mesh beside the pose model ``path`` (the converted models' folder)."""
+    return tuple(Path(path).parent / name for name in HEAD_MODELS)
+
+
 def landmarker(path, threads=1, config_key=None, framing="full"):
     """MediaPipe's pose landmarker (``full``) or the face-tracking head landmarker (``head``, with the
     converted face models found beside ``path``): frame -> PoseResult."""
@@ -35,7 +40,7 @@ def landmarker(path, threads=1, config_key=None, framing="full"):
         raise DeltaError(f"framing '{framing}': expected one of {list(FRAMINGS)}")
     if framing == "full":
         return PoseLandmarker(path, threads=threads, config_key=config_key)
-    return HeadLandmarker(*(Path(path).parent / name for name in HEAD_MODELS), threads=threads)
+    return HeadLandmarker(*head_model_paths(path), threads=threads)
 
 
 def _mediapipe(path, threads=1, config_key=None, framing="full"):
@@ -178,20 +183,27 @@ def run_keypoints(video: Path, wanted: set[int] | None, kind: str, path: str, ou
     """OpenPose-18 keypoints (N, 18, 3) and, with ``face_path`` or a ``head`` framing, face-mesh landmarks
     (N, 468, 3), as (u, v, confidence), for the ``wanted`` frames (None: all) from MediaPipe's pose (and
     face) landmark models, or for a head from the tracked face alone; zero rows elsewhere."""
-    from delta.preprocess.pose_landmarks import FaceLandmarker
+    from delta.preprocess.face_tracking import FaceTracker, blazepose_from_face
+    from delta.preprocess.pose_landmarks import FaceLandmarker, openpose18
 
     if kind != "mediapipe":
         raise DeltaError(f"preprocess.keypoints.model: unknown model '{kind}'; known: ['mediapipe']")
-    model = landmarker(path, threads, "preprocess.keypoints.path", framing)
     head = framing == "head"
+    if head:  # the face alone: no mask wanted here, so none is cut
+        tracker = FaceTracker(*head_model_paths(path), threads=threads)
+    else:
+        model = landmarker(path, threads, "preprocess.keypoints.path", framing)
     face = FaceLandmarker(face_path, threads=threads) if face_path and not head else None
     keypoints, faces = [], []
     for i, rgb in _decoded(Path(video), wanted, "keypoints"):
+        if head:
+            seen = tracker(rgb)
+            keypoints.append((i, openpose18(blazepose_from_face(seen), float(seen[0, 2]))))
+            faces.append((i, seen))
+            continue
         pose = model(rgb)
         keypoints.append((i, pose.openpose18()))
-        if head:
-            faces.append((i, model.face.copy()))
-        elif face is not None:
+        if face is not None:
             faces.append((i, face(rgb, pose)))
     if head and not any(a[0, 2] > 0 for _, a in faces):
         raise DeltaError(f"{video}: no face found in any of the {len(faces)} frames analysed; 'framing: head' tracks "

@@ -88,8 +88,8 @@ def test_face_points_join_the_body_fits_keypoints(talking):
     with FrameRecord(talking["record"]) as rec:
         points = fit_run.face_points(rec, body, talking["face_body"])
         detected = torch.from_numpy(rec.h5["keypoints"][:])
-        joined, both = fit_run.with_face_points(kp_map, detected, rec, points)
         recorded = rec.h5["face_points"][:]
+        joined, both = fit_run.with_face_points(kp_map, detected, points, torch.from_numpy(recorded))
     K = points.num_points
     assert len(joined.names) == 18 + K and both.shape == (len(detected), 18 + K, 3)
     torch.testing.assert_close(both[:, :18], detected)
@@ -100,4 +100,4 @@ def test_face_points_join_the_body_fits_keypoints(talking):
     out = lbs(body, torch.zeros(2, body.num_shape, dtype=torch.float64), pose, expr)
     torch.testing.assert_close(joined(out.joints, out.vertices)[:, 18:], points(out.vertices))
     torch.testing.assert_close(joined(out.joints, out.vertices)[:, :18], kp_map(out.joints, out.vertices))
-    assert fit_run.with_face_points(kp_map, detected, rec, None)[0] is kp_map
+    assert fit_run.with_face_points(kp_map, detected, None, None)[0] is kp_map
