@@ -27,18 +27,26 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
 @contextlib.contextmanager
-def timed(owners: list[tuple[object, str, str]], totals: dict):
-    """Wrap ``owner.name`` for every (owner, name, label): each call adds its wall time to totals[label]."""
+def timed(owners: list[tuple[object, str, str]], totals: dict, device: torch.device = torch.device("cpu")):
+    """Wrap ``owner.name`` for every (owner, name, label): each call adds its wall time to totals[label]
+    (on a GPU the device is synchronised before and after, so a part's queued kernels count as its own)."""
     saved = []
     for owner, name, label in owners:
         fn = getattr(owner, name)
 
         def wrapper(*args, _fn=fn, _label=label, **kw):
+            _sync(device)
             t = time.perf_counter()
             try:
                 return _fn(*args, **kw)
             finally:
+                _sync(device)
                 totals[_label] += time.perf_counter() - t
 
         saved.append((owner, name, fn))
@@ -54,7 +62,8 @@ def profile(model, data, st, steps: int, seed: int = 0) -> tuple[pd.DataFrame, f
     from delta import losses as L
     from delta.data.frames import sample_rays
     from delta.deformers import knn as deformer
-    from delta.render import hybrid
+    from delta.geometry import distance_grid
+    from delta.render import hybrid, silhouette
     from delta.training.trainer import _to, loss_terms
 
     totals: dict[str, float] = defaultdict(float)
@@ -66,6 +75,8 @@ def profile(model, data, st, steps: int, seed: int = 0) -> tuple[pd.DataFrame, f
         (deformer, "weight_distance", "skinning-weight distances"),
         (deformer, "deform", "backward skinning (all)"),
         (deformer, "prepare", "per-frame skinning setup"),
+        (distance_grid, "build", "distance grid (in the setup)"),
+        (silhouette, "nearest_faces", "silhouette candidates (in the silhouette)"),
         (hybrid, "ray_mesh_hits", "ray-mesh hits"),
         (hybrid, "soft_silhouette", "soft silhouette"),
         (hybrid, "early_cull", "early cull (before the kNN)"),
@@ -78,18 +89,22 @@ def profile(model, data, st, steps: int, seed: int = 0) -> tuple[pd.DataFrame, f
         terms, r = loss_terms(model, batch, st, data.skin_color.to(dev), None, g)
         loss = L.total(terms, st.weights)
         model.zero_grad(set_to_none=True)
+        _sync(dev)
         t = time.perf_counter()
         loss.backward()
+        _sync(dev)
         totals["backward pass"] += time.perf_counter() - t
         return r.samples_evaluated
 
     for _ in range(2):  # warm up
         step()
     totals.clear()
+    _sync(dev)
     t0 = time.perf_counter()
-    with timed(owners, totals):
+    with timed(owners, totals, dev):
         for _ in range(steps):
             samples.append(step())
+    _sync(dev)
     total = (time.perf_counter() - t0) / steps
     rows = [{"component": k, "seconds_per_step": v / steps, "share": v / steps / total} for k, v in totals.items()]
     rows.append({"component": "step", "seconds_per_step": total, "share": 1.0})
@@ -103,6 +118,7 @@ def main() -> None:
     ap.add_argument("--body", default=str(ROOT / "resources/body/anny_sub1.npz"))
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--device", default="cpu", help="cpu or cuda (the model is moved there)")
     ap.add_argument("--fresh", action="store_true", help="every occupancy cell occupied (a stage's first steps)")
     ap.add_argument("--no-early-cull", action="store_true", help="every sample in a ray's span goes to the kNN query")
     ap.add_argument("--out", required=True, help="CSV to write")
@@ -112,7 +128,7 @@ def main() -> None:
 
     torch.set_num_threads(a.threads)
     tr = load_trained(a.model, a.record, a.body)
-    model = tr.model.train()
+    model = tr.model.to(a.device).train()
     if a.fresh and model.occupancy is not None:
         model.occupancy.reset()
     model.spec.render.early_cull = not a.no_early_cull
@@ -122,6 +138,7 @@ def main() -> None:
     table.insert(2, "early_cull", model.spec.render.early_cull)
     table["nerf_samples_per_step"] = round(samples)
     table["threads"] = a.threads
+    table["device"] = torch.cuda.get_device_name() if a.device == "cuda" else f"cpu ({a.threads} threads)"
     table = table.round(4)
     if a.append and Path(a.out).exists():
         table = pd.concat([pd.read_csv(a.out), table], ignore_index=True)

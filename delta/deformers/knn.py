@@ -21,14 +21,10 @@ from __future__ import annotations
 import dataclasses
 from typing import Optional
 
-import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from delta.geometry import distance_grid
-
-#: kNN queries of at least this many points use the job's threads (fewer: one thread is faster)
-PARALLEL_QUERY = 20_000
+from delta.geometry.nearest import PointIndex
 
 
 @dataclasses.dataclass
@@ -41,8 +37,8 @@ class SkinningFrame:
     """(V, 3, 4) affine maps posed space -> canonical space, one per vertex."""
     weights: torch.Tensor
     """(V, J) skinning weights."""
-    tree: cKDTree
-    """kNN structure over the detached posed vertices (non-differentiable selection)."""
+    index: PointIndex
+    """kNN structure over the detached posed vertices, on their device (non-differentiable selection)."""
     near: Optional[distance_grid.DistanceGrid] = None
     """Coarse distance field to the posed vertices, with each voxel's nearest vertex (culling), when asked for."""
 
@@ -84,18 +80,14 @@ def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tens
     eye = torch.eye(3, dtype=inv.dtype, device=inv.device).expand_as(inv[..., :3])
     untranslate = torch.cat([eye, -displacement[..., None]], dim=-1)
     to_canonical = compose(canonical_T, compose(untranslate, inv))
-    pts = posed.detach().cpu().numpy().astype(np.float64)
+    pts = posed.detach()
     near = distance_grid.build(pts, near_cell, near_pad, nearest=True) if near_cell > 0 else None
-    return SkinningFrame(posed=posed, to_canonical=to_canonical, weights=weights, tree=cKDTree(pts), near=near)
+    return SkinningFrame(posed=posed, to_canonical=to_canonical, weights=weights, index=PointIndex(pts), near=near)
 
 
 def knn(frame: SkinningFrame, points: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Indices (N, k) of the k nearest posed vertices, nearest first, and differentiable distances (N, k)."""
-    pts = points.detach().cpu().numpy().astype(np.float64)
-    # the job's own threads (not every core of the node); small batches are faster on one
-    workers = torch.get_num_threads() if len(pts) >= PARALLEL_QUERY else 1
-    _, idx = frame.tree.query(pts, k=k, workers=workers)
-    idx = torch.from_numpy(np.asarray(idx, dtype=np.int64).reshape(len(points), k)).to(points.device)
+    idx = frame.index.query(points, k)[1]
     diff = points[:, None] - frame.posed[idx]
     # sqrt with a floor: finite gradient for a point exactly on a vertex
     return idx, torch.sqrt((diff * diff).sum(-1) + 1e-12)
@@ -146,8 +138,7 @@ def rough_canonical(frame: SkinningFrame, points: torch.Tensor) -> tuple[torch.T
     """
     if frame.near is None:
         raise ValueError("rough_canonical needs a SkinningFrame prepared with a distance grid (near_cell > 0)")
-    dist, who = distance_grid.lookup_nearest(frame.near, points.detach().cpu().numpy())
-    who = torch.from_numpy(who).to(points.device).clamp_min(0)
-    M = frame.to_canonical.detach()[who]
+    dist, who = distance_grid.lookup_nearest(frame.near, points)
+    M = frame.to_canonical.detach()[who.to(points.device).clamp_min(0)]
     canonical = (M[..., :3] @ points.detach()[..., None]).squeeze(-1) + M[..., 3]
-    return canonical, torch.from_numpy(dist).to(points.device)
+    return canonical, dist.to(points.device)

@@ -1,8 +1,8 @@
 """First ray-mesh hits whose distance and barycentrics are differentiable.
 
 The search for the first hit is discrete and runs without gradients, either in
-Embree (through trimesh + embreex, float32 internally) or as a brute-force
-chunked Möller–Trumbore in torch. The distance ``t`` and the barycentrics of
+Embree (through trimesh + embreex, float32 internally; CPU) or in torch on the
+inputs' device, walking a box hierarchy of the faces (:mod:`delta.geometry.clusters`). The distance ``t`` and the barycentrics of
 each found (ray, face) pair are then recomputed in torch from the vertex
 tensor, so gradients reach vertices, ray origins and ray directions, and the
 values carry the precision of the inputs rather than Embree's float32.
@@ -15,12 +15,17 @@ from __future__ import annotations
 
 import dataclasses
 import weakref
+from typing import Callable
 
 import numpy as np
 import torch
 
+from delta.geometry import clusters
+
+_CHUNK_RAYS = 1 << 14
+"""Rays walked through the face hierarchy at once by the torch search."""
 _CHUNK_PAIRS = 1 << 20
-"""Ray-face pairs held at once by the brute-force torch search."""
+"""Candidate ray-face pairs decided at once by the torch search."""
 
 
 @dataclasses.dataclass
@@ -82,94 +87,106 @@ def moller_trumbore(origins, dirs, a, b, c):
     return t, u, v, det
 
 
-def _face_tables(tri: torch.Tensor) -> dict:
-    """Per-face terms for :func:`_search_chunk` from (F, 3, 3) corners, each (F, 3) or (F,)."""
-    a, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    n = torch.linalg.cross(e1, e2, dim=-1)
-    e2xa, axe1 = torch.linalg.cross(e2, a, dim=-1), torch.linalg.cross(a, e1, dim=-1)
-    norms = {k: x.norm(dim=-1) for k, x in dict(e1=e1, e2=e2, e2xa=e2xa, axe1=axe1).items()}
-    return dict(e1=e1, e2=e2, n=n, e2xa=e2xa, axe1=axe1, an=(a * n).sum(-1), **{"|" + k: v for k, v in norms.items()})
-
-
-def _search_chunk(o, d, ft: dict, tol: float, tri: torch.Tensor) -> torch.Tensor:
-    """(Rc,) first-hit face of a chunk of rays (-1: none).
-
-    Möller–Trumbore with the ray-face products expanded into (Rc, 3) x (3, F)
-    matmuls (no divisions; det's sign is folded into the tests). The expansion
-    loses precision to cancellation (``o x d`` is large for a scene far from the
-    origin), so its inside tests carry a per-pair rounding bound and only propose
-    candidates: each candidate pair is decided by the direct Möller–Trumbore on
-    ``o - a`` (:func:`_confirm`), whose error does not grow with the distance to
-    the origin. Without that, a ray nearly parallel to a face of a scene 1 km from
-    the origin was taken to hit it up to 5 cm outside its edge.
-    """
-    m = torch.linalg.cross(o, d, dim=-1)
-    det = -(d @ ft["n"].T)
-    u = m @ ft["e2"].T - d @ ft["e2xa"].T
-    v = -(m @ ft["e1"].T) - d @ ft["axe1"].T
-    tn = o @ ft["n"].T - ft["an"]
-    sign = torch.where(det < 0, -1.0, 1.0).to(det.dtype)
-    u, v, tn, det = u * sign, v * sign, tn * sign, det.abs()
-    mn, dn = m.norm(dim=-1)[:, None], d.norm(dim=-1)[:, None]
-    err_u = tol * (mn * ft["|e2"] + dn * ft["|e2xa"])
-    err_v = tol * (mn * ft["|e1"] + dn * ft["|axe1"])
-    scale = dn * ft["|e1"] * ft["|e2"]
-    ok = (det > tol * scale) & (u >= -err_u) & (v >= -err_v) & (u + v <= det + err_u + err_v + tol * scale) & (tn > 0)
-    ray, face = ok.nonzero(as_tuple=True)
-    t = torch.full(ok.shape, torch.inf, dtype=o.dtype, device=o.device)
-    t[ray, face] = _confirm(o[ray], d[ray], tri[face], tol)
-    best_t, best = t.min(dim=1)
-    return torch.where(torch.isfinite(best_t), best, -1)
-
-
 def _confirm(o, d, tri, tol: float) -> torch.Tensor:
     """(P,) hit distance of candidate (ray, face) pairs by the direct Möller–Trumbore, +inf where the ray
-    misses the face (barycentrics outside [0, 1] by more than ``tol``, a ray parallel to the plane, t <= 0)."""
+    misses the face (barycentrics outside [0, 1] by more than ``tol``, a ray parallel to the plane, t <= 0).
+    Its error does not grow with the scene's distance from the origin (it works on ``o - a``)."""
     t, u, v, det = moller_trumbore(o, d, tri[:, 0], tri[:, 1], tri[:, 2])
     scale = d.norm(dim=-1) * (tri[:, 1] - tri[:, 0]).norm(dim=-1) * (tri[:, 2] - tri[:, 0]).norm(dim=-1)
     hit = (det.abs() > tol * scale) & (u >= -tol) & (v >= -tol) & (u + v <= 1 + tol) & (t > 0)
     return torch.where(hit, t, torch.inf)
 
 
+def _keep_nearest(best: torch.Tensor, face: torch.Tensor, ray, t, f) -> None:
+    """Fold candidate hits (ray, t, face), each (M,), into the running nearest ``best`` / ``face`` (R,) in
+    place; of equally near faces in one batch the lowest index wins (the same answer on every device)."""
+    near = torch.full_like(best, torch.inf).scatter_reduce(0, ray, t, "amin")
+    win = (t == near[ray]) & (near[ray] < best[ray])
+    none = torch.iinfo(torch.int64).max
+    pick = torch.full_like(face, none).scatter_reduce(0, ray[win], f[win], "amin")
+    won = pick != none
+    face[won] = pick[won]
+    torch.minimum(best, near, out=best)
+
+
+def _test_leaves(tree, o, d, tri, tol, best, face, ray, leaf) -> None:
+    """Test every face of the (ray, leaf) pairs (M,), folding hits into ``best`` / ``face``."""
+    slot = tree.members[leaf]
+    ray = ray[:, None].expand_as(slot)[slot >= 0]
+    f = slot[slot >= 0]
+    for p in range(0, len(f), _CHUNK_PAIRS):
+        r, fp = ray[p : p + _CHUNK_PAIRS], f[p : p + _CHUNK_PAIRS]
+        _keep_nearest(best, face, r, _confirm(o[r], d[r], tri[fp], tol), fp)
+
+
 @torch.no_grad()
 def _search_torch(vertices, faces, origins, dirs) -> torch.Tensor:
-    """(R,) first-hit face by brute force over all faces (-1: none), in float64 where available."""
+    """(R,) first-hit face (-1: none) by walking a box hierarchy of the faces (:mod:`delta.geometry.clusters`)
+    and deciding each candidate pair by the direct Möller–Trumbore (:func:`_confirm`), in float64 where
+    the device has it. Tensor work on the inputs' device."""
     work = torch.float64 if vertices.device.type != "mps" else torch.float32
     o, d = origins.detach().to(work), dirs.detach().to(work)
     R, F = o.shape[0], faces.shape[0]
+    face = torch.full((R,), -1, dtype=torch.int64, device=o.device)
     if R == 0 or F == 0:
-        return torch.full((R,), -1, dtype=torch.int64, device=o.device)
+        return face
     tri = vertices.detach().to(work)[faces]
-    ft = _face_tables(tri)
-    step = max(1, _CHUNK_PAIRS // F)
+    tree = _HIERARCHIES.get(vertices, faces, lambda: clusters.build(tri.amin(1), tri.amax(1)))
     tol = 64 * torch.finfo(work).eps
-    return torch.cat([_search_chunk(o[s : s + step], d[s : s + step], ft, tol, tri) for s in range(0, R, step)])
+    # boxes grown by far more than the slab test's rounding, so no true hit is dropped before _confirm
+    scale = tri.abs().amax() + o.abs().amax() + (tri.amax((0, 1)) - tri.amin((0, 1))).amax()
+    pad = float(torch.finfo(work).eps ** 0.5 * scale)
+    best = torch.full((R,), torch.inf, dtype=work, device=o.device)
+    for s in range(0, R, _CHUNK_RAYS):
+        ray, leaf, enter = clusters.ray_leaf_pairs(tree, o[s : s + _CHUNK_RAYS], d[s : s + _CHUNK_RAYS], pad)
+        ray = ray + s
+        # each ray's leaves nearest-entered first, in rounds of 1, 2, 4, ... leaves; a leaf entered beyond
+        # the ray's nearest hit so far cannot hold a nearer one and is skipped
+        by_enter = torch.argsort(enter, stable=True)
+        order = by_enter[torch.argsort(ray[by_enter], stable=True)]
+        ray, leaf, enter = ray[order], leaf[order], enter[order]
+        count = torch.bincount(ray - s, minlength=min(_CHUNK_RAYS, R - s))
+        rank = torch.arange(len(ray), device=o.device) - (torch.cumsum(count, 0) - count).repeat_interleave(count)
+        lo = 0
+        while lo < len(ray):
+            now = (rank >= lo) & (rank < 2 * lo + 1)
+            now &= enter <= best[ray]
+            _test_leaves(tree, o, d, tri, tol, best, face, ray[now], leaf[now])
+            lo = 2 * lo + 1
+            if not bool((rank >= lo).any()):
+                break
+    return face
 
 
-class _SceneCache:
-    """The Embree scene of the last mesh cast against, reused while the same vertex and face tensors
-    (the same objects, unmodified: their ``_version`` unchanged) come back: a whole-image render casts
-    its rays in chunks against one posed mesh. Weak references: a freed tensor never matches a new one
-    that reuses its memory."""
+class _MeshCache:
+    """What was built for the last mesh cast against (an Embree scene, a face hierarchy), reused while the
+    same vertex and face tensors (the same objects, unmodified: their ``_version`` unchanged) come back: a
+    whole-image render casts its rays in chunks against one posed mesh. Weak references: a freed tensor
+    never matches a new one that reuses its memory."""
 
     def __init__(self):
-        self.key, self.intersector = None, None
+        self.key, self.value = None, None
 
-    def get(self, vertices: torch.Tensor, faces: torch.Tensor):
-        import trimesh
-        from trimesh.ray.ray_pyembree import RayMeshIntersector
-
+    def get(self, vertices: torch.Tensor, faces: torch.Tensor, build: Callable[[], object]):
         if self.key is not None:
             v_ref, v_ver, f_ref, f_ver = self.key
             if v_ref() is vertices and f_ref() is faces and v_ver == vertices._version and f_ver == faces._version:
-                return self.intersector
-        mesh = trimesh.Trimesh(vertices.detach().cpu().double().numpy(), faces.detach().cpu().numpy(), process=False)
-        self.intersector = RayMeshIntersector(mesh)
+                return self.value
+        self.value = build()
         self.key = (weakref.ref(vertices), vertices._version, weakref.ref(faces), faces._version)
-        return self.intersector
+        return self.value
 
 
-_SCENES = _SceneCache()
+def _embree_scene(vertices, faces):
+    import trimesh
+    from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+    mesh = trimesh.Trimesh(vertices.detach().cpu().double().numpy(), faces.detach().cpu().numpy(), process=False)
+    return RayMeshIntersector(mesh)
+
+
+_SCENES = _MeshCache()
+_HIERARCHIES = _MeshCache()
 
 
 def _search_embree(vertices, faces, origins, dirs) -> torch.Tensor:
@@ -178,7 +195,7 @@ def _search_embree(vertices, faces, origins, dirs) -> torch.Tensor:
     face = np.full(R, -1, dtype=np.int64)
     if R and faces.shape[0]:
         # No locations: they are recomputed in torch, and trimesh's location step drops near-parallel rays.
-        tri, ray = _SCENES.get(vertices, faces).intersects_id(
+        tri, ray = _SCENES.get(vertices, faces, lambda: _embree_scene(vertices, faces)).intersects_id(
             origins.detach().cpu().double().numpy(),
             dirs.detach().cpu().double().numpy(),
             multiple_hits=False,
@@ -196,15 +213,15 @@ def ray_mesh_hits(vertices, faces, origins, dirs, backend: str = "auto") -> RayH
         faces: (F, 3) int64.
         origins: (R, 3) ray origins; dirs: (R, 3) directions (any non-zero length;
             t is measured in units of |dir|).
-        backend: "embree", "torch" (brute force; small meshes) or "auto" (Embree
-            when importable).
+        backend: "embree" (CPU), "torch" (a box hierarchy walked with tensor operations on the
+            inputs' device) or "auto" (Embree for CPU tensors when importable, else torch).
     Returns:
         :class:`RayHits`. Barycentrics are clamped to [0, 1] and renormalised,
         which only changes rays through an edge or vertex (rounding); t is the
         exact hit on the found face's plane in the inputs' precision.
     """
     if backend == "auto":
-        backend = "embree" if embree_available() else "torch"
+        backend = "embree" if vertices.device.type == "cpu" and embree_available() else "torch"
     if backend == "embree":
         face = _search_embree(vertices, faces, origins, dirs)
     elif backend == "torch":

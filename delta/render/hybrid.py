@@ -14,7 +14,6 @@ import dataclasses
 import math
 from typing import Callable, Optional
 
-import numpy as np
 import torch
 
 from delta.deformers import knn as deformer
@@ -161,12 +160,12 @@ def body_span(skinning, origins, dirs, t_in, t_far, hit, settings: RenderSetting
     n = settings.probe
     u = torch.linspace(0, 1, n, dtype=t_in.dtype, device=t_in.device)
     tp = t_in[:, None] + (t_far - t_in)[:, None] * u
-    pts = (origins[:, None] + tp[..., None] * dirs[:, None]).reshape(-1, 3).cpu().numpy()
+    pts = (origins[:, None] + tp[..., None] * dirs[:, None]).reshape(-1, 3)
     if skinning.near is not None:
         close = distance_grid.lookup(skinning.near, pts) < settings.max_dist
     else:
-        close = np.isfinite(skinning.tree.query(pts, k=1, distance_upper_bound=settings.max_dist)[0])
-    close = torch.from_numpy(close).view(-1, n).to(t_in.device)
+        close = skinning.index.query(pts, 1)[0][:, 0] < settings.max_dist
+    close = close.view(-1, n).to(t_in.device)
     step = (t_far - t_in) / (n - 1)
     idx = torch.arange(n, device=t_in.device).expand_as(close)
     first = torch.where(close, idx, n).amin(1)

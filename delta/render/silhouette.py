@@ -14,9 +14,9 @@ the inputs.
 
 from __future__ import annotations
 
-import numpy as np
 import torch
-from scipy.spatial import cKDTree
+
+from delta.geometry.nearest import PointIndex
 
 _LOGIT_BOUND = 1.0e4
 """|delta d^2 / sigma| is clamped here; beyond it p is 0 or 1 to any float precision."""
@@ -64,11 +64,10 @@ def point_triangle_distance_2d(p, a, b, c) -> tuple[torch.Tensor, torch.Tensor]:
 
 def nearest_faces(uv, faces, pixels, k: int) -> torch.Tensor:
     """(R, min(k, F)) indices of the faces whose (detached) projected centroids are nearest each pixel."""
-    centroids = uv.detach()[faces].mean(1).cpu().double().numpy()
-    k_eff = min(int(k), faces.shape[0])
-    _, idx = cKDTree(centroids).query(pixels.detach().cpu().double().numpy(), k=k_eff)
-    idx = np.asarray(idx, dtype=np.int64).reshape(pixels.shape[0], k_eff)
-    return torch.from_numpy(idx).to(faces.device)
+    centroids = uv.detach()[faces].mean(1)
+    if centroids.device.type == "cpu":
+        centroids = centroids.double()  # the KD-tree's precision, as the projected uv may be float32
+    return PointIndex(centroids).query(pixels, k)[1].to(faces.device)
 
 
 def soft_silhouette(uv, faces, pixels, sigma: float = 1.0, k: int = 16, face_mask=None) -> torch.Tensor:

@@ -245,20 +245,6 @@ def test_weight_distance_over_distinct_pairs_equals_every_pair():
     assert bool((got[:, :2] == 0).all())
 
 
-def test_large_knn_queries_use_the_jobs_threads_and_agree_with_one_thread(monkeypatch):
-    _, _, _, frame = posed_setup(4)
-    x = torch.randn(3000, 3, generator=torch.Generator().manual_seed(4), dtype=D)
-    one = knn(frame, x, 6)
-    monkeypatch.setattr(knn_module, "PARALLEL_QUERY", 100)
-    threads = torch.get_num_threads()
-    torch.set_num_threads(2)
-    try:
-        two = knn(frame, x, 6)
-    finally:
-        torch.set_num_threads(threads)
-    assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])
-
-
 # ----------------------------------------------------------------- affine algebra
 def random_affines(n: int, seed: int) -> torch.Tensor:
     gen = torch.Generator().manual_seed(seed)

@@ -1,4 +1,4 @@
-"""Ray-mesh hits against analytic oracles; Embree and the torch brute force agree."""
+"""Ray-mesh hits against analytic oracles; Embree and the torch hierarchy search agree."""
 
 from __future__ import annotations
 
@@ -217,15 +217,61 @@ def test_the_embree_scene_is_reused_only_for_the_same_unmodified_mesh():
     o = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.5, 1.0]], dtype=torch.float64)
     d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]], dtype=torch.float64)
     first = ray_mesh_hits(v, f, o, d, backend="embree")
-    scene = raymesh._SCENES.intersector
+    scene = raymesh._SCENES.value
     again = ray_mesh_hits(v, f, o, d, backend="embree")
-    assert raymesh._SCENES.intersector is scene and torch.equal(first.hit, again.hit)
+    assert raymesh._SCENES.value is scene and torch.equal(first.hit, again.hit)
     v[:, 1] -= 0.6  # moved in place: the top ray now passes above the triangle
     moved = ray_mesh_hits(v, f, o, d, backend="embree")
-    assert raymesh._SCENES.intersector is not scene
+    assert raymesh._SCENES.value is not scene
     assert moved.hit.tolist() == [True, False]
     for shift in (0.0, 5.0):  # fresh tensors each time: never the scene of another mesh
         w = torch.tensor([[-1.0, -1, 0], [1, -1, 0], [0, 1, 0]], dtype=torch.float64) + torch.tensor([shift, 0, 0])
         assert ray_mesh_hits(w, f, o, d, backend="embree").hit.tolist() == (
             [True, True] if shift == 0 else [False, False]
         )
+
+
+def _bubbles(seed: int = 0):
+    """Six overlapping spheres of 5120 faces each (a hierarchy of three levels; rays cross many surfaces)."""
+    g = torch.Generator().manual_seed(seed)
+    ball = trimesh.creation.icosphere(subdivisions=4)
+    parts = [(torch.tensor(ball.vertices, dtype=D) * (0.3 + 0.4 * torch.rand(1, generator=g, dtype=D))
+              + 0.6 * torch.randn(1, 3, generator=g, dtype=D)) for _ in range(6)]  # fmt: skip
+    faces = torch.cat([torch.tensor(ball.faces) + i * len(ball.vertices) for i in range(6)])
+    return torch.cat(parts), faces
+
+
+@pytest.mark.skipif(not embree_available(), reason="no embreex")
+def test_embree_and_torch_agree_on_a_large_scene_with_grazing_and_axis_rays():
+    v, f = _bubbles()
+    g = torch.Generator().manual_seed(1)
+    n = 4000
+    origins = 4 * torch.nn.functional.normalize(torch.randn(n, 3, generator=g, dtype=D), dim=1)
+    origins[: n // 4] = v[torch.randint(len(v), (n // 4,), generator=g)] * 0.5  # many start inside a sphere
+    target = v[torch.randint(len(v), (n,), generator=g)] + 0.05 * torch.randn(n, 3, generator=g, dtype=D)
+    dirs = target - origins
+    dirs[n // 2 : n // 2 + 300, :2] = 0  # axis-parallel: two zero components
+    dirs[n // 2 + 300 : n // 2 + 600, 0] = 0
+    a = ray_mesh_hits(v, f, origins, dirs, backend="embree")
+    b = ray_mesh_hits(v, f, origins, dirs, backend="torch")
+    assert 0.3 * n < int(b.hit.sum()) < n
+    assert int((a.hit != b.hit).sum()) <= 2  # Embree's float32 on a ray grazing an edge
+    both = a.hit & b.hit
+    torch.testing.assert_close(a.t[both], b.t[both], rtol=1e-9, atol=0)
+    torch.testing.assert_close(interpolate(b, f, v)[b.hit], (origins + b.t[:, None] * dirs)[b.hit], rtol=0, atol=1e-9)
+
+
+def test_torch_search_is_the_brute_force_first_hit():
+    """Against an independent oracle: every ray tested against every face, nearest t kept."""
+    v, f = _bubbles(2)
+    g = torch.Generator().manual_seed(3)
+    origins = 3 * torch.nn.functional.normalize(torch.randn(300, 3, generator=g, dtype=D), dim=1)
+    tri = v[f]
+    w = torch.rand(300, 3, generator=g, dtype=D) + 0.05  # aimed at face interiors: no ties at edges
+    dirs = (w[:, :, None] * tri[torch.randint(len(f), (300,), generator=g)]).sum(1) / w.sum(1, keepdim=True) - origins
+    got = ray_mesh_hits(v, f, origins, dirs, backend="torch")
+    t, u, w, det = moller_trumbore(origins[:, None], dirs[:, None], tri[None, :, 0], tri[None, :, 1], tri[None, :, 2])
+    inside = (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 0) & (det.abs() > 1e-12)
+    want = torch.where(inside, t, torch.inf).amin(1)
+    assert torch.equal(got.hit, torch.isfinite(want))
+    torch.testing.assert_close(got.t[got.hit], want[got.hit], rtol=1e-12, atol=0)

@@ -217,8 +217,8 @@ def test_early_cull_loses_few_samples_the_exact_tests_keep_on_a_posed_anny(anny_
     )
     # occupied: a shell 2-8 cm from the canonical body on the +x side of a tilted plane (cuts the limbs)
     tree = deformer.prepare(cv[ids], cano.vertex_transforms_3x4[0, ids], torch.zeros_like(cv[ids]),
-                            cano.vertex_transforms_3x4[0, ids], body.weights[ids]).tree  # fmt: skip
-    occ.update(lambda x: 5.0 * torch.from_numpy(((d := tree.query(x.numpy())[0]) > 0.02) & (d < 0.08)).float()
+                            cano.vertex_transforms_3x4[0, ids], body.weights[ids]).index  # fmt: skip
+    occ.update(lambda x: 5.0 * (((d := tree.query(x, 1)[0][:, 0]) > 0.02) & (d < 0.08)).float()
                * (x @ torch.tensor([1.0, 0.3, 0.2]) > 0).float(), seed=0)  # fmt: skip
     posed = frame.posed
     x = posed[torch.randint(len(posed), (60000,), generator=gen)] + 0.1 * torch.randn(60000, 3, generator=gen)

@@ -1,0 +1,126 @@
+"""A wide bounding-box hierarchy built from tensors: the acceleration structure of the torch ray caster
+and nearest-point search, so that both run on whatever device holds the geometry.
+
+Primitives (points, or triangles by their bounds) are sorted along a Morton curve of their centres and
+cut into leaves of ``leaf`` consecutive primitives; leaves are grouped ``fanout`` at a time into nodes,
+nodes into larger nodes, until one level has at most ``fanout`` nodes. Every node keeps its axis-aligned
+box. Building is a sort and a few reductions (no Python loop over primitives), cheap enough to rebuild
+for every posed mesh. Queries walk the levels breadth-first as lists of (query, node) pairs, which is
+batched tensor work on a CPU and on a GPU alike.
+
+Shapes: P primitives, D dimensions (2 or 3), L leaves, S = ``leaf``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+LEAF = 32
+"""Primitives per leaf."""
+FANOUT = 16
+"""Children per inner node."""
+
+
+@dataclasses.dataclass
+class Hierarchy:
+    members: torch.Tensor
+    """(L, S) int64 primitive index of each leaf slot, -1 for padding."""
+    levels: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]]
+    """Per level, top first: (lo (N, D), hi (N, D), children (N, FANOUT) int64 node index in the level
+    below, -1 for padding); the level below the last is the leaves. The top level is tested whole."""
+    leaf_lo: torch.Tensor
+    """(L, D) leaf boxes."""
+    leaf_hi: torch.Tensor
+
+
+def morton_codes(centres: torch.Tensor) -> torch.Tensor:
+    """(P,) int64 Morton codes of points (P, D) quantised in their bounding box (63 // D bits an axis)."""
+    P, D = centres.shape
+    bits = min(21, 63 // D)
+    lo, hi = centres.amin(0), centres.amax(0)
+    q = ((centres - lo) / (hi - lo).clamp_min(torch.finfo(centres.dtype).tiny) * ((1 << bits) - 1)).round()
+    q = q.clamp(0, (1 << bits) - 1).to(torch.int64)
+    b = torch.arange(bits, device=centres.device)
+    bit = (q[:, :, None] >> b) & 1  # (P, D, bits)
+    place = b * D + torch.arange(D, device=centres.device)[:, None]  # (D, bits): bit b of axis a
+    return (bit << place).sum((1, 2))
+
+
+def _group(lo: torch.Tensor, hi: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Consecutive items (N, D) grouped ``size`` at a time: (group lo, group hi, (G, size) item index, -1 pad)."""
+    N, D = lo.shape
+    G = -(-N // size)
+    index = torch.arange(G * size, device=lo.device)
+    index = torch.where(index < N, index, -1).view(G, size)
+    pad = index < 0
+    glo = lo[index.clamp_min(0)].masked_fill(pad[..., None], torch.inf).amin(1)
+    ghi = hi[index.clamp_min(0)].masked_fill(pad[..., None], -torch.inf).amax(1)
+    return glo, ghi, index
+
+
+def build(lo: torch.Tensor, hi: torch.Tensor, leaf: int = LEAF, fanout: int = FANOUT) -> Hierarchy:
+    """The hierarchy over primitives with boxes lo, hi (P, D), P >= 1 (a point: lo = hi)."""
+    if lo.shape[0] == 0:
+        raise ValueError("a hierarchy needs at least one primitive")
+    order = torch.argsort(morton_codes((lo + hi) / 2))
+    leaf_lo, leaf_hi, slots = _group(lo[order], hi[order], leaf)
+    members = torch.where(slots >= 0, order[slots.clamp_min(0)], -1)
+    levels = []
+    node_lo, node_hi = leaf_lo, leaf_hi
+    while node_lo.shape[0] > fanout:
+        node_lo, node_hi, children = _group(node_lo, node_hi, fanout)
+        levels.insert(0, (node_lo, node_hi, children))
+    return Hierarchy(members, levels, leaf_lo, leaf_hi)
+
+
+def _ray_boxes(o, inv, zero, lo, hi) -> tuple[torch.Tensor, torch.Tensor]:
+    """Slab test of rays (M, 3) against boxes (M, 3) pairwise: (M,) entry and exit t (exit < entry: miss).
+
+    ``inv`` = 1 / dir, ``zero`` = dir == 0 (such an axis is a slab the ray is in everywhere or nowhere)."""
+    inside = (o >= lo) & (o <= hi)
+    t0 = torch.where(zero, torch.where(inside, -torch.inf, torch.inf), (lo - o) * inv)
+    t1 = torch.where(zero, torch.where(inside, torch.inf, -torch.inf), (hi - o) * inv)
+    return torch.minimum(t0, t1).amax(-1), torch.maximum(t0, t1).amin(-1)
+
+
+def ray_leaf_pairs(h: Hierarchy, origins: torch.Tensor, dirs: torch.Tensor,
+                   pad: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+    """(ray, leaf) pairs whose leaf box, grown by ``pad`` on every side, the ray (t >= 0) may pass through.
+
+    Conservative: every leaf holding a primitive the ray meets at t >= 0 is listed (boxes grown by ``pad``
+    absorb the rounding of the slab test). Returns (M,) ray and leaf indices and (M,) the t at which the
+    ray enters the grown box (0 when it starts inside): no primitive of the leaf is met before it."""
+    zero = dirs == 0
+    inv = 1.0 / torch.where(zero, torch.ones_like(dirs), dirs)
+    R = origins.shape[0]
+
+    def enter(ray, lo, hi):
+        near, far = _ray_boxes(origins[ray], inv[ray], zero[ray], lo - pad, hi + pad)
+        near = near.clamp_min(0)
+        return far >= near, near
+
+    if h.levels:
+        top_lo, top_hi, _ = h.levels[0]
+        N = top_lo.shape[0]
+    else:
+        top_lo, top_hi, N = h.leaf_lo, h.leaf_hi, h.leaf_lo.shape[0]
+    ray = torch.arange(R, device=origins.device).repeat_interleave(N)
+    node = torch.arange(N, device=origins.device).repeat(R)
+    ok, near = enter(ray, top_lo[node], top_hi[node])
+    ray, node, near = ray[ok], node[ok], near[ok]
+    for depth, (_, _, children) in enumerate(h.levels):
+        below_lo, below_hi = (h.levels[depth + 1][:2]) if depth + 1 < len(h.levels) else (h.leaf_lo, h.leaf_hi)
+        child = children[node]  # (M, FANOUT)
+        ray = ray[:, None].expand_as(child)[child >= 0]
+        node = child[child >= 0]
+        ok, near = enter(ray, below_lo[node], below_hi[node])
+        ray, node, near = ray[ok], node[ok], near[ok]
+    return ray, node, near
+
+
+def box_distance(points: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """(N, B) distance from points (N, D) to boxes (B, D) (0 inside)."""
+    gap = torch.maximum(lo[None] - points[:, None], points[:, None] - hi[None]).clamp_min(0)
+    return gap.norm(dim=-1)
