@@ -72,6 +72,24 @@ def step_time(model, data, st, device: str, steps: int) -> dict:
             "train_psnr_last": float(res.losses.psnr.tail(5).mean())}  # fmt: skip
 
 
+def render_time(model, device: str, size: int, supersample: int, frame: int) -> dict:
+    """Seconds for one whole size×size image of a frame (supersample² rays a pixel), the scoring render."""
+    from delta.models.image import View, render_image
+
+    m = copy.deepcopy(model).to(device).eval()
+    n = model.resolution
+    view = View(size, size, (n / size, n / size))
+    render_image(m, frame, view=view, supersample=1)  # warm-up
+    if device == "cuda":
+        torch.cuda.synchronize()
+    t = time.perf_counter()
+    render_image(m, frame, view=view, supersample=supersample)
+    if device == "cuda":
+        torch.cuda.synchronize()
+    return {"check": f"render_seconds:{device}:{size}x{size}x{supersample**2}", "cpu": float("nan"),
+            "cuda": float("nan"), "rel_diff": float("nan"), "seconds_per_step": time.perf_counter() - t}  # fmt: skip
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--record", required=True)
@@ -80,7 +98,11 @@ def main() -> None:
     p.add_argument("--preset", default="fast")
     p.add_argument("--out", default="benchmarks/cuda_check.csv")
     p.add_argument("--steps", type=int, default=30)
-    p.add_argument("--cpu-threads", type=int, nargs="+", default=[2])
+    p.add_argument("--model", default=None, help="a trained stage's model.pt: also time a whole-image render")
+    p.add_argument("--render-size", type=int, default=512)
+    p.add_argument(
+        "--cpu-threads", type=int, nargs="*", default=[2], help="CPU thread counts to time (none: CUDA only)"
+    )
     a = p.parse_args()
     if not torch.cuda.is_available():
         raise SystemExit("cuda_check: torch sees no CUDA device")
@@ -91,6 +113,11 @@ def main() -> None:
     model = build_avatar(body, st, load_init(a.init, data), data, 1, torch.device("cpu"))
     rows = agreement(model, data, st, st.stage1.rays)
     rows.append(step_time(model, data, st, "cuda", a.steps))
+    if a.model:
+        from delta.training.run import load_trained
+
+        trained = load_trained(a.model, a.record, a.body).model
+        rows.append(render_time(trained, "cuda", a.render_size, 2, int(data.train[0])))
     for n in a.cpu_threads:
         torch.set_num_threads(n)
         rows.append(step_time(model, data, st, "cpu", a.steps))

@@ -14,6 +14,7 @@ Shapes: P primitives, D dimensions (2 or 3), L leaves, S = ``leaf``.
 from __future__ import annotations
 
 import dataclasses
+from typing import Callable
 
 import torch
 
@@ -85,6 +86,29 @@ def _ray_boxes(o, inv, zero, lo, hi) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.minimum(t0, t1).amax(-1), torch.maximum(t0, t1).amin(-1)
 
 
+def descend(h: Hierarchy, n: int, test: Callable) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(query, leaf) pairs whose boxes pass ``test`` at every level, walking down from the top.
+
+    ``test(query, lo, hi)`` takes (M,) query indices and their nodes' (M, D) boxes and returns (M,) bool
+    (kept) and an (M,) value. Returns (M,) query and leaf indices, grouped by query in ascending order,
+    and the value of each pair's leaf."""
+    dev = h.leaf_lo.device
+    top_lo, top_hi = h.levels[0][:2] if h.levels else (h.leaf_lo, h.leaf_hi)
+    N = top_lo.shape[0]
+    query = torch.arange(n, device=dev).repeat_interleave(N)
+    node = torch.arange(N, device=dev).repeat(n)
+    ok, value = test(query, top_lo[node], top_hi[node])
+    query, node, value = query[ok], node[ok], value[ok]
+    for depth, (_, _, children) in enumerate(h.levels):
+        below_lo, below_hi = h.levels[depth + 1][:2] if depth + 1 < len(h.levels) else (h.leaf_lo, h.leaf_hi)
+        child = children[node]  # (M, FANOUT)
+        query = query[:, None].expand_as(child)[child >= 0]
+        node = child[child >= 0]
+        ok, value = test(query, below_lo[node], below_hi[node])
+        query, node, value = query[ok], node[ok], value[ok]
+    return query, node, value
+
+
 def ray_leaf_pairs(h: Hierarchy, origins: torch.Tensor, dirs: torch.Tensor,
                    pad: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
     """(ray, leaf) pairs whose leaf box, grown by ``pad`` on every side, the ray (t >= 0) may pass through.
@@ -94,30 +118,25 @@ def ray_leaf_pairs(h: Hierarchy, origins: torch.Tensor, dirs: torch.Tensor,
     ray enters the grown box (0 when it starts inside): no primitive of the leaf is met before it."""
     zero = dirs == 0
     inv = 1.0 / torch.where(zero, torch.ones_like(dirs), dirs)
-    R = origins.shape[0]
 
     def enter(ray, lo, hi):
         near, far = _ray_boxes(origins[ray], inv[ray], zero[ray], lo - pad, hi + pad)
         near = near.clamp_min(0)
         return far >= near, near
 
-    if h.levels:
-        top_lo, top_hi, _ = h.levels[0]
-        N = top_lo.shape[0]
-    else:
-        top_lo, top_hi, N = h.leaf_lo, h.leaf_hi, h.leaf_lo.shape[0]
-    ray = torch.arange(R, device=origins.device).repeat_interleave(N)
-    node = torch.arange(N, device=origins.device).repeat(R)
-    ok, near = enter(ray, top_lo[node], top_hi[node])
-    ray, node, near = ray[ok], node[ok], near[ok]
-    for depth, (_, _, children) in enumerate(h.levels):
-        below_lo, below_hi = (h.levels[depth + 1][:2]) if depth + 1 < len(h.levels) else (h.leaf_lo, h.leaf_hi)
-        child = children[node]  # (M, FANOUT)
-        ray = ray[:, None].expand_as(child)[child >= 0]
-        node = child[child >= 0]
-        ok, near = enter(ray, below_lo[node], below_hi[node])
-        ray, node, near = ray[ok], node[ok], near[ok]
-    return ray, node, near
+    return descend(h, origins.shape[0], enter)
+
+
+def near_leaf_pairs(h: Hierarchy, points: torch.Tensor,
+                    reach: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+    """(point, leaf) pairs whose leaf box lies within ``reach`` (N,) of the point (N, D), and the (M,)
+    distance from the point to the box."""
+
+    def close(i, lo, hi):
+        gap = torch.maximum(lo - points[i], points[i] - hi).clamp_min(0).norm(dim=-1)
+        return gap <= reach[i], gap
+
+    return descend(h, points.shape[0], close)
 
 
 def box_distance(points: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:

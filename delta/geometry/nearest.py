@@ -26,19 +26,19 @@ _CHUNK = 1 << 22
 class PointIndex:
     """Nearest-point queries against ``points`` (V, D), V >= 1, answered on the points' device."""
 
-    def __init__(self, points: torch.Tensor, backend: str = "auto"):
+    def __init__(self, points: torch.Tensor, backend: str = "auto", leaf: int = clusters.LEAF):
         if points.shape[0] == 0:
             raise ValueError("a point index needs at least one point")
         if backend == "auto":
             backend = "kdtree" if points.device.type == "cpu" else "torch"
-        if backend not in ("kdtree", "torch"):
-            raise ValueError(f"unknown backend {backend!r}; expected 'auto', 'kdtree' or 'torch'")
+        if backend not in ("kdtree", "torch", "brute"):
+            raise ValueError(f"unknown backend {backend!r}; expected 'auto', 'kdtree', 'torch' or 'brute'")
         self.points = points.detach()
         self.backend = backend
         if backend == "kdtree":
             self.tree = cKDTree(self.points.cpu().numpy().astype(np.float64))
-        else:
-            self.tree = clusters.build(self.points, self.points)
+        elif backend == "torch":
+            self.tree = clusters.build(self.points, self.points, leaf=leaf)
 
     def query(self, queries: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Distances (N, k) and indices (N, k) int64 of the k nearest points, nearest first, on the queries'
@@ -51,46 +51,97 @@ class PointIndex:
             dist = torch.from_numpy(np.asarray(dist).reshape(len(pts), k)).to(queries.device)
             return dist, torch.from_numpy(np.asarray(idx, dtype=np.int64).reshape(len(pts), k)).to(queries.device)
         q = queries.detach().to(self.points.device, self.points.dtype)
+        if self.backend == "brute":
+            step = max(1, _CHUNK // self.points.shape[0])
+            out = [_brute(self.points, q[s : s + step], k) for s in range(0, len(q), step)]
+            return _joined(out, q, k, queries.device)
         out = [_search(self.points, self.tree, q[s : s + self._step()], k) for s in range(0, len(q), self._step())]
-        if not out:
-            empty = q.new_zeros((0, k))
-            return empty.to(queries.device), empty.long().to(queries.device)
-        dist, idx = (torch.cat(x).to(queries.device) for x in zip(*out))
-        return dist, idx
+        return _joined(out, q, k, queries.device)
 
     def _step(self) -> int:
         return max(1, _CHUNK // self.tree.members.shape[0])
 
 
+def _joined(out: list, q: torch.Tensor, k: int, device) -> tuple[torch.Tensor, torch.Tensor]:
+    if not out:
+        empty = q.new_zeros((0, k))
+        return empty.to(device), empty.long().to(device)
+    dist, idx = (torch.cat(x).to(device) for x in zip(*out))
+    return dist, idx
+
+
+def _brute(points: torch.Tensor, q: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every query against every point: (n, k) distances and indices."""
+    d = torch.cdist(q, points, compute_mode="donot_use_mm_for_euclid_dist")
+    val, idx = torch.topk(d, k, dim=1, largest=False, sorted=True)
+    return val, idx
+
+
+GROUPS = 128
+"""Groups of consecutive points (along the hierarchy's curve) whose first k points bound a query's k-th
+nearest distance from above."""
+
+
+def _probes(tree: clusters.Hierarchy, k: int) -> torch.Tensor:
+    """(G, k) point indices: the first k points of G groups of consecutive points (G = 0: too few points)."""
+    order = tree.members[tree.members >= 0]
+    G = min(GROUPS, len(order) // k)
+    if G == 0:
+        return order.new_zeros((0, k))
+    starts = torch.arange(G, device=order.device) * (len(order) // G)
+    return order[starts[:, None] + torch.arange(k, device=order.device)]
+
+
+def _packed(who: torch.Tensor, value: torch.Tensor, n: int, fill) -> torch.Tensor:
+    """(n, width) table of each query's values packed to the left, ``fill`` after them; ``who`` (M,) groups
+    the values by query in ascending order."""
+    count = torch.bincount(who, minlength=n)
+    col = torch.arange(len(who), device=who.device) - (torch.cumsum(count, 0) - count)[who]
+    table = torch.full((n, max(int(count.max()), 1) if n else 1), fill, dtype=value.dtype, device=who.device)
+    table[who, col] = value
+    return table
+
+
 def _search(points: torch.Tensor, tree: clusters.Hierarchy, q: torch.Tensor, k: int):
-    """The k nearest of points for queries q (n, D) over the leaves of ``tree``: (n, k) distances, indices."""
-    members = tree.members
-    reps = points[members[:, 0]]  # one point of every leaf: its distance is a real point's
-    bound = torch.full((len(q),), torch.inf, dtype=q.dtype, device=q.device)
-    if members.shape[0] >= k:
-        bound = torch.cdist(q, reps, compute_mode="donot_use_mm_for_euclid_dist").kthvalue(k, dim=1).values
-    gap = clusters.box_distance(q, tree.leaf_lo, tree.leaf_hi)  # (n, L)
+    """The k nearest of points for queries q (n, D) over the leaves of ``tree``: (n, k) distances, indices.
+
+    A query's k-th nearest distance is at most the distance to the farthest of any group's k probe
+    points; every leaf whose box lies within that bound is searched (found by walking the hierarchy)."""
+    n = len(q)
+    probes = _probes(tree, k)
+    bound = torch.full((n,), torch.inf, dtype=q.dtype, device=q.device)
+    if len(probes):
+        # differences, not cdist: its exact mode is slow on a GPU, its matmul mode may round below the truth
+        d = (q[:, None, None] - points[probes]).norm(dim=-1)  # (n, G, k)
+        bound = d.amax(-1).amin(-1)
     slack = 4 * torch.finfo(q.dtype).eps * (q.abs().amax() + points.abs().amax() + bound.clamp_max(1e30))
-    near = gap <= (bound + slack)[:, None]
+    who, leaf, gap = clusters.near_leaf_pairs(tree, q, bound + slack)
+    members = tree.members
+    if members.shape[0] >= k:  # tighter: the k-th nearest of the listed leaves' first points
+        rep = (points[members[leaf, 0]] - q[who]).norm(dim=-1)
+        reps = _packed(who, rep, n, torch.inf)
+        if reps.shape[1] >= k:
+            bound = torch.minimum(bound, reps.kthvalue(k, dim=1).values)
+        keep = gap <= (bound + slack)[who]
+        who, leaf = who[keep], leaf[keep]
+    table = _packed(who, leaf, n, -1)
     # queries taken in order of how many leaves they search, each batch as wide as its widest query
-    count = near.sum(1)
+    count = (table >= 0).sum(1)
     by_count = torch.argsort(count)
-    dist = torch.empty((len(q), k), dtype=q.dtype, device=q.device)
-    idx = torch.empty((len(q), k), dtype=torch.int64, device=q.device)
-    widths = count[by_count].cpu().numpy()  # ascending: a batch is as wide as its last query
+    widths = count[by_count].cpu().numpy()
+    dist = torch.empty((n, k), dtype=q.dtype, device=q.device)
+    idx = torch.empty((n, k), dtype=torch.int64, device=q.device)
     s, per_batch = 0, _CHUNK // members.shape[1]
-    while s < len(q):
-        cost = np.arange(1, len(q) - s + 1) * np.maximum(widths[s:], 1)
-        step = max(1, int(np.searchsorted(cost, per_batch, side="right")))
-        rows = by_count[s : s + step]
-        width = max(int(widths[s + len(rows) - 1]), 1)
-        leaf = torch.argsort(torch.where(near[rows], gap[rows], torch.inf), dim=1)[:, :width]
-        cand = members[leaf]  # (m, width, S), nearest box first
-        ok = torch.gather(near[rows], 1, leaf)[..., None] & (cand >= 0)
+    while s < n:
+        cost = np.arange(1, n - s + 1) * np.maximum(widths[s:], 1)
+        rows = by_count[s : s + max(1, int(np.searchsorted(cost, per_batch, side="right")))]
+        w = max(int(widths[s + len(rows) - 1]), 1)
+        slots = table[rows, :w]
+        cand = torch.where(slots[..., None] >= 0, members[slots.clamp_min(0)], -1)  # (m, w, S)
         diff = points[cand.clamp_min(0)] - q[rows, None, None]
         # a real distance stays finite (a query 1e20 away in float32) so padding never outranks it
-        d2 = (diff * diff).sum(-1).clamp_max(torch.finfo(q.dtype).max).masked_fill(~ok, torch.inf).flatten(1)
+        d2 = (diff * diff).sum(-1).clamp_max(torch.finfo(q.dtype).max).masked_fill(cand < 0, torch.inf).flatten(1)
         val, pos = torch.topk(d2, k, dim=1, largest=False, sorted=True)
         dist[rows], idx[rows] = val.sqrt(), cand.flatten(1).gather(1, pos)
-        s += step
+        s += len(rows)
     return dist, idx

@@ -22,6 +22,8 @@ import torch
 
 from delta.geometry import clusters
 
+FACE_LEAF = clusters.LEAF
+"""Faces per leaf of the torch search's hierarchy."""
 _CHUNK_RAYS = 1 << 14
 """Rays walked through the face hierarchy at once by the torch search."""
 _CHUNK_PAIRS = 1 << 20
@@ -131,7 +133,7 @@ def _search_torch(vertices, faces, origins, dirs) -> torch.Tensor:
     if R == 0 or F == 0:
         return face
     tri = vertices.detach().to(work)[faces]
-    tree = _HIERARCHIES.get(vertices, faces, lambda: clusters.build(tri.amin(1), tri.amax(1)))
+    tree = _HIERARCHIES.get(vertices, faces, lambda: clusters.build(tri.amin(1), tri.amax(1), leaf=FACE_LEAF))
     tol = 64 * torch.finfo(work).eps
     # boxes grown by far more than the slab test's rounding, so no true hit is dropped before _confirm
     scale = tri.abs().amax() + o.abs().amax() + (tri.amax((0, 1)) - tri.amin((0, 1))).amax()

@@ -58,9 +58,9 @@ def test_cuda_nearest_points_match_the_kdtree(k):
     torch.testing.assert_close(got_d.cpu(), want_d, rtol=1e-12, atol=1e-15)
 
 
-def test_cuda_distance_grid_matches_the_search_on_the_cpu():
+def test_cuda_distance_grid_matches_scipys_transform():
     v, *_ = _scene(torch.float64)
-    cpu = distance_grid.build(v, 0.02, 0.2, nearest=True, method="search")
+    cpu = distance_grid.build(v, 0.02, 0.2, nearest=True, method="scipy")
     gpu = distance_grid.build(v.to(CUDA), 0.02, 0.2, nearest=True)
     assert gpu.distance.device.type == "cuda"
     torch.testing.assert_close(gpu.distance.cpu(), cpu.distance)

@@ -1,5 +1,5 @@
 """The voxel distance field used to cull samples far from the body, built by SciPy's distance transform
-(CPU) and by the nearest-point search (any device)."""
+(CPU) and by the same transform in torch (any device)."""
 
 import numpy as np
 import pytest
@@ -8,7 +8,7 @@ from scipy.spatial import cKDTree
 
 from delta.geometry import distance_grid
 
-METHODS = ["transform", "search"]
+METHODS = ["scipy", "torch"]
 
 
 def _points(seed: int, n: int) -> torch.Tensor:
@@ -34,14 +34,19 @@ def test_distances_match_exact_nearest_neighbours_to_a_cell(method):
     assert np.all(distance_grid.lookup(grid, pts).numpy() <= np.sqrt(3) / 2 * cell + 1e-6)
 
 
-def test_the_search_grid_holds_each_voxel_centres_exact_distance():
-    pts = _points(2, 300)
-    grid = distance_grid.build(pts, 0.05, pad=0.1, method="search")
-    shape = grid.distance.shape
-    ijk = np.stack(np.meshgrid(*[np.arange(n) for n in shape], indexing="ij"), -1).reshape(-1, 3)
-    centres = grid.origin.numpy() + 0.05 * ijk
-    exact = cKDTree(pts.numpy()).query(centres)[0]
-    np.testing.assert_allclose(grid.distance.numpy().reshape(-1), exact, rtol=1e-6, atol=1e-7)
+def test_the_torch_transform_is_scipys():
+    pts = _points(2, 3000)
+    for cell, pad in ((0.03, 0.2), (0.05, 0.0), (0.021, 0.11)):
+        a = distance_grid.build(pts, cell, pad, nearest=True, method="scipy")
+        b = distance_grid.build(pts, cell, pad, nearest=True, method="torch")
+        assert a.distance.shape == b.distance.shape and torch.equal(a.origin, b.origin)
+        torch.testing.assert_close(b.distance, a.distance, rtol=1e-6, atol=0)
+        # the named points may differ only between equally near occupied voxels
+        centres = a.origin + cell * torch.stack(torch.meshgrid(*[torch.arange(n) for n in a.distance.shape],
+                                                                indexing="ij"), -1).double()  # fmt: skip
+        snap = lambda who: a.origin + cell * torch.floor((pts[who] - a.origin) / cell + 0.5)  # noqa: E731
+        da, db = ((centres - snap(w)).norm(dim=-1) for w in (a.nearest, b.nearest))
+        torch.testing.assert_close(db, da, rtol=1e-9, atol=1e-12)
 
 
 @pytest.mark.parametrize("method", METHODS)
