@@ -31,8 +31,8 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from delta import losses as L
 import delta.training.trainer as T
+from delta import losses as L
 from delta.body.model import load_body_model
 from delta.data.frames import load_frames
 from delta.training.presets import deep_merge, resolve

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import time
 from pathlib import Path
 
@@ -24,6 +25,9 @@ import torch
 from delta.geometry import distance_grid, raymesh
 from delta.geometry.nearest import POINT_LEAF, PointIndex
 from delta.geometry.raymesh import embree_available, ray_mesh_hits
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table import save_table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -118,10 +122,7 @@ def main() -> None:
                 fn()
             key = "self_cuda_time_total" if dev.type == "cuda" else "self_cpu_time_total"
             print(prof.key_averages().table(sort_by=key, row_limit=8, max_name_column_width=28), flush=True)
-    df = pd.DataFrame(rows)
-    if a.append and Path(a.out).exists():
-        df = pd.concat([pd.read_csv(a.out), df], ignore_index=True)
-    df.to_csv(a.out, index=False)
+    save_table(pd.DataFrame(rows), a.out, a.append)
 
 
 if __name__ == "__main__":

@@ -22,6 +22,7 @@ ground-truth body's IoU is below 1 (its row "truth" gives that ceiling).
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -37,6 +38,9 @@ from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.fitting import silhouette as sil
 from delta.fitting.fit import FitConfig, FitResult, fit
 from delta.fitting.run import EXTERIOR
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table import save_table  # noqa: E402
 
 HIPS = [8, 11]
 
@@ -142,10 +146,7 @@ def main() -> None:
             row["seconds_per_frame"] = seconds / len(sel) if stage == "after" else 0.0
             rows.append(row)
             print(row, flush=True)
-    table = pd.DataFrame(rows)
-    if args.append and Path(args.out).is_file():
-        table = pd.concat([pd.read_csv(args.out), table], ignore_index=True)
-    table.to_csv(args.out, index=False)
+    save_table(pd.DataFrame(rows), args.out, args.append)
 
 
 if __name__ == "__main__":

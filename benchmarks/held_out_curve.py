@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import pandas as pd
@@ -34,6 +35,9 @@ from delta.eval.tradeoff import PSNR_WINDOW
 from delta.training.presets import resolve
 from delta.training.run import build_avatar, load_init, load_trained, pick_device, save_model
 from delta.training.trainer import train_stage
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table import save_table  # noqa: E402
 
 
 def main() -> None:
@@ -89,11 +93,7 @@ def main() -> None:
             row["max_loss_rel_diff_to_run"] = float(((losses["loss"] - ran["loss"]).abs() / ran["loss"]).max())
         rows.append(row)
         print(json.dumps(row), flush=True)
-    df = pd.DataFrame(rows)
-    path = Path(args.csv)
-    if args.append and path.is_file():
-        df = pd.concat([pd.read_csv(path), df], ignore_index=True)
-    df.to_csv(path, index=False)
+    save_table(pd.DataFrame(rows), args.csv, args.append)
 
 
 if __name__ == "__main__":

@@ -22,10 +22,10 @@ import h5py
 import numpy as np
 import pandas as pd
 
-from delta.preprocess.onnx_models import ClothSegmentation, clothing_mask
-from delta.preprocess.parsing_default import VideoParser
 from delta.data.sources import synthetic_source
 from delta.preprocess.frames import prepare
+from delta.preprocess.onnx_models import ClothSegmentation, clothing_mask
+from delta.preprocess.parsing_default import VideoParser
 from delta.preprocess.pose_landmarks import PoseLandmarker
 
 

@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -50,6 +51,9 @@ from delta.eval.tradeoff import MIN_GAIN_DB, PSNR_WINDOW, hybrid_rows, psnr_gain
 from delta.training.presets import deep_merge, resolve
 from delta.training.run import build_avatar, load_init, pick_device, save_model
 from delta.training.trainer import train_stage
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table import save_table  # noqa: E402
 
 
 def train(args: argparse.Namespace) -> None:
@@ -122,12 +126,7 @@ def project(args: argparse.Namespace) -> None:
 
 
 def _write(rows: list[dict], path: str, append: bool) -> None:
-    df = pd.DataFrame(rows)
-    out = Path(path)
-    if append and out.exists():
-        df = pd.concat([pd.read_csv(out), df], ignore_index=True)
-    df.to_csv(out, index=False)
-    print(df.to_string(index=False))
+    print(save_table(pd.DataFrame(rows), path, append).to_string(index=False))
 
 
 def rebound(args: argparse.Namespace) -> None:

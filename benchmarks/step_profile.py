@@ -17,12 +17,16 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import sys
 import time
 from collections import defaultdict
 from pathlib import Path
 
 import pandas as pd
 import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table import save_table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -139,11 +143,7 @@ def main() -> None:
     table["nerf_samples_per_step"] = round(samples)
     table["threads"] = a.threads
     table["device"] = torch.cuda.get_device_name() if a.device == "cuda" else f"cpu ({a.threads} threads)"
-    table = table.round(4)
-    if a.append and Path(a.out).exists():
-        table = pd.concat([pd.read_csv(a.out), table], ignore_index=True)
-    table.to_csv(a.out, index=False)
-    print(table.to_string(index=False))
+    print(save_table(table.round(4), a.out, a.append).to_string(index=False))
 
 
 if __name__ == "__main__":

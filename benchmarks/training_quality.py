@@ -24,6 +24,7 @@ import h5py
 import numpy as np
 import pandas as pd
 import torch
+
 from delta.io import load_state
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,11 +57,11 @@ def config_overrides(subject: str) -> list[dict]:
 
 
 def one(subject: str, preset: str, out: Path, extra: dict, refine: int) -> dict:
-    from delta.training.run import build_avatar, load_init_from_state, run_stage
-    from delta.data.frames import load_frames
-    from delta.training.presets import resolve
     from delta.body.model import load_body_model
+    from delta.data.frames import load_frames
     from delta.eval.heldout import score_frames
+    from delta.training.presets import resolve
+    from delta.training.run import build_avatar, load_init_from_state, run_stage
 
     torch.set_num_threads(2)
     rec = ROOT / f"results/synthetic/{subject}/frames.h5"
