@@ -1,7 +1,7 @@
 """First ray-mesh hits whose distance and barycentrics are differentiable.
 
 The search for the first hit is discrete and runs without gradients, either in
-Embree (through trimesh + embreex, float32 internally; CPU) or in torch on the
+Embree (embreex, float32 internally; CPU) or in torch on the
 inputs' device, walking a box hierarchy of the faces (:mod:`delta.geometry.clusters`). The distance ``t`` and the barycentrics of
 each found (ray, face) pair are then recomputed in torch from the vertex
 tensor, so gradients reach vertices, ray origins and ray directions, and the
@@ -45,9 +45,9 @@ class RayHits:
 
 
 def embree_available() -> bool:
-    """Whether trimesh's Embree intersector (embreex) can be imported."""
+    """Whether Embree (embreex) can be imported."""
     try:
-        from trimesh.ray.ray_pyembree import RayMeshIntersector  # noqa: F401
+        from embreex import rtcore_scene  # noqa: F401
     except ImportError:
         return False
     return True
@@ -180,11 +180,18 @@ class _MeshCache:
 
 
 def _embree_scene(vertices, faces):
-    import trimesh
-    from trimesh.ray.ray_pyembree import RayMeshIntersector
+    """An Embree scene of the mesh, moved to the origin and scaled to a unit box (float32 keeps its
+    precision where the mesh is), with the transform to apply to ray origins."""
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
 
-    mesh = trimesh.Trimesh(vertices.detach().cpu().double().numpy(), faces.detach().cpu().numpy(), process=False)
-    return RayMeshIntersector(mesh)
+    v = vertices.detach().cpu().double().numpy()
+    origin = v.min(0)
+    scale = 1.0 / max(float(np.ptp(v, axis=0).max()), 1e-12)
+    scene = rtcore_scene.EmbreeScene()
+    TriangleMesh(scene=scene, vertices=((v - origin) * scale).astype(np.float32),
+                 indices=faces.detach().cpu().numpy().astype(np.int32))  # fmt: skip
+    return scene, origin, scale
 
 
 _SCENES = _MeshCache()
@@ -194,17 +201,14 @@ _HIERARCHIES = _MeshCache()
 def _search_embree(vertices, faces, origins, dirs) -> torch.Tensor:
     """(R,) first-hit face from Embree (float32 internally; -1: none)."""
     R = origins.shape[0]
-    face = np.full(R, -1, dtype=np.int64)
-    if R and faces.shape[0]:
-        # No locations: they are recomputed in torch, and trimesh's location step drops near-parallel rays.
-        tri, ray = _SCENES.get(vertices, faces, lambda: _embree_scene(vertices, faces)).intersects_id(
-            origins.detach().cpu().double().numpy(),
-            dirs.detach().cpu().double().numpy(),
-            multiple_hits=False,
-            return_locations=False,
-        )
-        face[ray] = tri
-    return torch.from_numpy(face).to(origins.device)
+    if not R or not faces.shape[0]:
+        return torch.full((R,), -1, dtype=torch.int64, device=origins.device)
+    scene, origin, scale = _SCENES.get(vertices, faces, lambda: _embree_scene(vertices, faces))
+    o = (origins.detach().cpu().double().numpy() - origin) * scale
+    d = dirs.detach().cpu().double().numpy()
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+    face = scene.run(o.astype(np.float32), d.astype(np.float32))
+    return torch.from_numpy(np.asarray(face, dtype=np.int64)).to(origins.device)
 
 
 def ray_mesh_hits(vertices, faces, origins, dirs, backend: str = "auto") -> RayHits:
