@@ -120,6 +120,16 @@ class StageSettings:
     """dB a window must gain over the one before for training to go on at full length."""
     anneal: float = 0.1
     """The steps after a plateau, as a fraction of ``iterations``."""
+    fine_from: float = 1.0
+    """Coarse to fine: from this fraction of ``iterations`` on, the rays come from the frames at
+    ``fine_resolution`` (1: never). The model keeps its resolution's pixel units; a fine pixel is a
+    smaller square of it."""
+    fine_resolution: int = 0
+    """The frames' size for the steps from ``fine_from`` (0: the frame record's own size)."""
+
+    def fine_step(self) -> int:
+        """The first step whose rays come from the fine frames (``iterations`` or more: none)."""
+        return math.ceil(self.fine_from * self.iterations - 1e-9) if self.fine_from < 1 else self.iterations
 
     def lr_factor(self, step: int, plateau: int | None = None) -> float:
         """The learning rates' multiplier at a step (a function of the step and the plateau, which the
@@ -233,6 +243,7 @@ RANGES = {
     "stage*.checkpoint_every": (1, None, _INT), "stage*.preview_every": (0, None, _INT), "stage*.log_every": (1, None, _INT),
     "stage*.lr.*": (1e-12, 10, _NUM), "weights.*": (0, None, _NUM), "stage*.plateau_window": (0, None, _INT),
     "stage*.plateau_gain": (None, None, _NUM), "stage*.anneal": (1e-6, 1, _NUM),
+    "stage*.fine_from": (0, 1, _NUM), "stage*.fine_resolution": (0, 4096, _INT),
     **{f"{f}.{k}": v for f in ("nerf", "offsets", "albedo", "deformation") for k, v in _FIELD_RANGES.items()},
 }  # fmt: skip
 

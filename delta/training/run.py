@@ -19,6 +19,7 @@ from delta import DeltaError
 from delta.body.model import load_body_model
 from delta.cameras.models import OrthographicCamera
 from delta.data.frames import FrameData, frame_times, load_frames
+from delta.data.record import FrameRecord
 from delta.io import atomic_path, load_state, save_json
 from delta.models.avatar import HybridAvatar, InitParams
 from delta.models.init import load_init
@@ -88,6 +89,21 @@ def semantic_loss(st: TrainSettings, weights_dir: str | None, device):
     return SemanticLoss(kind=st.semantic, cache_dir=weights_dir).to(device)
 
 
+def fine_frames(record, st: TrainSettings, stage: int) -> FrameData | None:
+    """The frames a coarse-to-fine stage switches to (its ``fine_resolution``, or the record's own
+    size), or None when the stage has no switch."""
+    cfg = st.stage1 if stage == 1 else st.stage2
+    if cfg.fine_step() >= cfg.iterations:
+        return None
+    size = cfg.fine_resolution
+    if not size:
+        with FrameRecord(record) as rec:
+            size = rec.size
+    log.info("stage %d: rays from %d x %d frames from step %d (of %d)", stage, size, size, cfg.fine_step() + 1,
+             cfg.iterations)  # fmt: skip
+    return load_frames(record, size, st.background, st.box_margin)
+
+
 def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str, preset: str,
               overrides: list[dict], device: str = "cpu", perceptual_dir: str | None = None,
               scene: str | None = None, user_set: list[str] = ()) -> dict:  # fmt: skip
@@ -119,8 +135,9 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
     save_json(out / "settings.json", {"preset": preset, "stage": stage, "settings": st.raw,
                                       "nerf": model.nerf is not None, "device": str(dev)})  # fmt: skip
     sem = semantic_loss(st, perceptual_dir, dev) if stage == 2 else None
+    fine = fine_frames(record, st, stage)
     t0 = time.time()
-    res = train_stage(stage, model, data, st, out, sem, origin=file_digest(start) if stage == 2 else "")
+    res = train_stage(stage, model, data, st, out, sem, origin=file_digest(start) if stage == 2 else "", fine=fine)
     save_model(out / "model.pt", model, stage, preset, st, res.steps)
     last = res.losses.tail(max(1, len(res.losses) // 20)).mean(numeric_only=True)
     summary = {"stage": stage, "steps": res.steps, "seconds": round(time.time() - t0, 1),

@@ -175,20 +175,36 @@ def reproducible(device: torch.device):
 
 
 def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSettings, out_dir: Path,
-                semantic: Optional[Callable] = None, max_steps: Optional[int] = None, origin: str = "") -> StageResult:  # fmt: skip
+                semantic: Optional[Callable] = None, max_steps: Optional[int] = None, origin: str = "",
+                fine: Optional[FrameData] = None) -> StageResult:  # fmt: skip
     """Run (or resume) a stage; ``max_steps`` stops early (tests use it to simulate an interruption).
+    ``fine``: the frames at the stage's ``fine_resolution``, which its rays come from after the switch
+    (:meth:`StageSettings.fine_step`; the step decides, so a resume across the switch stays exact).
 
     A checkpoint of the same run at the stage's last step is finished work: the model is loaded from
     it and written out, not trained again (delete the stage's folder to train from scratch).
     ``origin`` identifies what the stage starts from (stage 2: the stage-1 model's digest).
     On the CPU a stage is bit-reproducible for a given thread count (:func:`reproducible`)."""
     with reproducible(model.background.device):
-        return _train_stage(stage, model, data, st, out_dir, semantic, max_steps, origin)
+        return _train_stage(stage, model, data, st, out_dir, semantic, max_steps, origin, fine)
+
+
+def rays_at(data: FrameData, fine: Optional[FrameData], frame: int, num: int, generator: torch.Generator,
+            patch: int = 0, crop: float = 1.0) -> RayBatch:  # fmt: skip
+    """A step's rays: from ``data``, or from the ``fine`` frames with their pixels in ``data``'s units
+    (the model's). The same draws from the generator either way."""
+    if fine is None:
+        return sample_rays(data, frame, num, generator, patch, crop=crop)
+    batch = sample_rays(fine, frame, num, generator, patch, crop=crop)
+    return dataclasses.replace(batch, pixels=batch.pixels * (data.resolution / fine.resolution))
 
 
 def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSettings, out_dir: Path,
-                 semantic: Optional[Callable], max_steps: Optional[int], origin: str) -> StageResult:  # fmt: skip
+                 semantic: Optional[Callable], max_steps: Optional[int], origin: str,
+                 fine: Optional[FrameData]) -> StageResult:  # fmt: skip
     cfg: StageSettings = st.stage1 if stage == 1 else st.stage2
+    if cfg.fine_step() < cfg.iterations and fine is None:
+        raise DeltaError(f"stage {stage}: fine_from {cfg.fine_from} asks for fine frames; none were given")
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     device = model.background.device
@@ -232,7 +248,8 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
             g["lr"] = lr * cfg.lr_factor(step, plateau)
         frame = int(data.train[torch.randint(len(data.train), (1,), generator=generator)])
         crop = cfg.nerf_warmup_crop if warm else 1.0
-        batch = _to(sample_rays(data, frame, cfg.rays, generator, cfg.patch if semantic else 0, crop=crop), device)
+        source = fine if step >= cfg.fine_step() else None
+        batch = _to(rays_at(data, source, frame, cfg.rays, generator, cfg.patch if semantic else 0, crop), device)
         _maybe_update_occupancy(model, st, stage, step)
         if model.nerf is not None and model.spec.nerf.density_noise > 0:  # a function of the step: resumes exact
             model.nerf.set_noise(model.spec.nerf.noise_at(step), _step_seed(st, stage, step) + 7)
