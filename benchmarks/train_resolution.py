@@ -1,15 +1,19 @@
-"""What a higher training resolution buys a subject, scored at the capture's size: both stages retrained
-with the workflow's own settings for the subject (its stages' settings.json, its scene.json) but
-another ``resolution``, then evaluated as the workflow evaluates; and a table of each variant's means.
+"""What the training resolution buys a subject, scored at the capture's size: its stages retrained with
+the workflow's own settings for it (its stages' settings.json, its scene.json) and the variant's
+changes (``--resolution``, any ``--settings``, e.g. a coarse-to-fine switch), then evaluated (as the
+workflow evaluates, or by ``--eval``); and a table of each variant's means.
 
     python benchmarks/train_resolution.py run --dataset real --subject head_shorthair \\
         --body resources/body/anny_sub1_face.npz --resolution 256 --work /tmp/head_shorthair_256
     python benchmarks/train_resolution.py table --subject head_shorthair \\
         --metrics 128=results/real/head_shorthair/eval/metrics.csv 256=/tmp/head_shorthair_256/metrics.csv \\
         --out benchmarks/train_resolution.csv
+    python benchmarks/train_resolution.py run --dataset synthetic --subject tight --stages 1 \\
+        --settings '{"stage1": {"fine_from": 0.5}}' --eval '{"splits": ["test_view"], "refine_steps": 0, \\
+        "max_frames": 5, "supersample": 2, "stage": 1, "worst": 0}' --work /tmp/tight_fine
 
-Each row: subject, training resolution, refined or not, the means of PSNR, SSIM, ST-LPIPS and the
-region PSNRs over the held-out frames.
+Each row: subject, variant, refined or not, the means of PSNR, SSIM, ST-LPIPS, the region PSNRs and the
+NeRF-mask IoU over the held-out frames.
 """
 
 from __future__ import annotations
@@ -25,8 +29,10 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from table import save_table  # noqa: E402
 
+from delta.training.presets import deep_merge  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
-SCORES = ["psnr", "ssim", "stlpips_alex", "psnr_face", "psnr_hair", "psnr_clothing", "psnr_body"]
+SCORES = ["psnr", "ssim", "stlpips_alex", "psnr_face", "psnr_hair", "psnr_clothing", "psnr_body", "nerf_iou"]
 EVAL = {"max_frames": 5, "refine_lr": 0.0005, "refine_rays": 4096, "refine_steps": 30, "refine_tol": 0.0,
         "report_unrefined": True, "splits": ["test_view", "test_pose"], "stage": 2, "supersample": 2, "worst": 0}  # fmt: skip
 
@@ -38,9 +44,12 @@ def run(a: argparse.Namespace) -> None:
     common = ["--record", str(res / "frames.h5"), "--body", a.body, "--scene", str(res / "scene.json"),
               "--perceptual", str(ROOT / "resources/models/stlpips"), "--threads", str(a.threads)]  # fmt: skip
     start = str(res / "init/params.npz")
-    for stage in (1, 2):
+    for stage in range(1, a.stages + 1):
         saved = json.loads((res / f"stage{stage}/settings.json").read_text())
-        settings = {**saved["settings"], "preset": saved["preset"], "resolution": a.resolution}
+        settings = deep_merge(saved["settings"], json.loads(a.settings))
+        settings["preset"] = saved["preset"]
+        if a.resolution:
+            settings["resolution"] = a.resolution
         out = work / f"stage{stage}"
         with open(work / f"stage{stage}.log", "w") as log:
             subprocess.run(["delta", "train", "--stage", str(stage), "--start", start, "--out", str(out),
@@ -48,7 +57,7 @@ def run(a: argparse.Namespace) -> None:
         start = str(out / "model.pt")
     with open(work / "eval.log", "w") as log:
         subprocess.run(["delta", "evaluate", "--model", start, "--record", str(res / "frames.h5"), "--body", a.body,
-                        "--subject", a.subject, "--out", str(work / "metrics.csv"), "--settings", json.dumps(EVAL),
+                        "--subject", a.subject, "--out", str(work / "metrics.csv"), "--settings", a.eval or json.dumps(EVAL),
                         "--perceptual", str(ROOT / "resources/models/stlpips"), "--threads", str(a.threads)],
                        check=True, stdout=log, stderr=log)  # fmt: skip
 
@@ -56,10 +65,10 @@ def run(a: argparse.Namespace) -> None:
 def table(a: argparse.Namespace) -> None:
     rows = []
     for item in a.metrics:
-        resolution, path = item.split("=", 1)
+        variant, path = item.split("=", 1)
         df = pd.read_csv(path)
         for refined, part in df.groupby("refined"):
-            row = {"subject": a.subject, "train_resolution": int(resolution), "refined": bool(refined),
+            row = {"subject": a.subject, "variant": variant, "refined": bool(refined),
                    "frames": len(part), "image": part["resolution"].iloc[0]}  # fmt: skip
             row.update({k: round(float(part[k].mean()), 4) for k in SCORES if k in part})
             rows.append(row)
@@ -73,12 +82,15 @@ def main() -> None:
     r.add_argument("--dataset", required=True)
     r.add_argument("--subject", required=True)
     r.add_argument("--body", required=True)
-    r.add_argument("--resolution", type=int, required=True)
+    r.add_argument("--resolution", type=int, default=0, help="the training resolution (0: the run's own)")
+    r.add_argument("--settings", default="{}", help="JSON deep-merged over the run's settings")
+    r.add_argument("--stages", type=int, choices=[1, 2], default=2, help="retrain stage 1 only, or both")
+    r.add_argument("--eval", default=None, help="JSON of the evaluation's settings (default: the workflow's)")
     r.add_argument("--work", required=True)
     r.add_argument("--threads", type=int, default=2)
     t = sub.add_parser("table")
     t.add_argument("--subject", required=True)
-    t.add_argument("--metrics", nargs="+", required=True, help="RESOLUTION=metrics.csv of a variant")
+    t.add_argument("--metrics", nargs="+", required=True, help="VARIANT=metrics.csv of a variant")
     t.add_argument("--out", required=True)
     t.add_argument("--append", action="store_true")
     a = ap.parse_args()

@@ -1,8 +1,9 @@
 """First ray-mesh hits whose distance and barycentrics are differentiable.
 
 The search for the first hit is discrete and runs without gradients, either in
-Embree (embreex, float32 internally; CPU) or in torch on the
-inputs' device, walking a box hierarchy of the faces (:mod:`delta.geometry.clusters`). The distance ``t`` and the barycentrics of
+Embree (embreex, float32 internally; CPU) or in torch on the inputs' device,
+walking a box hierarchy of the faces (:mod:`delta.geometry.clusters`). The
+distance ``t`` and the barycentrics of
 each found (ray, face) pair are then recomputed in torch from the vertex
 tensor, so gradients reach vertices, ray origins and ray directions, and the
 values carry the precision of the inputs rather than Embree's float32.
