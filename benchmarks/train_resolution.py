@@ -12,7 +12,7 @@ workflow evaluates, or by ``--eval``); and a table of each variant's means.
         --settings '{"stage1": {"fine_from": 0.5}}' --eval '{"splits": ["test_view"], "refine_steps": 0, \\
         "max_frames": 5, "supersample": 2, "stage": 1, "worst": 0}' --work /tmp/tight_fine
 
-Each row: subject, variant, refined or not, the means of PSNR, SSIM, ST-LPIPS, the region PSNRs and the
+Each row: subject, variant, held-out split, refined or not, the means of PSNR, SSIM, ST-LPIPS, the region PSNRs and the
 NeRF-mask IoU over the held-out frames.
 """
 
@@ -67,8 +67,8 @@ def table(a: argparse.Namespace) -> None:
     for item in a.metrics:
         variant, path = item.split("=", 1)
         df = pd.read_csv(path)
-        for refined, part in df.groupby("refined"):
-            row = {"subject": a.subject, "variant": variant, "refined": bool(refined),
+        for (split, refined), part in df.groupby(["split", "refined"]):
+            row = {"subject": a.subject, "variant": variant, "split": split, "refined": bool(refined),
                    "frames": len(part), "image": part["resolution"].iloc[0]}  # fmt: skip
             row.update({k: round(float(part[k].mean()), 4) for k in SCORES if k in part})
             rows.append(row)
