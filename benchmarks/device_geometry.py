@@ -46,6 +46,14 @@ def timed(fn, device: torch.device, repeats: int) -> float:
     return statistics.median(times)
 
 
+def brute_force(points: torch.Tensor, queries: torch.Tensor, k: int, chunk: int = 1 << 22):
+    """Every query against every point, in chunks: the k smallest distances and their indices."""
+    step = max(1, chunk // len(points))
+    parts = [torch.cdist(queries[s : s + step], points, compute_mode="donot_use_mm_for_euclid_dist")
+             .topk(k, dim=1, largest=False) for s in range(0, len(queries), step)]  # fmt: skip
+    return torch.cat([p.values for p in parts]), torch.cat([p.indices for p in parts])
+
+
 def _hits_with_leaf(v, f, origins, dirs, leaf: int):
     saved, raymesh.FACE_LEAF = raymesh.FACE_LEAF, leaf
     try:
@@ -96,11 +104,13 @@ def main() -> None:
     # a new vertex tensor each call, as each training step poses a new mesh: the scene / hierarchy is built
     cases.append(("ray hits (4096)", f"torch leaf {raymesh.FACE_LEAF}",
                   lambda: ray_mesh_hits(v.clone(), f, origins, dirs, backend="torch")))  # fmt: skip
-    backends = ["kdtree", "torch", "brute"] if dev.type == "cpu" else ["torch", "brute"]
+    backends = ["kdtree", "torch"] if dev.type == "cpu" else ["torch"]
     for b in backends:
         label = f"torch leaf {POINT_LEAF}" if b == "torch" else b
         cases.append(("knn k=6 (50k samples)", label, lambda b=b: PointIndex(v, b).query(samples, 6)))
         cases.append(("face candidates k=16 (4096 px)", label, lambda b=b: PointIndex(centroids, b).query(pixels, 16)))
+    cases.append(("knn k=6 (50k samples)", "brute", lambda: brute_force(v, samples, 6)))
+    cases.append(("face candidates k=16 (4096 px)", "brute", lambda: brute_force(centroids, pixels, 16)))
     for leaf in a.leaves:  # other leaf sizes of the hierarchies
         cases.append(
             ("knn k=6 (50k samples)", f"torch leaf {leaf}", lambda n=leaf: PointIndex(v, "torch", n).query(samples, 6))

@@ -139,7 +139,8 @@ def near_leaf_pairs(h: Hierarchy, points: torch.Tensor,
     return descend(h, points.shape[0], close)
 
 
-def box_distance(points: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
-    """(N, B) distance from points (N, D) to boxes (B, D) (0 inside)."""
-    gap = torch.maximum(lo[None] - points[:, None], points[:, None] - hi[None]).clamp_min(0)
-    return gap.norm(dim=-1)
+def group_rank(group: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """For items (M,) labelled by ``group`` in ascending runs (as :func:`descend` returns them): each
+    group's size (n,) and each item's place within its group (M,)."""
+    count = torch.bincount(group, minlength=n)
+    return count, torch.arange(len(group), device=group.device) - (torch.cumsum(count, 0) - count)[group]

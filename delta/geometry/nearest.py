@@ -1,9 +1,10 @@
 """The k nearest of a fixed point set, on the device that holds the points.
 
 On the CPU a SciPy KD-tree answers (float64). On any other device the search is tensor work over a box
-hierarchy of the points (:mod:`delta.geometry.clusters`): a query's distances to one point of every leaf
-bound its k-th nearest distance from above, every leaf whose box lies within that bound is searched
-exhaustively, and the k smallest are kept. Exact in the points' precision; no gradient (callers recompute
+hierarchy of the points (:mod:`delta.geometry.clusters`): a query's distances to a few groups of k probe
+points bound its k-th nearest distance from above, the walk lists the leaves whose boxes lie within that
+bound, those leaves' first points tighten it, the leaves left are searched exhaustively and the k
+smallest are kept. Exact in the points' precision; no gradient (callers recompute
 differentiable distances from the indices).
 
 Shapes: V points, N queries, D dimensions (2 or 3).
@@ -34,8 +35,8 @@ class PointIndex:
             raise ValueError("a point index needs at least one point")
         if backend == "auto":
             backend = "kdtree" if points.device.type == "cpu" else "torch"
-        if backend not in ("kdtree", "torch", "brute"):
-            raise ValueError(f"unknown backend {backend!r}; expected 'auto', 'kdtree', 'torch' or 'brute'")
+        if backend not in ("kdtree", "torch"):
+            raise ValueError(f"unknown backend {backend!r}; expected 'auto', 'kdtree' or 'torch'")
         self.points = points.detach()
         self.backend = backend
         if backend == "kdtree":
@@ -43,7 +44,7 @@ class PointIndex:
             # compaction takes half the time (110k points: 28 -> 13 ms) and answers as fast
             pts = self.points.cpu().numpy().astype(np.float64)
             self.tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
-        elif backend == "torch":
+        else:
             self.tree = clusters.build(self.points, self.points, leaf=leaf)
 
     def query(self, queries: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -57,30 +58,13 @@ class PointIndex:
             dist = torch.from_numpy(np.asarray(dist).reshape(len(pts), k)).to(queries.device)
             return dist, torch.from_numpy(np.asarray(idx, dtype=np.int64).reshape(len(pts), k)).to(queries.device)
         q = queries.detach().to(self.points.device, self.points.dtype)
-        if self.backend == "brute":
-            step = max(1, _CHUNK // self.points.shape[0])
-            out = [_brute(self.points, q[s : s + step], k) for s in range(0, len(q), step)]
-            return _joined(out, q, k, queries.device)
-        out = [_search(self.points, self.tree, q[s : s + self._step()], k) for s in range(0, len(q), self._step())]
-        return _joined(out, q, k, queries.device)
-
-    def _step(self) -> int:
-        return max(1, _CHUNK // self.tree.members.shape[0])
-
-
-def _joined(out: list, q: torch.Tensor, k: int, device) -> tuple[torch.Tensor, torch.Tensor]:
-    if not out:
-        empty = q.new_zeros((0, k))
-        return empty.to(device), empty.long().to(device)
-    dist, idx = (torch.cat(x).to(device) for x in zip(*out))
-    return dist, idx
-
-
-def _brute(points: torch.Tensor, q: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Every query against every point: (n, k) distances and indices."""
-    d = torch.cdist(q, points, compute_mode="donot_use_mm_for_euclid_dist")
-    val, idx = torch.topk(d, k, dim=1, largest=False, sorted=True)
-    return val, idx
+        if len(q) == 0:
+            empty = q.new_zeros((0, k), device=queries.device)
+            return empty, empty.long()
+        probes = _probes(self.tree, k)
+        step = max(1, _CHUNK // self.tree.members.shape[0])
+        out = [_search(self.points, self.tree, probes, q[s : s + step], k) for s in range(0, len(q), step)]
+        return tuple(torch.cat(x).to(queries.device) for x in zip(*out))
 
 
 GROUPS = 128
@@ -101,20 +85,19 @@ def _probes(tree: clusters.Hierarchy, k: int) -> torch.Tensor:
 def _packed(who: torch.Tensor, value: torch.Tensor, n: int, fill) -> torch.Tensor:
     """(n, width) table of each query's values packed to the left, ``fill`` after them; ``who`` (M,) groups
     the values by query in ascending order."""
-    count = torch.bincount(who, minlength=n)
-    col = torch.arange(len(who), device=who.device) - (torch.cumsum(count, 0) - count)[who]
+    count, col = clusters.group_rank(who, n)
     table = torch.full((n, max(int(count.max()), 1) if n else 1), fill, dtype=value.dtype, device=who.device)
     table[who, col] = value
     return table
 
 
-def _search(points: torch.Tensor, tree: clusters.Hierarchy, q: torch.Tensor, k: int):
+def _search(points: torch.Tensor, tree: clusters.Hierarchy, probes: torch.Tensor, q: torch.Tensor, k: int):
     """The k nearest of points for queries q (n, D) over the leaves of ``tree``: (n, k) distances, indices.
 
-    A query's k-th nearest distance is at most the distance to the farthest of any group's k probe
-    points; every leaf whose box lies within that bound is searched (found by walking the hierarchy)."""
+    A query's k-th nearest distance is at most the distance to the farthest of any group's k ``probes``
+    (:func:`_probes`); every leaf whose box lies within that bound is searched (found by walking the
+    hierarchy)."""
     n = len(q)
-    probes = _probes(tree, k)
     bound = torch.full((n,), torch.inf, dtype=q.dtype, device=q.device)
     if len(probes):
         # differences, not cdist: its exact mode is slow on a GPU, its matmul mode may round below the truth

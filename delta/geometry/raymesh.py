@@ -148,16 +148,12 @@ def _search_torch(vertices, faces, origins, dirs) -> torch.Tensor:
         by_enter = torch.argsort(enter, stable=True)
         order = by_enter[torch.argsort(ray[by_enter], stable=True)]
         ray, leaf, enter = ray[order], leaf[order], enter[order]
-        count = torch.bincount(ray - s, minlength=min(_CHUNK_RAYS, R - s))
-        rank = torch.arange(len(ray), device=o.device) - (torch.cumsum(count, 0) - count).repeat_interleave(count)
-        lo = 0
-        while lo < len(ray):
-            now = (rank >= lo) & (rank < 2 * lo + 1)
-            now &= enter <= best[ray]
+        rank = clusters.group_rank(ray - s, min(_CHUNK_RAYS, R - s))[1]
+        lo, deepest = 0, int(rank.max()) if len(rank) else -1
+        while lo <= deepest:
+            now = (rank >= lo) & (rank < 2 * lo + 1) & (enter <= best[ray])
             _test_leaves(tree, o, d, tri, tol, best, face, ray[now], leaf[now])
             lo = 2 * lo + 1
-            if not bool((rank >= lo).any()):
-                break
     return face
 
 
