@@ -12,10 +12,11 @@ command runs there, with the default config plus only what the options below cha
   ~2 min on 2 cores, timed in their own rows when not reused).
 
 One CSV row per job (``kind=job``: the rule, its wildcards, wall seconds and peak memory from the
-rule's Snakemake benchmark file), one per rule (``kind=rule``: jobs and seconds summed), and one
-``kind=total`` row: the command's wall time, the subjects, preset, cores, the machine, and the mean
-row of ``results/peoplesnapshot/metrics.csv`` (its full-frame scores and their convention). Run from
-the repository root::
+rule's Snakemake benchmark file), one per rule (``kind=rule``: jobs and seconds summed), one per
+subject (``kind=subject``: its row of the metrics table's scores), and one ``kind=total`` row: the
+command's wall time, the subjects, preset, cores, the machine, and the mean row of
+``results/peoplesnapshot/metrics.csv`` (its full-frame scores and their convention). Run from the
+repository root::
 
     PYTHONPATH=$PWD python3 benchmarks/default_target.py --reuse-builds                       # the default target
     PYTHONPATH=$PWD python3 benchmarks/default_target.py --reuse-builds --subjects male-3-casual \\
@@ -102,6 +103,9 @@ def main() -> None:
     table = pd.read_csv(work / TARGET)
     mean = table[table["subject"] == "mean"].iloc[0]
     subjects = [s for s in table["subject"] if s != "mean"]
+    for _, row in table[table["subject"] != "mean"].iterrows():
+        rows.append({"kind": "subject", "rule": "all", "subjects": row["subject"]}
+                    | {k: row[k] for k in SCORES if k in row.index})  # fmt: skip
     total = {"kind": "total", "rule": "all", "seconds": round(wall, 1), "minutes": round(wall / 60, 1),
              "subjects": " ".join(subjects), "cores": a.cores, "reused_builds": a.reuse_builds,
              "machine": f"{platform.machine()} {os.cpu_count()} CPUs", "python": platform.python_version()}  # fmt: skip

@@ -176,6 +176,16 @@ def check_camera(camera, where: str, frame_ids=None) -> None:
         raise DeltaError(f"{where}: camera R is not a rotation: {_values(R)}")
 
 
+def metres_per_pixel(camera, points: torch.Tensor) -> torch.Tensor:
+    """(N,) the width in world units of one image pixel at (N, 3) world points, along the image's rows:
+    depth / f_x under a pinhole (distortion left out), 2 / (s W) under an orthographic camera."""
+    if isinstance(camera, PinholeCamera):
+        depth = (points @ camera.R.T.to(points.dtype) + camera.t.to(points.dtype))[..., 2]
+        return depth.abs() / float(camera.K[0, 0].detach())
+    scale = float(torch.as_tensor(camera.scale).detach())
+    return torch.full(points.shape[:-1], 2.0 / (scale * camera.width), dtype=points.dtype)
+
+
 def camera_vertical(camera) -> torch.Tensor:
     """(3,) float64 the camera's image-up direction (v decreasing) in the world: the up a level camera sees."""
     if isinstance(camera, PinholeCamera):

@@ -11,6 +11,7 @@ conditioned on posed body points and is left out of the exported clothing.
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from typing import Optional
 
@@ -109,6 +110,26 @@ def clean(vertices: np.ndarray, faces: np.ndarray, settings: ExportSettings) -> 
     return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64).reshape(-1, 3)
 
 
+def edge_lengths(part: MeshPart) -> np.ndarray:
+    """(3F,) the length of every face's edges (shared edges counted once a face)."""
+    v = part.vertices[part.faces]
+    return np.linalg.norm(v - np.roll(v, 1, axis=1), axis=-1).reshape(-1)
+
+
+def split_long_edges(vertices: np.ndarray, faces: np.ndarray, longest: float) -> tuple[np.ndarray, np.ndarray]:
+    """Midpoint subdivision of every edge longer than ``longest`` until none is (the surface unchanged:
+    new vertices lie on the old edges)."""
+    part = MeshPart(vertices, faces, np.zeros_like(vertices))
+    if longest <= 0 or part.empty or edge_lengths(part).max() <= longest:
+        return vertices, faces
+    ms = pymeshlab.MeshSet()
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=vertices, face_matrix=faces.astype(np.int32)))
+    passes = math.ceil(math.log2(edge_lengths(part).max() / longest)) + 1
+    ms.meshing_surface_subdivision_midpoint(iterations=passes, threshold=pymeshlab.PureValue(longest))
+    m = ms.current_mesh()
+    return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64).reshape(-1, 3)
+
+
 def density_grid(model: HybridAvatar, settings: ExportSettings) -> tuple[np.ndarray, marching.Grid]:
     """NeRF density on a grid over the canonical body's box plus ``max_dist``, 0 farther than ``max_dist``
     from the body (the renderer never evaluates the NeRF there) and inside it (rays stop at the mesh)."""
@@ -122,14 +143,15 @@ def density_grid(model: HybridAvatar, settings: ExportSettings) -> tuple[np.ndar
     return values, grid
 
 
-def clothing_nerf_space(model: HybridAvatar, settings: ExportSettings) -> MeshPart:
-    """The clothing/hair surface {σ = threshold} in the NeRF's canonical space, cleaned, NeRF colours."""
+def clothing_nerf_space(model: HybridAvatar, settings: ExportSettings, longest_edge: float = 0.0) -> MeshPart:
+    """The clothing/hair surface {σ = threshold} in the NeRF's canonical space, cleaned, NeRF colours
+    read at its vertices after edges longer than ``longest_edge`` (m; 0: none) are split."""
     if model.nerf is None:
         raise ValueError("the avatar has no NeRF (no clothing or hair was modelled)")
     values, grid = density_grid(model, settings)
     verts, faces = marching.extract_surface(values, grid, settings.threshold)
     if len(faces):
-        verts, faces = clean(verts, faces, settings)
+        verts, faces = split_long_edges(*clean(verts, faces, settings), longest_edge)
     colors = nerf_query(model, verts, settings.chunk)[0] if len(verts) else np.zeros((0, 3))
     return MeshPart(verts, faces, colors)
 

@@ -17,6 +17,7 @@ from delta.export.animated import INFLUENCES, world_transform, write_animated_gl
 from delta.export.meshes import (
     MeshPart,
     body_mesh,
+    edge_lengths,
     clothing_nerf_space,
     pose_clothing,
     rest_body,
@@ -30,9 +31,9 @@ from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import atomic_path, require_files, save_json
 from delta.metrics import psnr
 from delta.models.avatar import HybridAvatar
-from delta.cameras.models import camera_vertical
+from delta.cameras.models import camera_vertical, metres_per_pixel
 from delta.data.frames import load_full_frames
-from delta.models.image import full_view, pixel_grid, render_image
+from delta.models.image import View, full_view, pixel_grid, render_image
 from delta.progress import Progress
 from delta.training.run import Trained, load_trained
 
@@ -142,6 +143,20 @@ def check_frame(model: HybridAvatar, frame: int, clothing: MeshPart | None, img:
     return row
 
 
+@torch.no_grad()
+def capture_pixel(model: HybridAvatar, frame: int, body: MeshPart, view: View | None) -> float:
+    """The width (m) of one pixel of the capture's whole frame (of the model's crop without ``view``)
+    at the posed body of ``frame``: the median over its vertices."""
+    per_model_pixel = metres_per_pixel(model.camera(frame), torch.from_numpy(body.vertices))
+    return float(per_model_pixel.median()) * (float(view.scale[0]) if view is not None else 1.0)
+
+
+def edge_summary(part: MeshPart) -> dict:
+    """Median and 95th-percentile edge length (mm) of a mesh."""
+    edges = edge_lengths(part) * 1000
+    return {"median_mm": round(float(np.median(edges)), 2), "p95_mm": round(float(np.percentile(edges, 95)), 2)}
+
+
 def _load(model_path, record, body_path, device):
     require_files(model=model_path, record=record, body_model=body_path)
     return load_trained(model_path, record, body_path, device)  # names a record of other frames
@@ -185,10 +200,19 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
                               "watertight": bool(body_c.to_trimesh().is_watertight)}}  # fmt: skip
     times["body"] = time.perf_counter() - t
 
+    pixel = capture_pixel(model, posed_frame, body_p, view)
+    summary["colour_sampling"] = {"capture_pixel_mm": round(pixel * 1000, 2), "body_edges": edge_summary(body_c)}
     clothing = None
     if model.nerf is not None:
         t = time.perf_counter()
-        clothing = clothing_nerf_space(model, settings)
+        # the NeRF's colour holds no detail finer than half its finest cell: no edge is split below that
+        cell = model.nerf.color_cell()
+        longest = max(settings.color_spacing * pixel, cell / 2) if settings.color_spacing > 0 else 0.0
+        clothing = clothing_nerf_space(model, settings, longest)
+        summary["colour_sampling"] |= {"nerf_colour_cell_mm": round(cell * 1000, 2),
+                                       "clothing_longest_edge_mm": round(longest * 1000, 2)}  # fmt: skip
+        if not clothing.empty:
+            summary["colour_sampling"]["clothing_edges"] = edge_summary(clothing)
         parts["clothing"] = pose_clothing(model, clothing, cano_out)
         if not clothing.empty:  # (an empty mesh makes no PLY)
             write_mesh(out / "clothing_nerf_space.ply", clothing)  # the NeRF's own space (evaluation poses it)

@@ -24,6 +24,10 @@ class ExportSettings:
     """Taubin smoothing steps of the clothing mesh (0: none); Taubin does not shrink the surface."""
     decimate: int = _f(default=60000, metadata={"minimum": 0})
     """Target face count of the clothing mesh after quadric decimation (0: keep every face)."""
+    color_spacing: float = _f(default=1.0, metadata={"minimum": 0})
+    """Longest edge of the clothing/hair mesh, in the capture's pixels at the person's distance, where
+    the NeRF's colours are read at its vertices: longer edges are split, down to half the NeRF colour
+    grid's finest cell (finer sampling shows nothing the model holds). 0: the decimated mesh as is."""
     min_component_faces: int = _f(default=200, metadata={"minimum": 0})
     """Connected components of the clothing mesh with fewer faces are removed (floaters)."""
     turntable_frames: int = _f(default=36, metadata={"minimum": 2, "maximum": 720})

@@ -31,6 +31,11 @@ class PositionalEncoding(nn.Module):
         xn = 2 * (x - self.lo) / (self.hi - self.lo) - 1
         return positional_encoding(xn, self.num_freqs)
 
+    def finest_cell(self) -> float:
+        """The finest detail it encodes (world units): half the period of its highest frequency
+        (2^(L-1) π on the box's longest side normalised to [-1, 1]), extent / 2^L."""
+        return float((self.hi - self.lo).max()) / 2**self.num_freqs
+
 
 class GridEncoding(nn.Module):
     """Multi-resolution dense feature grids over a box, trilinearly sampled (``grid_sample``).
@@ -55,6 +60,10 @@ class GridEncoding(nn.Module):
             nn.Parameter(init_std * torch.randn(1, features, nz, ny, nx)) for nx, ny, nz in self.shapes
         )
         self.out_dim = levels * features
+
+    def finest_cell(self) -> float:
+        """The finest level's node spacing (world units) along the box's longest side."""
+        return float((self.hi - self.lo).max()) / (self.resolutions[-1] - 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         xn = 2 * (x - self.lo) / (self.hi - self.lo) - 1

@@ -130,6 +130,10 @@ class NeRFField(nn.Module):
         color = self.color_head(self.color_encoding(x)) if self.split else out[:, :3]
         return torch.sigmoid(color), self._sigma(out[:, -1], noisy=True)
 
+    def color_cell(self) -> float:
+        """The finest detail of the colour's encoding (world units)."""
+        return (self.color_encoding if self.split else self.encoding).finest_cell()
+
     def raw_density(self, x: torch.Tensor) -> torch.Tensor:
         """(N, 3) -> the density before its activation (N,); the colour branch is skipped with ``grid``."""
         return self.head(self.encoding(x))[:, -1]

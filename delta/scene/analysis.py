@@ -29,7 +29,7 @@ import torch
 from delta import DeltaError
 from delta.body.lbs import lbs
 from delta.body.model import REGION_NAMES, load_body_model
-from delta.cameras.models import PinholeCamera
+from delta.cameras.models import metres_per_pixel
 from delta.data.frames import load_frames
 from delta.data.record import FrameRecord
 from delta.geometry.raymesh import ray_mesh_hits
@@ -67,12 +67,7 @@ def body_view(body, init, frame: int, n: int) -> tuple[np.ndarray, np.ndarray, n
     origins, dirs = cam.rays(pixels)
     hits = ray_mesh_hits(verts, body.faces, origins.float(), dirs.float())
     regions = body.regions[body.faces[hits.face.clamp_min(0), 0]]
-    if isinstance(cam, PinholeCamera):
-        points = origins + hits.t[:, None].clamp_min(0) * dirs
-        depth = (points.double() @ cam.R.T.double() + cam.t.double())[:, 2]
-        mpp = (depth / float(cam.K[0, 0])).float()
-    else:
-        mpp = torch.full((len(pixels),), 2.0 / (float(cam.scale) * n))
+    mpp = metres_per_pixel(cam, (origins + hits.t[:, None].clamp_min(0) * dirs).double()).float()
     shape = (n, n)
     return hits.hit.reshape(shape).numpy(), regions.reshape(shape).numpy(), mpp.reshape(shape).numpy()
 

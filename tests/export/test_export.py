@@ -13,7 +13,7 @@ from torch import nn
 
 from delta.cli import main
 from delta.export import lineup
-from delta.export.meshes import MeshPart, body_mesh, pose_clothing
+from delta.export.meshes import MeshPart, body_mesh, edge_lengths, pose_clothing
 from delta.export.run import export_trained, novel_pose_frames, rendered_hits, report_frames, silhouette
 from delta.models.image import render_image
 from delta.training.run import load_trained
@@ -32,6 +32,9 @@ class ShellNeRF(nn.Module):
     def __init__(self, canonical: torch.Tensor):
         super().__init__()
         self.tree = cKDTree(canonical.detach().cpu().numpy())
+
+    def color_cell(self) -> float:
+        return 0.01  # the export splits the clothing's edges down to half this and no further
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         d, _ = self.tree.query(x.detach().cpu().numpy(), k=1)
@@ -78,7 +81,20 @@ def test_exported_meshes_load_back_and_the_body_is_watertight(shell_export, shel
     canonical_body = trimesh.load(out / "body_canonical.ply", process=False)
     d, _ = cKDTree(canonical_body.vertices).query(cloth.vertices)
     assert abs(np.median(d) - SHELL) < 0.3 * SHELL, np.median(d)
-    assert len(cloth.faces) <= SETTINGS.decimate
+
+
+def test_clothing_colours_are_read_a_capture_pixel_apart_or_half_the_nerfs_cell(shell_export, shell_avatar):
+    out, summary = shell_export
+    model, sampling = shell_avatar.model, summary["colour_sampling"]
+    body, _ = body_mesh(model, summary["posed_frame"])
+    # no record given: the capture is the model's own crop, an orthographic camera (2 / (s W) a pixel)
+    pixel_mm = 2000.0 / (float(model.camera(summary["posed_frame"]).scale.detach()) * model.resolution)
+    assert sampling["capture_pixel_mm"] == pytest.approx(pixel_mm, abs=0.01)
+    longest = max(SETTINGS.color_spacing * pixel_mm, 5.0)
+    assert sampling["clothing_longest_edge_mm"] == pytest.approx(longest, abs=0.01)
+    cloth = _part(out / "clothing_nerf_space.ply")
+    assert edge_lengths(cloth).max() * 1000 <= longest + 1e-6
+    assert sampling["clothing_edges"]["p95_mm"] <= longest
 
 
 def test_glb_holds_body_and_clothing(shell_export):

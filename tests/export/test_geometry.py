@@ -13,7 +13,8 @@ from delta.body.lbs import lbs
 from delta.body.model import BodyModel
 from delta.deformers.knn import deform, prepare
 from delta.export import lineup, marching
-from delta.export.meshes import MeshPart, clean
+from delta.geometry.closest import closest_point_on_triangles
+from delta.export.meshes import MeshPart, clean, edge_lengths, split_long_edges
 from delta.export.settings import ExportSettings
 from delta.export.skinning import forward_skin, prepare_forward
 from delta.body.upright import axis_angle_matrix
@@ -71,6 +72,23 @@ def test_cleaning_drops_small_components_and_decimates():
     # Taubin smoothing does not shrink a sphere the way Laplacian smoothing does
     v, f = clean(big.vertices, big.faces, ExportSettings(min_component_faces=0, smooth=10, decimate=0))
     assert len(f) == len(big.faces) and abs(np.linalg.norm(v, axis=1).mean() - 1) < 0.01
+
+
+def test_long_edges_are_split_on_the_surface_until_none_is_longer():
+    sphere = trimesh.creation.icosphere(subdivisions=1)  # edges ~1.05
+    v, f = split_long_edges(sphere.vertices, sphere.faces, 0.2)
+    split = trimesh.Trimesh(v, f, process=False)
+    assert edge_lengths(MeshPart(v, f, np.zeros_like(v))).max() <= 0.2 < len(f) / len(sphere.faces)
+    assert split.is_watertight and split.area == pytest.approx(sphere.area, rel=1e-9)  # nothing moved off it
+    tri = sphere.vertices[sphere.faces]  # every new vertex on an old face
+    n, k = len(v), len(tri)
+    pairs = [np.repeat(v, k, 0)] + [np.tile(tri[:, i], (n, 1)) for i in range(3)]
+    nearest = closest_point_on_triangles(*pairs).reshape(n, k, 3)
+    assert np.linalg.norm(nearest - v[:, None], axis=-1).min(1).max() < 1e-9
+    # short enough already, or no limit: the mesh comes back as it was
+    for longest in (2.0, 0.0):
+        same_v, same_f = split_long_edges(sphere.vertices, sphere.faces, longest)
+        assert same_v is sphere.vertices and same_f is sphere.faces
 
 
 # ------------------------------------------------------------------ forward skinning

@@ -285,6 +285,36 @@ def test_nerf_colour_grid_can_be_finer_than_the_density_grid():
     assert rgb.shape == (5, 3) and sigma.shape == (5,)
 
 
+def test_finest_cell_is_the_grids_node_spacing_and_the_encodings_half_period():
+    """A grid's finest cell is the distance between its finest level's nodes: a field that is 1 at one
+    node and 0 at the others reads 1 there, 0.5 half a cell away and 0 a cell away. A PE's is half the
+    period of its highest frequency: that feature is negated a cell away and repeats two cells away."""
+    enc = GridEncoding(BOUNDS, levels=2, features=1, base_res=4, max_res=9)
+    cell = enc.finest_cell()
+    assert cell == pytest.approx(3.0 / 8)  # the longest side (y, 3 long) has 9 nodes
+    with torch.no_grad():
+        for g in enc.grids:
+            g.zero_()
+        enc.grids[-1][0, 0, 2, 4, 2] = 1.0  # the node (x, y, z) = (2, 4, 2) cells from the box's low corner
+    spacing = (BOUNDS[1] - BOUNDS[0]) / (torch.tensor(enc.shapes[-1], dtype=torch.float32) - 1)  # per axis
+    node = BOUNDS[0] + spacing * torch.tensor([2.0, 4.0, 2.0])
+    along_y = torch.stack([node + torch.tensor([0.0, d * cell, 0.0]) for d in (0.0, 0.5, 1.0, -1.0)])
+    torch.testing.assert_close(enc(along_y)[:, -1], torch.tensor([1.0, 0.5, 0.0, 0.0]), rtol=0, atol=1e-5)
+    pe = PositionalEncoding(4, BOUNDS)
+    cell = pe.finest_cell()
+    assert cell == pytest.approx(3.0 / 16)
+    x = inside_points(20, 3, D) * 0.5 + 0.5
+    L = 4  # features: x, sin(2^k π x_n) for k < L (x y z each), then the cosines; the longest side is y
+    highest = lambda p: pe(p)[:, [3 + 3 * (L - 1) + 1, 3 + 3 * L + 3 * (L - 1) + 1]]  # noqa: E731
+    shift = torch.tensor([0.0, cell, 0.0], dtype=D)
+    torch.testing.assert_close(highest(x + shift), -highest(x), rtol=0, atol=1e-9)
+    torch.testing.assert_close(highest(x + 2 * shift), highest(x), rtol=0, atol=1e-9)
+    nerf = NeRFField(FieldSpec("grid", levels=2, features=2, base_res=4, max_res=9, depth=1, width=8,
+                               color_max_res=17), BOUNDS)  # fmt: skip
+    assert nerf.color_cell() == pytest.approx(3.0 / 16)
+    assert NeRFField(SMALL_PE, BOUNDS).color_cell() == pytest.approx(3.0 / 8)
+
+
 # ----------------------------------------------------------------- SCARF's ReLU density with training noise
 RELU_PE = FieldSpec(encoding="pe", num_freqs=3, depth=2, width=32, skip=0, density_activation="relu",
                     density_noise=1.0, density_noise_steps=100)  # fmt: skip

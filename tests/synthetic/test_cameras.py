@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from delta.cameras.models import OrthographicCamera, PinholeCamera, distort, look_at, undistort
+from delta.cameras.models import OrthographicCamera, PinholeCamera, distort, look_at, metres_per_pixel, undistort
 
 
 def pinhole(dist=(0.0, 0.0, 0.0, 0.0, 0.0)):
@@ -94,3 +94,26 @@ def test_a_generated_camera_looks_down_by_its_pitch_and_is_rolled_by_its_roll(pi
     du, dv = (uv[1] - uv[0]).tolist()
     # the world's vertical appears turned clockwise by the roll (image v grows downwards)
     assert np.degrees(np.arctan2(-du, -dv)) == pytest.approx(-roll, abs=1e-6)
+
+
+def test_metres_per_pixel_is_the_width_of_one_pixel_at_the_point():
+    """A point moved by metres_per_pixel along the camera's own x axis moves one pixel along the row
+    (pinhole: away from the image centre too, distortion off; orthographic: anywhere)."""
+    D = torch.float64
+    R, t = look_at(torch.tensor([0.3, 1.2, 3.5], dtype=D), torch.tensor([0.0, 0.9, 0.0], dtype=D),
+                   torch.tensor([0.0, 1.0, 0.0], dtype=D))  # fmt: skip
+    K = torch.tensor([[610.0, 0.0, 250.0], [0.0, 640.0, 260.0], [0.0, 0.0, 1.0]], dtype=D)
+    pin = PinholeCamera(K, R, t, torch.zeros(5, dtype=D), 512, 512)
+    ortho = OrthographicCamera(torch.tensor(0.8, dtype=D), torch.tensor([0.1, -0.9], dtype=D), 512, 384)
+    points = torch.tensor([[0.0, 0.9, 0.0], [0.4, 1.5, -0.3], [-0.5, 0.2, 0.6]], dtype=D)
+    for cam, x_axis in ((pin, R[0]), (ortho, torch.tensor([1.0, 0.0, 0.0], dtype=D))):
+        mpp = metres_per_pixel(cam, points)
+        assert mpp.shape == (3,) and bool((mpp > 0).all())
+        step = 1e-3  # of a pixel: the pinhole's change of depth along x is nil, its projection linear
+        uv, _ = cam.project(points)
+        uv2, _ = cam.project(points + step * mpp[:, None] * x_axis)
+        torch.testing.assert_close((uv2 - uv)[:, 0] / step, torch.ones(3, dtype=D), rtol=0, atol=1e-6)
+        torch.testing.assert_close((uv2 - uv)[:, 1] / step, torch.zeros(3, dtype=D), rtol=0, atol=1e-6)
+    # twice as far from a pinhole, a pixel is twice as wide
+    far = pin.center + 2 * (points - pin.center)
+    torch.testing.assert_close(metres_per_pixel(pin, far), 2 * metres_per_pixel(pin, points))
