@@ -123,3 +123,38 @@ def test_files_round_trip_and_bad_files(tmp_path, face_model, space):
 def test_a_model_without_facial_actions_is_refused(anny_model):
     with pytest.raises(DeltaError, match="built without facial actions"):
         anny_expression_space(anny_model)
+
+
+def test_an_open_jaw_shows_the_inner_mouth_not_the_inside_of_the_head(face_model):
+    """Anny's mesh is closed through the mouth (its mouth cavity and tongue, region ``mouth``), which is
+    what the paper adds to FLAME as inner-mouth faces. Rays from the front down the face's midline: with
+    the jaw open those between the lips stop on mouth faces a few centimetres behind the lips (not on the
+    back of the head's inside, ~20 cm further); closed, the same rays stop on the lips' skin."""
+    from delta.geometry.raymesh import ray_mesh_hits
+
+    jaw = face_model.expression_names.index("jawOpen")
+    pose = face_model.canonical_pose[None].to(torch.float64)
+    shut = posed(face_model, pose, torch.zeros(1, face_model.num_expression, dtype=torch.float64))[0]
+    acts = torch.zeros(1, face_model.num_expression, dtype=torch.float64)
+    acts[0, jaw] = 1.0
+    open_ = posed(face_model, pose, acts)[0]
+    moved = (open_ - shut).norm(dim=-1) > 3e-3  # the jaw, chin and lips
+    lo, hi = shut[moved].amin(0), shut[moved].amax(0)
+    ys = torch.linspace(float(lo[1]), float(hi[1]), 80, dtype=torch.float64)
+    start = float(hi[2]) + 0.3
+    origins = torch.stack([torch.full_like(ys, float(lo[0] + hi[0]) / 2), ys, torch.full_like(ys, start)], -1)
+    dirs = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64).expand_as(origins)
+    regions = face_model.regions.to(torch.long)
+    hit = {}
+    for name, verts in (("open", open_), ("shut", shut)):
+        h = ray_mesh_hits(verts, face_model.faces, origins, dirs)
+        assert bool(h.hit.all()), name
+        hit[name] = (start - h.t, regions[face_model.faces[h.face, 0]])
+    z_open, region_open = hit["open"]
+    z_shut, region_shut = hit["shut"]
+    gap = z_open < z_shut - 0.02  # rays that now pass between the lips
+    assert int(gap.sum()) >= 5
+    assert bool((region_open[gap] == REGION["mouth"]).all())
+    behind_lips = z_shut[gap] - z_open[gap]
+    assert float(behind_lips.max()) < 0.08, behind_lips
+    assert bool((region_shut[gap] != REGION["mouth"]).all())  # closed, the lips cover it
