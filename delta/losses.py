@@ -24,6 +24,9 @@ class LossWeights:
     """ID-MRF on rendered patches (stage 2 only)."""
     exterior: float = 0.5
     """L1 between the NeRF mask s_v and the exterior mask."""
+    exterior_layers: float = 0.5
+    """L1 between each exterior layer's opacity and its own mask (clothing, hair), averaged over the
+    layers, where the exterior is in layers."""
     silhouette: float = 0.001
     """Huber between the soft mesh silhouette and the person mask."""
     interior_mask: float = 30.0
@@ -62,6 +65,16 @@ def exterior(nerf_mask: torch.Tensor, exterior_mask: torch.Tensor) -> torch.Tens
     """‖S_v - S_e‖_1, averaged over rays (0 for no rays, as :func:`huber`)."""
     d = (nerf_mask - exterior_mask).abs()
     return d.mean() if d.numel() else d.sum()  # the mean of nothing is NaN
+
+
+def exterior_layers(layer_masks: torch.Tensor, names: tuple[str, ...], exterior_mask: torch.Tensor,
+                    hair_mask: torch.Tensor | None) -> torch.Tensor:  # fmt: skip
+    """Mean over the layers of ‖S_l - M_l‖_1: the hair layer's opacity against the hair mask, the
+    clothing layer's against the rest of the exterior mask (R rays, ``layer_masks`` (R, L))."""
+    if hair_mask is None:
+        raise ValueError("an exterior in layers needs the hair mask (load the frames with hair=True)")
+    targets = {"hair": hair_mask, "clothing": (exterior_mask - hair_mask).clamp_min(0.0)}
+    return torch.stack([exterior(layer_masks[:, k], targets[n]) for k, n in enumerate(names)]).mean()
 
 
 def silhouette(mesh_sil: torch.Tensor, person: torch.Tensor, delta: float = 0.1) -> torch.Tensor:

@@ -65,6 +65,18 @@ def test_exterior():
     close(losses.exterior(t(0.2, 1.0, 0.0, 0.5), t(0.0, 1.0, 1.0, 0.25)), (0.2 + 0.0 + 1.0 + 0.25) / 4)
 
 
+def test_exterior_layers():
+    """Hair's opacity against the hair mask, clothing's against the rest of the exterior, averaged."""
+    masks = torch.tensor([[0.5, 0.1], [0.0, 1.0], [0.2, 0.2]], dtype=torch.float64)
+    exterior, hair = t(1.0, 1.0, 0.0), t(0.25, 1.0, 0.0)
+    clothing_err = (abs(0.5 - 0.75) + abs(0.0 - 0.0) + abs(0.2 - 0.0)) / 3
+    hair_err = (abs(0.1 - 0.25) + abs(1.0 - 1.0) + abs(0.2 - 0.0)) / 3
+    close(losses.exterior_layers(masks, ("clothing", "hair"), exterior, hair), (clothing_err + hair_err) / 2)
+    close(losses.exterior_layers(masks[:, [1, 0]], ("hair", "clothing"), exterior, hair), (clothing_err + hair_err) / 2)
+    with pytest.raises(ValueError, match="hair mask"):
+        losses.exterior_layers(masks, ("clothing", "hair"), exterior, None)
+
+
 def test_silhouette():
     # residuals 0.05, -1.0, 0 -> 0.00125, 0.095, 0
     close(losses.silhouette(t(0.05, 0.0, 1.0), t(0.0, 1.0, 1.0), 0.1), (0.00125 + 0.095) / 3, atol=1e-12)

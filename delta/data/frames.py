@@ -41,6 +41,8 @@ class FrameData:
     """The record's camera rescaled to n (pinhole) or the record's per-frame orthographic camera."""
     skin_color: torch.Tensor
     """(3,) average colour of the visible body over the training frames."""
+    hair: torch.Tensor | None = None
+    """(N, n, n) hair in [0, 1] (part of ``exterior``), loaded for an exterior of separate layers."""
 
     @property
     def resolution(self) -> int:
@@ -69,15 +71,17 @@ def rescale_camera(camera, source: int, n: int):
     return OrthographicCamera(camera.scale, camera.trans, n, n)
 
 
-def load_frames(record_path, resolution: int, background=(1.0, 1.0, 1.0), box_margin: float = 0.1) -> FrameData:
-    """Read and resize a frame record (N × resolution² × 7 floats stay in memory)."""
+def load_frames(record_path, resolution: int, background=(1.0, 1.0, 1.0), box_margin: float = 0.1,
+                hair: bool = False) -> FrameData:  # fmt: skip
+    """Read and resize a frame record (N × resolution² × 7 floats stay in memory; ``hair``: the hair
+    mask too, zeros where the record has none)."""
     bg = np.asarray(background, dtype=np.float32)
     with FrameRecord(record_path) as rec:
         n_frames, src = len(rec), rec.size
         has = {m: m in rec.h5 for m in ("clothing", "hair")}
         if not (has["clothing"] or has["hair"]):
             raise DeltaError(f"{record_path}: no 'clothing' or 'hair' mask; the parse step must run first")
-        imgs, person, ext = [], [], []
+        imgs, person, ext, hairs = [], [], [], []
         for i in range(n_frames):
             a = _resize(rec.h5["person"][i].astype(np.float32) / 255.0, resolution)
             img = _resize(rec.h5["images"][i].astype(np.float32) / 255.0, resolution)
@@ -85,6 +89,9 @@ def load_frames(record_path, resolution: int, background=(1.0, 1.0, 1.0), box_ma
             imgs.append(img * a[..., None] + bg * (1 - a[..., None]))
             person.append(a)
             ext.append(np.minimum(np.minimum(e, 1.0), a))
+            if hair:
+                h = _resize(rec.h5["hair"][i].astype(np.float32), resolution) if has["hair"] else np.zeros_like(a)
+                hairs.append(np.minimum(np.minimum(h, 1.0), a))
         split, frame_ids = rec.h5["split"][:], rec.h5["frame_ids"][:]
         camera = rescale_camera(rec.camera(), src, resolution)
     images, person_t, ext_t = (torch.from_numpy(np.stack(x)) for x in (imgs, person, ext))
@@ -95,7 +102,8 @@ def load_frames(record_path, resolution: int, background=(1.0, 1.0, 1.0), box_ma
     w = interior[train].reshape(-1)
     skin = (images[train].reshape(-1, 3) * w[:, None]).sum(0) / w.sum().clamp_min(1e-6)
     boxes = torch.tensor([_box(p > 0.5, box_margin) for p in person], dtype=torch.int64)
-    return FrameData(images, person_t, ext_t, interior, boxes, train, split, frame_ids, camera, skin)
+    hair_t = torch.from_numpy(np.stack(hairs)) if hair else None
+    return FrameData(images, person_t, ext_t, interior, boxes, train, split, frame_ids, camera, skin, hair_t)
 
 
 @dataclasses.dataclass
@@ -196,6 +204,8 @@ class RayBatch:
     interior: torch.Tensor
     patch: int = 0
     """The first patch² rays form a patch (row-major), 0 when none."""
+    hair: torch.Tensor | None = None
+    """(R,) the hair mask (part of ``exterior``) where the frames hold it."""
 
 
 def sample_rays(data: FrameData, frame: int, num: int, generator: torch.Generator, patch: int = 0,
@@ -228,5 +238,6 @@ def sample_rays(data: FrameData, frame: int, num: int, generator: torch.Generato
     if jitter:
         offset[patch * patch :] = torch.rand((num, 2), generator=generator)
     pixels = torch.stack([jj.float(), ii.float()], dim=-1) + offset
+    hair = data.hair[frame, ii, jj] if data.hair is not None else None
     return RayBatch(frame, pixels, data.images[frame, ii, jj], data.person[frame, ii, jj],
-                    data.exterior[frame, ii, jj], data.interior[frame, ii, jj], patch)  # fmt: skip
+                    data.exterior[frame, ii, jj], data.interior[frame, ii, jj], patch, hair)  # fmt: skip

@@ -81,12 +81,14 @@ def forward_frame(model: HybridAvatar, out: LBSOutput) -> SkinningFrame:
 
 
 @torch.no_grad()
-def nerf_query(model: HybridAvatar, points: np.ndarray, chunk: int = 65536) -> tuple[np.ndarray, np.ndarray]:
-    """Colour (N, 3) and density (N,) of the NeRF at canonical points."""
+def nerf_query(model: HybridAvatar, points: np.ndarray, chunk: int = 65536,
+               layer: str | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Colour (N, 3) and density (N,) of the NeRF (of one ``layer`` of a layered one) at canonical points."""
     dev = model.canonical_vertices.device
+    field = model.nerf if layer is None else model.nerf.layers[layer]
     rgb, sigma = [], []
     for s in range(0, len(points), chunk):
-        c, d = model.nerf(torch.from_numpy(points[s : s + chunk]).float().to(dev))
+        c, d = field(torch.from_numpy(points[s : s + chunk]).float().to(dev))
         rgb.append(c.cpu().numpy())
         sigma.append(d.cpu().numpy())
     if not rgb:
@@ -130,7 +132,8 @@ def split_long_edges(vertices: np.ndarray, faces: np.ndarray, longest: float) ->
     return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64).reshape(-1, 3)
 
 
-def density_grid(model: HybridAvatar, settings: ExportSettings) -> tuple[np.ndarray, marching.Grid]:
+def density_grid(model: HybridAvatar, settings: ExportSettings,
+                 layer: str | None = None) -> tuple[np.ndarray, marching.Grid]:  # fmt: skip
     """NeRF density on a grid over the canonical body's box plus ``max_dist``, 0 farther than ``max_dist``
     from the body (the renderer never evaluates the NeRF there) and inside it (rays stop at the mesh)."""
     cano = model.canonical_vertices.detach().cpu().numpy().astype(np.float64)
@@ -139,20 +142,22 @@ def density_grid(model: HybridAvatar, settings: ExportSettings) -> tuple[np.ndar
     max_dist = float(model.spec.render.max_dist)
     grid = marching.make_grid(cano.min(0) - max_dist, cano.max(0) + max_dist, settings.grid)
     mask = marching.near_and_outside(grid.points(), cano, normals, max_dist)
-    values = marching.sample(grid, lambda p: nerf_query(model, p, settings.chunk)[1], mask, settings.chunk)
+    values = marching.sample(grid, lambda p: nerf_query(model, p, settings.chunk, layer)[1], mask, settings.chunk)
     return values, grid
 
 
-def clothing_nerf_space(model: HybridAvatar, settings: ExportSettings, longest_edge: float = 0.0) -> MeshPart:
-    """The clothing/hair surface {σ = threshold} in the NeRF's canonical space, cleaned, NeRF colours
-    read at its vertices after edges longer than ``longest_edge`` (m; 0: none) are split."""
+def clothing_nerf_space(model: HybridAvatar, settings: ExportSettings, longest_edge: float = 0.0,
+                        layer: str | None = None) -> MeshPart:  # fmt: skip
+    """The clothing/hair surface {σ = threshold} in the NeRF's canonical space (one ``layer``'s of a layered
+    NeRF), cleaned, NeRF colours read at its vertices after edges longer than ``longest_edge`` (m; 0:
+    none) are split."""
     if model.nerf is None:
         raise ValueError("the avatar has no NeRF (no clothing or hair was modelled)")
-    values, grid = density_grid(model, settings)
+    values, grid = density_grid(model, settings, layer)
     verts, faces = marching.extract_surface(values, grid, settings.threshold)
     if len(faces):
         verts, faces = split_long_edges(*clean(verts, faces, settings), longest_edge)
-    colors = nerf_query(model, verts, settings.chunk)[0] if len(verts) else np.zeros((0, 3))
+    colors = nerf_query(model, verts, settings.chunk, layer)[0] if len(verts) else np.zeros((0, 3))
     return MeshPart(verts, faces, colors)
 
 

@@ -223,6 +223,17 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
                                "components": len(tm.split(only_watertight=False)) if len(tm.faces) else 0}  # fmt: skip
         if clothing.empty:
             log.warning("the NeRF's density never reaches %.3g: the clothing mesh is empty", settings.threshold)
+        layers = getattr(model.nerf, "names", ())
+        if layers:  # each layer on its own as well; the GLB holds them apart
+            del parts["clothing"]
+        for name in layers:
+            own = clothing_nerf_space(model, settings, longest, name)
+            summary.setdefault("layers", {})[name] = {"vertices": len(own.vertices), "faces": len(own.faces)}
+            if own.empty:
+                continue
+            write_mesh(out / f"{name}_nerf_space.ply", own)
+            parts[name] = pose_clothing(model, own, cano_out)
+            write_mesh(out / f"{name}_canonical.ply", parts[name])
         times["clothing"] = time.perf_counter() - t
     write_glb(out / "avatar.glb", parts)
     t = time.perf_counter()

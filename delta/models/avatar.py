@@ -19,7 +19,7 @@ from delta.body.model import BodyModel
 from delta.body.parts import lower_body_vertices
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.deformers import knn as deformer
-from delta.fields.networks import DeformationField, FieldSpec, NeRFField, VertexField, time_features
+from delta.fields.networks import DeformationField, FieldSpec, LayeredNeRF, NeRFField, VertexField, time_features
 from delta.geometry.distance_grid import GRID_REACH
 from delta.losses import mesh_edges
 from delta.render.hybrid import PosedMesh, RayRender, RenderSettings, render_rays, room_margin
@@ -51,6 +51,9 @@ class AvatarSpec:
     """``full`` or ``upper``: the lower body is left out of backward skinning and the NeRF's box."""
     frozen_joints: tuple[int, ...] = ()
     """Joints whose pose is not optimised (their gradient is zeroed)."""
+    layers: tuple[str, ...] = ()
+    """The exterior's layers, each its own NeRF (``clothing``, ``hair``: :class:`LayeredNeRF`); empty:
+    one NeRF for the whole exterior."""
 
 
 @dataclasses.dataclass
@@ -127,7 +130,9 @@ class HybridAvatar(nn.Module):
         self.albedo_field = VertexField(spec.albedo, tbox, "albedo", init=skin_color)
         # the canonical fields' box holds the exterior's whole room (a decided max_dist may exceed the margin)
         nbox = _box(self.canonical_vertices[modelled], room_margin(spec.nerf_margin, spec.render.max_dist))
-        self.nerf = NeRFField(spec.nerf, nbox) if spec.nerf is not None else None
+        self.nerf = None
+        if spec.nerf is not None:
+            self.nerf = LayeredNeRF(spec.nerf, nbox, tuple(spec.layers)) if spec.layers else NeRFField(spec.nerf, nbox)
         self.deformation = None
         if spec.deformation is not None:
             self.deformation = DeformationField(spec.deformation, nbox, spec.deformation_scale,

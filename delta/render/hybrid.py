@@ -91,6 +91,9 @@ class RayRender:
     """(R,) soft mesh coverage, differentiable wrt vertices."""
     samples_evaluated: int
     """NeRF queries made (after culling)."""
+    layer_masks: Optional[torch.Tensor] = None
+    """(R, L) each exterior layer's opacity (a layered NeRF: the ray's weights times the layer's share
+    of the density; they sum to ``nerf_mask``), None for one NeRF."""
 
 
 #: cells the occupied set grows by for the early cull: the rough canonical point lies within 3 cm of
@@ -143,10 +146,14 @@ def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixe
     t_far = torch.where(in_box | stop, t_far, t_in)
     t_near, t_far = body_span(mesh.skinning, origins, dirs, t_in, torch.maximum(t_far, t_in), stop, settings)
     t = stratified_samples(t_near, t_far, settings.samples, settings.perturb, generator)
-    sigma, rgb, n = _query(mesh, origins, dirs, t, settings, nerf, nonrigid, occupied)
+    sigma, rgb, layer_sigma, n = _query(mesh, origins, dirs, t, settings, nerf, nonrigid, occupied)
     out = composite(t, sigma, rgb, background.expand_as(mesh_rgb) if through_mesh else mesh_rgb)
     nerf_rgb = (out.weights[:, :-1, None] * rgb).sum(1) + (1 - out.nerf_mask[:, None]) * background
-    return RayRender(out.rgb, out.nerf_mask, nerf_rgb, mesh_rgb, hits.hit, sil, n)
+    layer_masks = None
+    if layer_sigma is not None:
+        share = layer_sigma / sigma.clamp_min(torch.finfo(sigma.dtype).tiny)[..., None]
+        layer_masks = (out.weights[:, :-1, None] * share).sum(1)
+    return RayRender(out.rgb, out.nerf_mask, nerf_rgb, mesh_rgb, hits.hit, sil, n, layer_masks)
 
 
 @torch.no_grad()
@@ -188,7 +195,8 @@ def early_cull(skinning: deformer.SkinningFrame, points: torch.Tensor, max_dist:
 
 
 def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: NeRF, nonrigid, occupied=None):
-    """Densities and colours of the NeRF samples (all but the last), zero where culled.
+    """Densities and colours of the NeRF samples (all but the last), zero where culled, each layer's
+    density (R, S - 1, L) for a layered NeRF (else None), and the number of samples evaluated.
 
     Culling, cheapest first: rays with an empty span, the early cull (distance grid and rough
     canonical point), samples beyond ``max_dist`` of the body (kNN), then samples whose canonical
@@ -201,6 +209,8 @@ def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: Ne
     live = (t[:, -1:] > t[:, :1]).expand(R, S - 1).reshape(-1)  # rays with a non-empty interval
     sigma = flat.new_zeros(R * (S - 1))
     rgb = flat.new_zeros(R * (S - 1), 3)
+    layered = hasattr(nerf, "with_layers")
+    layer_sigma = flat.new_zeros(R * (S - 1), len(nerf.names)) if layered else None
     idx = torch.nonzero(live).squeeze(1)
     if settings.early_cull and mesh.skinning.near is not None and len(idx):
         idx = idx[early_cull(mesh.skinning, flat[idx], settings.max_dist, occupied)]
@@ -215,7 +225,13 @@ def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: Ne
             x_c = d.canonical[keep]
             if nonrigid is not None:
                 x_c = x_c + nonrigid(x_c, d.posed_ref[keep])
-            c, s = nerf(x_c)
+            if layered:
+                c, s, s_layers = nerf.with_layers(x_c)
+                layer_sigma = layer_sigma.index_put((idx,), s_layers)
+            else:
+                c, s = nerf(x_c)
             sigma = sigma.index_put((idx,), s)
             rgb = rgb.index_put((idx,), c)
-    return sigma.view(R, S - 1), rgb.view(R, S - 1, 3), int(len(idx))
+    if layered:
+        layer_sigma = layer_sigma.view(R, S - 1, -1)
+    return sigma.view(R, S - 1), rgb.view(R, S - 1, 3), layer_sigma, int(len(idx))

@@ -88,7 +88,7 @@ _STAGE_DEFAULTS = {
 _COMMON = {
     "seed": 0, "background": [1.0, 1.0, 1.0], "box_margin": 0.1, "offset_scale": 0.04, "nerf_margin": 0.3,
     "semantic": "idmrf", "exterior": "auto", "weights": {}, "render": {}, "stage1": {}, "stage2": {},
-    "capture": "auto", "freeze": [], "freeze_rest": -1.0, "dynamics": {"time_freqs": 0, "dropout": 0.2, "pose_knots": 0},
+    "capture": "auto", "layers": "one", "freeze": [], "freeze_rest": -1.0, "dynamics": {"time_freqs": 0, "dropout": 0.2, "pose_knots": 0},
 }  # fmt: skip
 
 
@@ -193,6 +193,9 @@ class TrainSettings:
     time_dropout: float = 0.0
     """Stage 2 with a time-reading F_e: the share of steps rendered without the frame's time
     (teaches the time-free deformation novel poses get)."""
+    layers: str = "one"
+    """``one`` NeRF for the whole exterior, or ``split``: clothing and hair each their own NeRF, told
+    apart by the parsing masks, where the capture shows both (else one)."""
 
 
 #: Top-level settings a stage never reads: changing them leaves that stage's work valid.
@@ -355,7 +358,9 @@ def _resolve(preset: str, *overrides: dict) -> TrainSettings:
                         render=render, time_freqs=int(dyn["time_freqs"]), pose_knots=knots)  # fmt: skip
     if d["capture"] not in ("auto", "full", "upper"):
         raise DeltaError(f"training.capture: '{d['capture']}' (expected auto, full or upper)")
+    if d["layers"] not in ("one", "split"):
+        raise DeltaError(f"training.layers: '{d['layers']}' (expected one or split)")
     return TrainSettings(preset, d["resolution"], d["seed"], d["background"], d["box_margin"], d["exterior"],
                          d["semantic"], d["capture"], list(d["freeze"]), float(d["freeze_rest"]), avatar,
                          _fields(d, "deformation"), weights, stage["stage1"], stage["stage2"], d,
-                         float(dyn["dropout"]))  # fmt: skip
+                         float(dyn["dropout"]), d["layers"])  # fmt: skip

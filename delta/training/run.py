@@ -52,8 +52,25 @@ def wants_exterior(st: TrainSettings, data: FrameData) -> bool:
     return frac >= MIN_EXTERIOR_FRACTION
 
 
+def exterior_layers(st: TrainSettings, data: FrameData) -> tuple[str, ...]:
+    """The exterior's layers: clothing and hair apart (``layers: split``) where the training frames show
+    both (each at least ``MIN_EXTERIOR_FRACTION`` of the person), else none (one NeRF)."""
+    if st.layers != "split":
+        return ()
+    if data.hair is None:
+        raise DeltaError("training.layers: split needs the frames' hair mask (load_frames(..., hair=True))")
+    person = data.person[data.train].sum().clamp_min(1.0)
+    hair = float(data.hair[data.train].sum() / person)
+    clothing = float((data.exterior - data.hair).clamp_min(0)[data.train].sum() / person)
+    both = min(hair, clothing) >= MIN_EXTERIOR_FRACTION
+    log.info("exterior layers: clothing %.1f%%, hair %.1f%% of the person -> %s", 100 * clothing, 100 * hair,
+             "one NeRF each" if both else "one NeRF (not both seen)")  # fmt: skip
+    return ("clothing", "hair") if both else ()
+
+
 def resolve_scope(body, st: TrainSettings, init: InitParams, data: FrameData) -> dict:
-    """What this capture needs modelled: ``capture`` (full/upper) and ``frozen_joints`` (logged)."""
+    """What this capture needs modelled: ``capture`` (full/upper), ``frozen_joints`` (logged) and the
+    exterior's ``layers``."""
     capture = st.capture
     if capture == "auto":
         capture = detect_capture(body, init.betas, init.poses, init.transl, init.camera, data.train, data.resolution)
@@ -63,14 +80,15 @@ def resolve_scope(body, st: TrainSettings, init: InitParams, data: FrameData) ->
         log.info("frozen joints (%d): %s", len(frozen), ", ".join(names[:12]) + (" ..." if len(names) > 12 else ""))
     if capture == "upper":
         log.info("capture 'upper': the lower body is not modelled (no skinning samples or NeRF box there)")
-    return {"capture": capture, "frozen_joints": frozen}
+    return {"capture": capture, "frozen_joints": frozen, "layers": exterior_layers(st, data)}
 
 
 def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, stage: int, device,
                  scope: dict | None = None) -> HybridAvatar:  # fmt: skip
     """The avatar of a stage; ``scope`` (capture, frozen_joints) as resolved earlier, else resolved here."""
     scope = scope or resolve_scope(body, st, init, data)
-    spec = dataclasses.replace(st.avatar, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]))
+    spec = dataclasses.replace(st.avatar, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]),
+                               layers=tuple(scope["layers"]))  # fmt: skip
     if not wants_exterior(st, data):
         spec = dataclasses.replace(spec, nerf=None)
     if stage == 2 and spec.nerf is not None:
@@ -101,7 +119,7 @@ def fine_frames(record, st: TrainSettings, stage: int) -> FrameData | None:
             size = rec.size
     log.info("stage %d: rays from %d x %d frames from step %d (of %d)", stage, size, size, cfg.fine_step() + 1,
              cfg.iterations)  # fmt: skip
-    return load_frames(record, size, st.background, st.box_margin)
+    return load_frames(record, size, st.background, st.box_margin, hair=st.layers == "split")
 
 
 def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str, preset: str,
@@ -118,7 +136,7 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
             log.info("from the scene analysis (%s): %s", scene, json.dumps(decided, sort_keys=True))
             st = resolve(preset, *overrides, decided)
     dev = pick_device(device)
-    data = load_frames(record, st.resolution, st.background, st.box_margin)
+    data = load_frames(record, st.resolution, st.background, st.box_margin, hair=st.layers == "split")
     body = load_body_model(body_path)  # on the CPU: the avatar's .to(dev) moves it
     if stage == 1:
         init = load_init(start, data)
@@ -155,7 +173,7 @@ def save_model(path: str | Path, model: HybridAvatar, stage: int, preset: str, s
     final = {"format": MODEL_FORMAT, "model": model.state_dict(), "stage": stage, "preset": preset, "settings": st.raw,
              "nerf": model.nerf is not None, "deformation": model.deformation is not None,
              "pinhole": model.pinhole, "steps": steps, "capture": model.spec.capture,
-             "frozen_joints": list(model.spec.frozen_joints)}  # fmt: skip
+             "frozen_joints": list(model.spec.frozen_joints), "layers": list(model.spec.layers)}  # fmt: skip
     with atomic_path(path) as tmp:
         torch.save(final, tmp)
 
@@ -189,8 +207,9 @@ def migrate_model(state: dict, path: str | Path) -> dict:
 
 
 def _scope(state: dict) -> dict:
-    """The capture and frozen joints a (migrated) model.pt was trained with."""
-    return {"capture": state["capture"], "frozen_joints": list(state["frozen_joints"])}
+    """The capture, frozen joints and exterior layers a (migrated) model.pt was trained with."""
+    return {"capture": state["capture"], "frozen_joints": list(state["frozen_joints"]),
+            "layers": list(state.get("layers", []))}  # fmt: skip
 
 
 def load_init_from_state(state: dict, data: FrameData) -> InitParams:
@@ -223,10 +242,11 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
     dev = pick_device(device)
     state = migrate_model(load_state(model_path, map_location=dev), model_path)
     st = resolve(state["preset"], state["settings"])
-    data = load_frames(record, st.resolution, st.background, st.box_margin)
+    data = load_frames(record, st.resolution, st.background, st.box_margin, hair=st.layers == "split")
     spec = st.avatar if state.get("nerf", True) else dataclasses.replace(st.avatar, nerf=None)
     scope = _scope(state)
-    spec = dataclasses.replace(spec, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]))
+    spec = dataclasses.replace(spec, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]),
+                               layers=tuple(scope["layers"]))  # fmt: skip
     if state.get("deformation"):
         spec = dataclasses.replace(spec, deformation=st.deformation)
     bg = torch.tensor(st.background, dtype=torch.float32)

@@ -61,6 +61,8 @@ def loss_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, skin_col
     }
     if model.nerf is not None:
         terms["exterior"] = L.exterior(r.nerf_mask, batch.exterior)
+    if r.layer_masks is not None:
+        terms["exterior_layers"] = L.exterior_layers(r.layer_masks, model.nerf.names, batch.exterior, batch.hair)
     if semantic is not None and batch.patch:
         p = batch.patch
         img = lambda x: x[: p * p].T.reshape(1, 3, p, p)  # noqa: E731
@@ -344,7 +346,8 @@ def frame_locked(params: list[torch.Tensor], frame: int):
 
 def _to(batch: RayBatch, device) -> RayBatch:
     return dataclasses.replace(batch, **{f: getattr(batch, f).to(device) for f in
-                                        ("pixels", "rgb", "person", "exterior", "interior")})  # fmt: skip
+                                        ("pixels", "rgb", "person", "exterior", "interior", "hair")
+                                        if getattr(batch, f) is not None})  # fmt: skip
 
 
 def write_preview(model: HybridAvatar, data: FrameData, frame: int, path: Path) -> None:

@@ -1,5 +1,6 @@
 """The export of a tiny trained avatar: files load back, line up with the renders, videos play; bad inputs."""
 
+import dataclasses
 import json
 
 import cv2
@@ -13,7 +14,7 @@ from torch import nn
 
 from delta.cli import main
 from delta.export import lineup
-from delta.export.meshes import MeshPart, body_mesh, edge_lengths, pose_clothing
+from delta.export.meshes import MeshPart, body_mesh, clothing_nerf_space, edge_lengths, pose_clothing
 from delta.export.run import export_trained, novel_pose_frames, rendered_hits, report_frames, silhouette
 from delta.models.image import render_image
 from delta.training.run import load_trained
@@ -40,6 +41,35 @@ class ShellNeRF(nn.Module):
         d, _ = self.tree.query(x.detach().cpu().numpy(), k=1)
         sigma = torch.from_numpy(4000.0 * np.clip((SHELL - d) / RAMP + 0.5, 0, 1)).to(x)
         return x.new_tensor([1.0, 0.0, 0.0]).expand(len(x), 3), sigma
+
+
+class Part(ShellNeRF):
+    """The analytic shell, ``colour``, only above (hair) or below (clothing) ``neck`` in canonical height."""
+
+    def __init__(self, canonical: torch.Tensor, colour, neck: float, hair: bool):
+        super().__init__(canonical)
+        self.colour, self.neck, self.hair = torch.tensor(colour), neck, hair
+
+    def forward(self, x):
+        _, sigma = super().forward(x)
+        keep = (x[:, 1] > self.neck) if self.hair else (x[:, 1] <= self.neck)
+        return self.colour.to(x).expand(len(x), 3), sigma * keep.to(sigma)
+
+    def density(self, x):
+        return self.forward(x)[1]
+
+
+def layered(model, clothing_colour, hair_colour):
+    """The avatar's exterior replaced by analytic clothing and hair layers around its canonical body."""
+    from delta.fields.networks import LayeredNeRF
+
+    cano = (model.canonical_T[..., :3] @ model.body.v_template[..., None]).squeeze(-1) + model.canonical_T[..., 3]
+    neck = float(cano[:, 1].max()) - 0.25
+    model.nerf = LayeredNeRF.of({"clothing": Part(cano, clothing_colour, neck, False),
+                                 "hair": Part(cano, hair_colour, neck, True)})  # fmt: skip
+    model.occupancy = None
+    model.spec.render.samples, model.spec.render.max_dist = 32, 0.12
+    return neck
 
 
 @pytest.fixture(scope="module")
@@ -249,3 +279,19 @@ def test_bad_inputs_give_clear_errors(tiny_model, tmp_path, capsys):
     assert main(base + ["--model", tiny_model["model"], "--grid", "2"]) == 2
     assert "export.grid" in capsys.readouterr().err
     assert not (tmp_path / "y").exists() and not (tmp_path / "z").exists()
+
+
+def test_each_layer_of_a_layered_exterior_is_its_own_mesh(tiny_model):
+    """Analytic clothing below the neck and hair above it: each layer's surface lies on its side of the neck
+    and the two together are the whole exterior's surface (same faces, up to the cut at the neck)."""
+    tr = load_trained(tiny_model["model"], tiny_model["record"], tiny_model["body"])
+    neck = layered(tr.model, (0.9, 0.1, 0.1), (0.1, 0.8, 0.2))
+    st = dataclasses.replace(SETTINGS, decimate=0, smooth=0)
+    whole = clothing_nerf_space(tr.model, st)
+    parts = {n: clothing_nerf_space(tr.model, st, 0.0, n) for n in ("clothing", "hair")}
+    cell = 0.05  # a grid cell or so of slack at the cut
+    assert parts["hair"].vertices[:, 1].min() > neck - cell and parts["clothing"].vertices[:, 1].max() < neck + cell
+    np.testing.assert_allclose(parts["hair"].colors, np.tile([0.1, 0.8, 0.2], (len(parts["hair"].colors), 1)))
+    np.testing.assert_allclose(parts["clothing"].colors, np.tile([0.9, 0.1, 0.1], (len(parts["clothing"].colors), 1)))
+    area = {k: v.to_trimesh().area for k, v in parts.items()}
+    assert min(area.values()) > 0.05 and sum(area.values()) == pytest.approx(whole.to_trimesh().area, rel=0.05)

@@ -13,6 +13,7 @@ from delta.fields.networks import (
     MLP,
     DeformationField,
     FieldSpec,
+    LayeredNeRF,
     NeRFField,
     VertexField,
     time_features,
@@ -371,3 +372,36 @@ def test_the_paper_preset_has_scarfs_density_and_nerf_only_start():
     assert (spec.density_activation, spec.density_noise, spec.density_noise_steps) == ("relu", 1.0, 5000)
     assert resolve("fast").avatar.nerf.density_activation == "exp"
     assert (resolve("paper").stage1.nerf_warmup, resolve("fast").stage1.nerf_warmup) == (400, 0)
+
+
+@pytest.mark.parametrize("spec", [SMALL_GRID, SMALL_PE])
+def test_layered_nerf_is_one_medium_of_its_layers(spec):
+    """σ = Σ σ_l and c = Σ σ_l c_l / σ, layer by layer against each NeRFField on its own; a one-layer
+    stack is the plain NeRF built from the same seed."""
+    torch.manual_seed(3)
+    nerf = LayeredNeRF(spec, BOUNDS)
+    with torch.no_grad():  # layers that differ visibly (a fresh one is nearly empty)
+        for k, layer in enumerate(nerf.layers.values()):
+            layer.head.out.bias[-1] = 1.0 + k
+    x = inside_points(64, 4)
+    rgb, sigma, sigmas = nerf.with_layers(x)
+    parts = [nerf.layers[n](x) for n in ("clothing", "hair")]
+    torch.testing.assert_close(sigmas, torch.stack([s for _, s in parts], -1))
+    torch.testing.assert_close(sigma, parts[0][1] + parts[1][1])
+    mix = (parts[0][1][:, None] * parts[0][0] + parts[1][1][:, None] * parts[1][0]) / sigma[:, None]
+    torch.testing.assert_close(rgb, mix)
+    torch.testing.assert_close(nerf.density(x), sigma)
+    torch.testing.assert_close(nerf(x)[0], rgb)
+    torch.manual_seed(5)
+    one = LayeredNeRF(spec, BOUNDS, ("hair",))
+    torch.manual_seed(5)
+    plain = NeRFField(spec, BOUNDS)
+    for a, b in zip(one(x), plain(x)):
+        torch.testing.assert_close(a, b)
+    assert nerf.color_cell() == plain.color_cell()
+
+
+@pytest.mark.parametrize("names", [(), ("hair", "hair"), ("hat",)])
+def test_layered_nerf_refuses_unknown_or_repeated_layers(names):
+    with pytest.raises(ValueError, match="exterior layers"):
+        LayeredNeRF(SMALL_GRID, BOUNDS, names)

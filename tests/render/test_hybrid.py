@@ -127,3 +127,50 @@ def test_silhouette_value_is_the_exact_coverage_and_its_gradient_the_soft_one():
     assert grad.abs().sum() > 0 and torch.isfinite(grad).all()
     rim = (v.detach()[:, 0] > 0.25) & (v.detach()[:, 2].abs() < 0.1)
     assert (grad[rim, 0] >= 0).all() and (grad[rim, 0] > 0).any()
+
+
+class TwoLayers(torch.nn.Module):
+    """Analytic clothing and hair: the clothing a shell below y = 0.05, red; the hair above y = -0.05,
+    green (they overlap in a 10-cm band), each of density ``sigma`` within 0.08 m outside the sphere."""
+
+    names = ("clothing", "hair")
+
+    def __init__(self, sigma: float):
+        super().__init__()
+        self.sigma = sigma
+
+    def with_layers(self, x):
+        r, y = x.norm(dim=-1), x[:, 1]
+        shell = ((r > 0.3) & (r < 0.38)).float() * self.sigma
+        sig = torch.stack([shell * (y < 0.05), shell * (y > -0.05)], -1)
+        colours = torch.tensor([[0.9, 0.1, 0.1], [0.1, 0.8, 0.2]])
+        share = sig / sig.sum(-1, keepdim=True).clamp_min(1e-30)
+        return share @ colours, sig.sum(-1), sig
+
+    def forward(self, x):
+        return self.with_layers(x)[:2]
+
+
+def test_layers_render_as_one_medium_and_each_layer_gets_its_share_of_the_opacity():
+    """Rays through the clothing only, the hair only and the band where both are: the composite is the
+    render of one NeRF of summed density and density-weighted colour (a plain callable, no layers),
+    each layer's opacity is what rendering that layer alone gives where the other is absent, and the
+    layers' opacities add up to the exterior's."""
+    mesh = sphere_avatar()
+    layered = TwoLayers(40.0)
+    o = torch.tensor([[0.0, -0.33, 2.0], [0.0, 0.33, 2.0], [0.0, 0.0, 2.0], [0.25, 0.05, 2.0]])
+    d = torch.tensor([[0.0, 0.0, -1.0]] * len(o))
+    st = RenderSettings(samples=64, box_margin=0.3, max_dist=0.1, perturb=False)
+    out = render_rays(mesh, o, d, o[:, :2] * 100, BG, st, layered)
+    plain = render_rays(mesh, o, d, o[:, :2] * 100, BG, st, lambda x: layered(x))
+    assert plain.layer_masks is None and out.layer_masks.shape == (4, 2)
+    torch.testing.assert_close(out.rgb, plain.rgb)
+    torch.testing.assert_close(out.nerf_mask, plain.nerf_mask)
+    torch.testing.assert_close(out.layer_masks.sum(1), out.nerf_mask)
+    assert float(out.nerf_mask.min()) > 0.5  # every ray crosses the shell
+    clothing, hair = out.layer_masks.unbind(1)
+    torch.testing.assert_close(clothing[0], out.nerf_mask[0])
+    torch.testing.assert_close(hair[1], out.nerf_mask[1])
+    assert float(hair[0]) == 0.0 and float(clothing[1]) == 0.0
+    # in the overlap band each layer has half the density: half the opacity each
+    torch.testing.assert_close(clothing[2], hair[2])

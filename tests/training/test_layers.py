@@ -1,0 +1,64 @@
+"""An exterior in layers (``training.layers: split``): clothing and hair each their own NeRF, trained,
+saved, loaded back and carried into stage 2; one NeRF where the capture does not show both."""
+
+import dataclasses
+
+import pandas as pd
+import pytest
+import torch
+
+from delta.data.frames import load_frames
+from delta.fields.networks import LayeredNeRF, NeRFField
+from delta.io import load_state
+from delta.models.image import render_image
+from delta.training.presets import resolve
+from delta.training.run import _scope, exterior_layers, load_trained, run_stage
+from tests.conftest import TINY_STAGE1
+
+pytestmark = pytest.mark.slow
+SPLIT = {"layers": "split"}
+STAGE2 = {"semantic": "none", "stage2": {"iterations": 2, "rays": 128, "checkpoint_every": 2, "preview_every": 0}}
+
+
+def test_clothing_and_hair_train_as_layers_and_load_back(tiny_training, tmp_path):
+    inputs = tiny_training["loose"]  # a dress and long hair
+    run_stage(1, inputs["record"], inputs["body"], inputs["init"], str(tmp_path / "s1"), "fast", [TINY_STAGE1, SPLIT])
+    state = load_state(tmp_path / "s1" / "model.pt")
+    assert state["layers"] == ["clothing", "hair"]
+    assert any(k.startswith("nerf.layers.hair.") for k in state["model"])
+    losses = pd.read_csv(tmp_path / "s1" / "losses.csv")
+    assert losses["exterior_layers"].notna().all() and (losses["exterior_layers"] > 0).all()
+    tr = load_trained(tmp_path / "s1" / "model.pt", inputs["record"], inputs["body"])
+    assert isinstance(tr.model.nerf, LayeredNeRF) and tr.model.nerf.names == ("clothing", "hair")
+    img = render_image(tr.model, int(tr.data.train[0]))
+    assert bool(torch.isfinite(img["rgb"]).all())
+    # stage 2 starts from the layered stage 1 (the layers travel with the model, not the settings)
+    run_stage(2, inputs["record"], inputs["body"], str(tmp_path / "s1" / "model.pt"), str(tmp_path / "s2"), "fast",
+              [TINY_STAGE1, SPLIT, STAGE2])  # fmt: skip
+    tr2 = load_trained(tmp_path / "s2" / "model.pt", inputs["record"], inputs["body"])
+    assert isinstance(tr2.model.nerf, LayeredNeRF) and tr2.model.deformation is not None
+    for k, v in tr.model.nerf.state_dict().items():  # trained on: changed, same layout
+        assert tr2.model.nerf.state_dict()[k].shape == v.shape
+
+
+def test_one_nerf_unless_split_and_both_are_seen(tiny_training):
+    inputs = tiny_training["loose"]
+    st = resolve("fast", TINY_STAGE1, SPLIT)
+    data = load_frames(inputs["record"], st.resolution, st.background, st.box_margin, hair=True)
+    assert data.hair is not None and float(data.hair.sum()) > 0
+    assert bool((data.hair <= data.exterior + 1e-6).all())  # hair is part of the exterior
+    assert exterior_layers(st, data) == ("clothing", "hair")
+    assert exterior_layers(resolve("fast", TINY_STAGE1), data) == ()  # the default: one NeRF
+    no_hair = dataclasses.replace(data, hair=torch.zeros_like(data.hair))
+    assert exterior_layers(st, no_hair) == ()
+    all_hair = dataclasses.replace(data, hair=data.exterior.clone())  # nothing left for clothing
+    assert exterior_layers(st, all_hair) == ()
+    assert load_frames(inputs["record"], 32).hair is None
+
+
+def test_a_one_nerf_model_loads_as_before(tiny_trained):
+    inputs = tiny_trained["loose"]
+    state = load_state(inputs["model"])
+    tr = load_trained(inputs["model"], inputs["record"], inputs["body"])
+    assert isinstance(tr.model.nerf, NeRFField) and state["layers"] == []
+    assert _scope({"capture": "full", "frozen_joints": []})["layers"] == []  # a file written before layers
