@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from delta import DeltaError, settings
+from delta.fields import LAYERS
 
 log = logging.getLogger("delta")
 
@@ -267,6 +268,12 @@ def cmd_animate(args: argparse.Namespace) -> None:
     animate_avatar(args.model, args.record, args.body, args.motion, args.out, st, args.clothing, args.device)
 
 
+def _layers_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--layers", nargs="+", choices=LAYERS, default=[],
+                   help="only these layers of the wearer's exterior (trained with training.layers: split); "
+                   "a body avatar keeps its own other layers")  # fmt: skip
+
+
 def cmd_dress(args: argparse.Namespace) -> None:
     from delta.applications.dress import dress_avatar
     from delta.applications.settings import ShowSettings
@@ -275,7 +282,8 @@ def cmd_dress(args: argparse.Namespace) -> None:
     st = settings.from_arguments(ShowSettings, args, "applications.dress.settings")
     dress_avatar(args.model, args.record, args.wearer_model, args.wearer_record, args.body, args.out, st,
                  truth=args.truth, perceptual_dir=args.perceptual, clothing=args.clothing,
-                 wearer_clothing=args.wearer_clothing, device=args.device, wearer_body=args.wearer_body)  # fmt: skip
+                 wearer_clothing=args.wearer_clothing, device=args.device, wearer_body=args.wearer_body,
+                 layers=args.layers)  # fmt: skip
 
 
 def cmd_reshape(args: argparse.Namespace) -> None:
@@ -298,7 +306,7 @@ def cmd_try_on(args: argparse.Namespace) -> None:
     _threads(args.threads)
     st = settings.from_arguments(ShowSettings, args, "applications.tryon.settings")
     try_on(args.record, args.init, args.body, args.wearer_model, args.wearer_record, args.out, args.frame, st,
-           args.device, args.wearer_body)  # fmt: skip
+           args.device, args.wearer_body, args.layers)  # fmt: skip
 
 
 def cmd_application_scores(args: argparse.Namespace) -> None:
@@ -633,6 +641,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wearer-model", required=True, help="the avatar whose exterior is put on: a stage's model.pt")
     p.add_argument("--wearer-record", required=True, help="the frame record the wearer was trained on")
     p.add_argument("--wearer-body", help="the body model the wearer was trained on (default: --body)")
+    _layers_argument(p)
     p.add_argument("--out", required=True, help="folder for dressed.png, turntable.mp4, dress.json, scores.csv")
     settings.add_arguments(p, ShowSettings)
     _truth_arguments(p)
@@ -663,6 +672,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wearer-model", required=True, help="the avatar whose exterior is put on: a stage's model.pt")
     p.add_argument("--wearer-record", required=True, help="the frame record the wearer was trained on")
     p.add_argument("--wearer-body", help="the body model the wearer was trained on (default: --body)")
+    _layers_argument(p)
     p.add_argument("--out", required=True, help="folder for tryon.png, turntable.mp4 and tryon.json")
     settings.add_arguments(p, ShowSettings)
     _job_arguments(p)

@@ -16,6 +16,7 @@ import jsonschema
 import yaml
 
 from delta import DeltaError
+from delta.fields import LAYERS
 
 
 def _key(path) -> str:
@@ -335,9 +336,21 @@ def motion_source(config: dict, name: str) -> tuple[str, str] | str:
     return subject_ref(config, source) or source
 
 
+def _exterior_parts(source: str) -> tuple[str, list[str]]:
+    """``"dataset/subject"`` or ``"dataset/subject:hair"`` -> (the avatar, the layers named after the colon)."""
+    avatar, _, layers = str(source).partition(":")
+    return avatar, [x for x in layers.split("+") if x] if layers else []
+
+
 def exterior_source(config: dict, name: str) -> tuple[str, str]:
     """(dataset, subject) of the avatar whose exterior the configured exterior ``name`` is."""
-    return subject_ref(config, config["applications"]["exteriors"][name])
+    return subject_ref(config, _exterior_parts(config["applications"]["exteriors"][name])[0])
+
+
+def exterior_layers(config: dict, name: str) -> list[str]:
+    """The layers of the avatar's exterior the configured exterior ``name`` is (``"dataset/subject:hair"``),
+    [] for the whole exterior."""
+    return _exterior_parts(config["applications"]["exteriors"][name])[1]
 
 
 #: Each application: the config key of the names its avatars take (motions, exteriors).
@@ -368,8 +381,11 @@ def _check_applications(config: dict, base: Path) -> list[str]:
             out.append(
                 f"{key}: exterior name {name!r} is not allowed (it names a folder: letters, digits, '_' and '-')"
             )
-        elif subject_ref(config, source) is None:
-            out.append(f"{key}: {source!r} names no configured subject (expected 'dataset/subject')")
+        elif subject_ref(config, _exterior_parts(source)[0]) is None:
+            out.append(f"{key}: {source!r} names no configured subject (expected 'dataset/subject', "
+                       "optionally ':clothing' or ':hair')")  # fmt: skip
+        else:
+            out += _check_exterior_layers(config, key, source)
     for name in apps["shapes"]:
         if not SAFE_NAME.match(name):
             out.append(f"config key 'applications.shapes.{name}': shape name {name!r} is not allowed (it names a "
@@ -385,6 +401,24 @@ def _check_applications(config: dict, base: Path) -> list[str]:
                     f"{key}: {names_key} {unknown} are not in applications.{names_key} ({sorted(apps[names_key])})"
                 )
     return out
+
+
+def _check_exterior_layers(config: dict, key: str, source: str) -> list[str]:
+    """An exterior of some layers names known layers of an avatar trained in layers (``layers: split``)."""
+    avatar, layers = _exterior_parts(source)
+    if not layers:
+        return []
+    unknown = sorted(set(layers) - set(LAYERS))
+    if unknown or len(set(layers)) != len(layers):
+        return [f"{key}: {source!r}: the layers after ':' are one or more of {list(LAYERS)} joined by '+'"]
+    from delta.training.presets import resolve
+
+    subject = subject_ref(config, avatar)[1]
+    preset, overrides = subject_training(config, subject)
+    if resolve(preset, *overrides).layers != "split":
+        return [f"{key}: {source!r} takes a layer of {avatar}'s exterior, which is trained as one NeRF: set "
+                f"training.subjects.{subject}.layers: split (or training.overrides.layers)"]  # fmt: skip
+    return []
 
 
 def data_source(config: dict, dataset: str) -> str:

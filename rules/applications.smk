@@ -72,12 +72,13 @@ rule dress:
     params:
         out=lambda w: PATHS["dress_dir"].format(**w),
         truth=truth_args,
+        layers=layer_args,
         settings=json.dumps(DRESS, sort_keys=True),
         device=config["device"],
     shell:
         "delta dress --model {input.model:q} --record {input.record:q} --wearer-model {input.wearer_model:q}"
         " --wearer-record {input.wearer_record:q} --body {input.body:q} --wearer-body {input.wearer_body:q}"
-        " --out {params.out:q} {params.truth:q}"
+        " --out {params.out:q} {params.truth:q} {params.layers:q}"
         " --settings {params.settings:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"
 
 
@@ -167,10 +168,11 @@ rule tryon:
     params:
         out=lambda w: PATHS["tryon_dir"].format(**w),
         frame=TRYON["frame"],
+        layers=layer_args,
         settings=json.dumps(TRYON["settings"], sort_keys=True),
         device=config["device"],
     shell:
         "delta try-on --record {input.record:q} --init {input.init:q} --body {input.body:q} --frame {params.frame}"
         " --wearer-model {input.wearer_model:q} --wearer-record {input.wearer_record:q}"
-        " --wearer-body {input.wearer_body:q} --out {params.out:q}"
+        " --wearer-body {input.wearer_body:q} --out {params.out:q} {params.layers:q}"
         " --settings {params.settings:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"

@@ -4,7 +4,12 @@ import shlex
 from pathlib import Path
 
 from delta.config import SYNTHETIC_PEOPLESNAPSHOT_ROOT, check_device, data_source
-from delta.config import application_jobs, exterior_source, motion_source
+from delta.config import (
+    application_jobs,
+    exterior_layers,
+    exterior_source,
+    motion_source,
+)
 from delta.config import subject_training as _subject_training
 from delta.config import validate_workflow_config
 from delta.config import variant_training as _variant_training
@@ -40,7 +45,9 @@ def application_truths():
         if s in SYNTHETIC_RAW and wearer in SYNTHETIC_RAW:
             out[("dress", s, e)] = (
                 truth_name("dress", s, e),
-                dressed_raw(SYNTHETIC_RAW[s], SYNTHETIC_RAW[wearer]),
+                dressed_raw(
+                    SYNTHETIC_RAW[s], SYNTHETIC_RAW[wearer], exterior_layers(config, e)
+                ),
             )
     for d, s, e in application_jobs(config, "reshape"):
         edit = config["applications"]["shapes"][e]
@@ -757,6 +764,12 @@ def reshape_args(wildcards, input):
 
 
 TRYON = config["applications"]["tryon"]
+
+
+def layer_args(wildcards):
+    """``--layers ...`` of an exterior that is some layers of an avatar's (``dataset/subject:hair``)."""
+    layers = exterior_layers(config, wildcards.exterior)
+    return ["--layers", *layers] if layers else []
 
 
 def tryon_inputs(wildcards):

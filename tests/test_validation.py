@@ -56,12 +56,25 @@ def video(path: Path, frames: int, size: int = 32) -> Path:
     ({"applications": {"animate": {"settings": {"fps": 0}}}}, "applications.animate.settings.fps"),
     ({"applications": {"exteriors": {"e": "synthetic/bob"}}}, "'applications.exteriors.e': 'synthetic/bob' names no configured subject"),
     ({"applications": {"dress": {"avatars": {"synthetic/tight": ["e"]}}}}, "exteriors ['e'] are not in applications.exteriors"),
+    ({"applications": {"exteriors": {"e": "synthetic/tight:hat"}}}, "the layers after ':' are one or more of ['clothing', 'hair']"),
+    ({"applications": {"exteriors": {"e": "synthetic/tight:hair"}}}, "which is trained as one NeRF: set training.subjects.tight.layers: split"),
     ({"applications": {"shapes": {"s": {"weight": "0.3"}}}}, "'applications.shapes.s.weight'"),
     ({"applications": {"shapes": {"s": {"wieght": 0.3}}}}, "applications.shapes.s"),
 ])  # fmt: skip
 def test_each_mistake_is_named(cfg, expected):
     cfg = {"datasets": SYN, **cfg} if "datasets" not in cfg else cfg
     assert expected in problems(cfg)
+
+
+def test_an_exterior_of_a_layer_needs_an_avatar_trained_in_layers():
+    from delta.config import exterior_layers, exterior_source
+
+    cfg = {"datasets": SYN, "training": {"subjects": {"tight": {"layers": "split"}}},
+           "applications": {"exteriors": {"e": "synthetic/tight:hair", "both": "synthetic/tight:clothing+hair",
+                                          "all": "synthetic/tight"}}}  # fmt: skip
+    full = validate_workflow_config(cfg, SCHEMA, base_dir=REPO, device=False)  # no problem
+    assert exterior_source(full, "e") == ("synthetic", "tight") and exterior_layers(full, "e") == ["hair"]
+    assert exterior_layers(full, "both") == ["clothing", "hair"] and exterior_layers(full, "all") == []
 
 
 @pytest.mark.parametrize("name", ["..", "../../etc", "my subject", "sujet-é", ".hidden", "a/b"])

@@ -9,6 +9,12 @@ body moves the garment's canonical points outward with the body vertices under t
 neither tears nor floats. What the body model's template does not explain (A's garment shaped around
 A's own offsets) travels as it is.
 
+A layer alone (an avatar trained with ``training.layers: split``: clothing and hair each their own NeRF)
+moves the same way: B wearing A's hair keeps its own clothing layer (and the reverse). The two layers
+then come from two trainings, so neither avatar's F_e (fitted to its own exterior as a whole) nor its
+occupancy grid is kept: the mixed exterior is rendered rigidly skinned, every sample evaluated. A body
+avatar whose exterior is one NeRF has no layer to keep: it wears the given layers alone.
+
 What can be carried: A's exterior must lie within what B models. An upper-body capture's exterior
 (hair, a shirt) goes onto a full body; a full-body exterior onto an upper-body avatar is refused (its
 hips and legs have nothing to follow). A without an exterior has nothing to give; B without one
@@ -20,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import torch
@@ -27,6 +34,7 @@ import torch
 from delta import DeltaError
 from delta.applications.settings import ShowSettings
 from delta.applications.show import show_edit
+from delta.fields.networks import LayeredNeRF
 from delta.io import require_files, save_json
 from delta.models.avatar import HybridAvatar
 from delta.training.run import load_trained
@@ -34,10 +42,19 @@ from delta.training.run import load_trained
 log = logging.getLogger(__name__)
 
 
-def check_wearable(body: HybridAvatar, wearer: HybridAvatar) -> None:
-    """Raise a DeltaError naming why ``wearer``'s exterior cannot go onto ``body``."""
+def check_wearable(body: HybridAvatar, wearer: HybridAvatar, layers: Sequence[str] = ()) -> None:
+    """Raise a DeltaError naming why ``wearer``'s exterior (its ``layers`` alone, when given) cannot go onto
+    ``body``."""
     if wearer.nerf is None:
         raise DeltaError("the wearer avatar has no exterior (no clothing or hair was modelled): nothing to put on")
+    if layers:
+        has = tuple(getattr(wearer.nerf, "names", ()))
+        if not has:
+            raise DeltaError(f"the wearer's exterior is one NeRF: its {', '.join(layers)} cannot be told apart from "
+                             "the rest; train it with training.layers: split to move a layer alone")  # fmt: skip
+        missing = sorted(set(layers) - set(has))
+        if missing:
+            raise DeltaError(f"the wearer's exterior has the layers {list(has)}, not {missing}")
     if body.body.num_vertices != wearer.body.num_vertices or not torch.equal(
         body.body.faces.cpu(), wearer.body.faces.cpu()
     ):
@@ -50,17 +67,47 @@ def check_wearable(body: HybridAvatar, wearer: HybridAvatar) -> None:
                          "modelled on it (an upper-body exterior goes onto a full body, not the reverse)")  # fmt: skip
 
 
-def put_on(body: HybridAvatar, wearer: HybridAvatar) -> None:
+def put_on(body: HybridAvatar, wearer: HybridAvatar, layers: Sequence[str] = ()) -> None:
     """Give ``body`` the exterior of ``wearer`` in place: its NeRF, its F_e and occupancy grid, and the render
-    settings that reach them. ``body``'s frames leave the training sequence of F_e (no time code)."""
-    check_wearable(body, wearer)
+    settings that reach them. ``body``'s frames leave the training sequence of F_e (no time code).
+
+    ``layers``: only these layers of the wearer's; ``body`` keeps its own other layers (see the module)."""
+    check_wearable(body, wearer, layers)
     dev = body.canonical_vertices.device
-    body.nerf = wearer.nerf.to(dev)
+    if layers:
+        given = {n: wearer.nerf.layers[n].to(dev) for n in layers}
+        own = dict(body.nerf.layers) if isinstance(body.nerf, LayeredNeRF) else {}
+        kept = {n: layer for n, layer in own.items() if n not in given}
+        if body.nerf is not None and not own:
+            log.warning("the body avatar's exterior is one NeRF: it is taken off, the wearer's %s put on alone",
+                        ", ".join(layers))  # fmt: skip
+        if kept:
+            _wear_mixed(body, wearer, LayeredNeRF.of(kept | given))
+            return
+    _wear(body, wearer, LayeredNeRF.of(given) if layers else wearer.nerf.to(dev))
+
+
+def _wear_mixed(body: HybridAvatar, wearer: HybridAvatar, nerf: LayeredNeRF) -> None:
+    """``body`` with layers of two avatars: no F_e, no occupancy grid, the larger room of the two."""
+    b, w = body.spec, wearer.spec
+    room = max(b.render.max_dist, w.render.max_dist)
+    samples = max(b.render.samples, w.render.samples)
+    body.nerf, body.deformation, body.occupancy = nerf, None, None
+    body.spec = dataclasses.replace(b, deformation=None, nerf_margin=max(b.nerf_margin, w.nerf_margin), layers=nerf.names,
+                                    render=dataclasses.replace(b.render, max_dist=room, samples=samples))  # fmt: skip
+    body.frame_time.fill_(float("nan"))
+
+
+def _wear(body: HybridAvatar, wearer: HybridAvatar, nerf) -> None:
+    """``body`` with ``nerf`` (the wearer's exterior, or layers of it) and the wearer's F_e and occupancy."""
+    dev = body.canonical_vertices.device
+    body.nerf = nerf
     body.deformation = wearer.deformation.to(dev) if wearer.deformation is not None else None
     body.occupancy = wearer.occupancy.to(dev) if wearer.occupancy is not None else None
     w = wearer.spec
     body.spec = dataclasses.replace(body.spec, nerf=w.nerf, deformation=w.deformation, nerf_margin=w.nerf_margin,
                                     deformation_scale=w.deformation_scale, time_freqs=w.time_freqs,
+                                    layers=tuple(getattr(nerf, "names", ())),
                                     render=dataclasses.replace(w.render, knn_vertices=body.spec.render.knn_vertices))  # fmt: skip
     body.frame_time.fill_(float("nan"))
 
@@ -70,22 +117,23 @@ def dress_avatar(body_model: str | Path, body_record: str | Path, wearer_model: 
                  settings: ShowSettings | None = None, truth: str | Path | None = None,
                  perceptual_dir: str | None = None, clothing: str | Path | None = None,
                  wearer_clothing: str | Path | None = None, device: str = "cpu",
-                 wearer_body: str | Path | None = None) -> dict:  # fmt: skip
+                 wearer_body: str | Path | None = None, layers: Sequence[str] = ()) -> dict:  # fmt: skip
     """Write ``dressed.png`` ([the body's capture frame | the body avatar as trained | wearing the other's
     exterior]), ``turntable.mp4`` of the dressed avatar and ``dress.json``; with ``truth`` (the generated
     capture of the body subject wearing the other's exterior), ``scores.csv`` (:mod:`delta.applications.truth`;
     ``clothing`` / ``wearer_clothing``: the two avatars' exported clothing_nerf_space.ply, for the garment
     distances as trained and dressed; ``wearer_body``: the body model the wearer was trained on, when not
-    ``body_path``: a tracked face's, with its expressions). Returns the summary."""
+    ``body_path``: a tracked face's, with its expressions; ``layers``: only these layers of the wearer's
+    exterior, see :func:`put_on`). Returns the summary."""
     t_start = time.perf_counter()
     settings = settings or ShowSettings()
     require_files(body_avatar_model=body_model, body_avatar_record=body_record, wearer_model=wearer_model,
                   wearer_record=wearer_record, body_model=body_path, wearer_body_model=wearer_body or body_path)  # fmt: skip
     body = load_trained(body_model, body_record, body_path, device)
     wearer = load_trained(wearer_model, wearer_record, wearer_body or body_path, device)
-    check_wearable(body.model, wearer.model)
-    about = {"application": "dress", "model": str(body_model), "wearer": str(wearer_model)}
-    shown = show_edit(body, body_record, Path(out_dir), "dressed", lambda: put_on(body.model, wearer.model),
+    check_wearable(body.model, wearer.model, layers)
+    about = {"application": "dress", "model": str(body_model), "wearer": str(wearer_model), "layers": list(layers)}
+    shown = show_edit(body, body_record, Path(out_dir), "dressed", lambda: put_on(body.model, wearer.model, layers),
                       settings, about, truth, perceptual_dir, (clothing, wearer_clothing))  # fmt: skip
     summary = {"body_model": str(body_model), "wearer_model": str(wearer_model), **shown,
                "body_capture": body.model.spec.capture, "wearer_capture": wearer.model.spec.capture,

@@ -12,8 +12,10 @@ garment put on over it (nothing is inpainted).
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -43,10 +45,10 @@ def composite(photo: torch.Tensor, render: dict) -> torch.Tensor:
 
 def try_on(record: str | Path, init_params: str | Path, body_path: str | Path, wearer_model: str | Path,
            wearer_record: str | Path, out_dir: str | Path, anchor: int = -1, settings: ShowSettings | None = None,
-           device: str = "cpu", wearer_body: str | Path | None = None) -> dict:  # fmt: skip
+           device: str = "cpu", wearer_body: str | Path | None = None, layers: Sequence[str] = ()) -> dict:  # fmt: skip
     """Write ``tryon.png``, ``turntable.mp4`` and ``tryon.json`` of the person of frame ``anchor`` of
     ``record`` (-1: the first training frame) wearing the exterior of ``wearer_model`` (trained on
-    ``wearer_body``, when not ``body_path``); returns the summary."""
+    ``wearer_body``, when not ``body_path``; ``layers``: only these layers of it); returns the summary."""
     t_start = time.perf_counter()
     settings = settings or ShowSettings()
     require_files(record=record, init_fit=init_params, body_model=body_path, wearer_model=wearer_model,
@@ -58,9 +60,11 @@ def try_on(record: str | Path, init_params: str | Path, body_path: str | Path, w
     if not 0 <= frame < len(data.frame_ids):
         raise DeltaError(f"anchor: frame {anchor} is not a frame of {record} (0..{len(data.frame_ids) - 1})")
     body = load_body_model(body_path)
-    model = build_avatar(body, st, load_init(init_params, data), data, 1, pick_device(device))
+    # the person's own avatar is built bare (one NeRF at most): it wears the wearer's exterior
+    model = build_avatar(body, dataclasses.replace(st, layers="one"), load_init(init_params, data), data, 1,
+                         pick_device(device))  # fmt: skip
     model.eval()
-    put_on(model, wearer.model)
+    put_on(model, wearer.model, layers)
     full = load_full_frames(record, [frame], st.background)
     view = full_view(full, model.resolution)
     out = Path(out_dir)

@@ -181,12 +181,16 @@ def truth_name(application: str, subject: str, name: str) -> str:
     return f"{subject}.{TRUTH_WORDS[application]}.{name}"
 
 
-def dressed_raw(body: dict, wearer: dict) -> dict:
-    """The subject ``body`` (its shape, skin, motion, camera: its seed) wearing ``wearer``'s garments and hair:
-    the generated truth of putting the wearer's exterior on the body's avatar."""
-    return {k: v for k, v in body.items() if k not in EXTERIOR_KEYS} | {
-        k: wearer[k] for k in EXTERIOR_KEYS if k in wearer
-    }
+#: The subject keys of each exterior layer.
+LAYER_KEYS = {"clothing": ("garments",), "hair": ("hair", "hair_color")}
+
+
+def dressed_raw(body: dict, wearer: dict, layers: list[str] | tuple[str, ...] = ()) -> dict:
+    """The subject ``body`` (its shape, skin, motion, camera: its seed) wearing ``wearer``'s garments and hair
+    (``layers``: only those, ``clothing`` = its garments, ``hair`` = its hair; the body keeps its own
+    other ones): the generated truth of putting the wearer's exterior on the body's avatar."""
+    moved = [k for layer in layers for k in LAYER_KEYS[layer]] if layers else EXTERIOR_KEYS
+    return {k: v for k, v in body.items() if k not in moved} | {k: wearer[k] for k in moved if k in wearer}
 
 
 def edit_amount(key: str, value) -> tuple[bool, float]:

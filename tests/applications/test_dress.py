@@ -16,7 +16,7 @@ from delta.cli import main
 from delta.export import lineup
 from delta.models.image import View, render_image
 from delta.training.run import load_trained
-from tests.export.test_export import SHELL, ShellNeRF
+from tests.export.test_export import SHELL, ShellNeRF, layered
 
 pytestmark = pytest.mark.slow
 
@@ -102,3 +102,42 @@ def test_the_dress_command_writes_its_outputs(tiny_trained, tmp_path):
     video.release()
     assert main(["dress", "--model", tight["model"], "--record", tight["record"], "--wearer-model", str(tmp_path / "x.pt"),
                  "--wearer-record", loose["record"], "--body", tight["body"], "--out", str(out)]) == 2  # fmt: skip
+
+
+def test_hair_moves_alone_and_the_body_keeps_its_own_clothing(tiny_trained):
+    """Both avatars in layers: the body avatar wearing the other's hair keeps its own clothing layer (the same
+    module), takes the other's hair layer, and renders its own clothing colour below the neck and the
+    other's hair colour above it; a wearer of one NeRF has no layer to give."""
+    body, wearer = load(tiny_trained["tight"]), load(tiny_trained["loose"])
+    layered(body.model, (0.1, 0.2, 0.9), (0.9, 0.9, 0.1))  # blue clothing, yellow hair
+    layered(wearer.model, (0.9, 0.1, 0.1), (0.1, 0.8, 0.2))  # red clothing, green hair
+    own_clothing, their_hair = body.model.nerf.layers["clothing"], wearer.model.nerf.layers["hair"]
+    put_on(body.model, wearer.model, ["hair"])
+    nerf = body.model.nerf
+    assert nerf.names == ("clothing", "hair") and body.model.spec.layers == ("clothing", "hair")
+    assert nerf.layers["clothing"] is own_clothing and nerf.layers["hair"] is their_hair
+    assert body.model.deformation is None and body.model.occupancy is None  # two trainings' layers: rigid
+    frame = 0
+    with torch.no_grad():
+        img = render_image(body.model, frame)
+    seen = img["nerf_mask"] > 0.9
+    colour = img["nerf"][seen]
+    assert int(seen.sum()) > 20
+    blue, green = torch.tensor([0.1, 0.2, 0.9]), torch.tensor([0.1, 0.8, 0.2])
+    near = lambda c: (colour - c).norm(dim=-1) < 0.1  # noqa: E731
+    assert int(near(blue).sum()) > 0 and int(near(green).sum()) > 0
+    assert int((near(blue) | near(green)).sum()) > 0.9 * len(colour)  # no red (their clothing), no yellow (own hair)
+    rows = torch.nonzero(seen)[:, 0]  # image rows: the hair lies above the clothing
+    assert float(rows[near(green)].float().mean()) < float(rows[near(blue)].float().mean())
+    one = load(tiny_trained["loose"])
+    with pytest.raises(DeltaError, match="one NeRF"):
+        put_on(load(tiny_trained["tight"]).model, one.model, ["hair"])
+
+
+def test_a_layer_on_an_avatar_of_one_nerf_is_worn_alone(tiny_trained):
+    body, wearer = load(tiny_trained["tight"]), load(tiny_trained["loose"])
+    layered(wearer.model, (0.9, 0.1, 0.1), (0.1, 0.8, 0.2))
+    put_on(body.model, wearer.model, ["hair"])
+    assert body.model.nerf.names == ("hair",) and body.model.nerf.layers["hair"] is wearer.model.nerf.layers["hair"]
+    with pytest.raises(DeltaError, match=r"has the layers \['hair'\], not \['clothing'\]"):
+        check_wearable(load(tiny_trained["tight"]).model, body.model, ["clothing"])

@@ -25,6 +25,12 @@ def test_a_dressed_subject_keeps_its_body_and_takes_the_exterior():
     spec = parse_subject("tight.wears.loose", raw)
     assert spec.garments[0].kind == "dress" and spec.turn_frames == body["turn_frames"]
     assert set(EXTERIOR_KEYS) <= {"garments", "hair", "hair_color"}
+    hair_only = dressed_raw(body, {**wearer, "hair_color": [0.3, 0.2, 0.1]}, ["hair"])
+    assert hair_only["garments"] == body["garments"] and hair_only["hair"] == wearer["hair"]
+    assert hair_only["hair_color"] == [0.3, 0.2, 0.1]
+    clothing_only = dressed_raw(body, wearer, ["clothing"])
+    assert clothing_only["garments"] == wearer["garments"] and clothing_only["hair"] == body["hair"]
+    assert dressed_raw(body, wearer, ["clothing", "hair"]) == raw
     edited = reshaped_raw(body, {"weight": 0.9})
     assert edited["phenotype"] == {**body["phenotype"], "weight": 0.9} and edited["garments"] == body["garments"]
     changed = reshaped_raw(body, {"weight": "+0.3", "gender": "+0.3"})  # unset: from the default 0.5; clamped
