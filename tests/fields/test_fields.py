@@ -405,3 +405,26 @@ def test_layered_nerf_is_one_medium_of_its_layers(spec):
 def test_layered_nerf_refuses_unknown_or_repeated_layers(names):
     with pytest.raises(ValueError, match="exterior layers"):
         LayeredNeRF(SMALL_GRID, BOUNDS, names)
+
+
+def test_layered_nerf_stays_finite_where_a_layer_is_empty_or_at_the_cap():
+    """One layer's density underflowing to exactly 0, the other's at the cap e^15: colour, density and every
+    gradient finite, the colour the dense layer's."""
+    nerf = LayeredNeRF(SMALL_GRID, BOUNDS)
+    with torch.no_grad():
+        nerf.layers["clothing"].head.out.bias[-1] = -200.0  # exp(-200) is 0 in float32
+        nerf.layers["hair"].head.out.bias[-1] = 100.0  # capped
+    x = inside_points(32, 7)
+    rgb, sigma, sigmas = nerf.with_layers(x)
+    assert bool((sigmas[:, 0] == 0).all()) and bool(torch.isfinite(sigma).all())
+    torch.testing.assert_close(rgb, nerf.layers["hair"](x)[0])
+    (rgb.sum() + sigma.log().sum() + sigmas.sum()).backward()
+    assert all(bool(torch.isfinite(p.grad).all()) for p in nerf.parameters() if p.grad is not None)
+    both_empty = LayeredNeRF(SMALL_GRID, BOUNDS)
+    with torch.no_grad():
+        for layer in both_empty.layers.values():
+            layer.head.out.bias[-1] = -200.0
+    rgb, sigma, _ = both_empty.with_layers(x)
+    assert bool((sigma == 0).all()) and bool(torch.isfinite(rgb).all())
+    rgb.sum().backward()
+    assert all(bool(torch.isfinite(p.grad).all()) for p in both_empty.parameters() if p.grad is not None)

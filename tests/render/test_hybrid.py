@@ -174,3 +174,18 @@ def test_layers_render_as_one_medium_and_each_layer_gets_its_share_of_the_opacit
     assert float(hair[0]) == 0.0 and float(clothing[1]) == 0.0
     # in the overlap band each layer has half the density: half the opacity each
     torch.testing.assert_close(clothing[2], hair[2])
+
+
+def test_empty_layers_give_zero_opacity_and_finite_gradients():
+    mesh = sphere_avatar()
+    o = torch.tensor([[0.0, -0.33, 2.0], [0.0, 0.0, 2.0]])
+    d = torch.tensor([[0.0, 0.0, -1.0]] * len(o))
+    st = RenderSettings(samples=16, box_margin=0.3, max_dist=0.1, perturb=False)
+    scale = torch.tensor(0.0, requires_grad=True)
+    layers = TwoLayers(1.0)
+    inner = layers.with_layers
+    layers.with_layers = lambda x: tuple(v * scale if k else v for k, v in enumerate(inner(x)))  # σ → 0·σ
+    out = render_rays(mesh, o, d, o[:, :2] * 100, BG, st, layers)
+    assert bool((out.layer_masks == 0).all()) and bool((out.nerf_mask == 0).all())
+    (out.layer_masks.sum() + out.rgb.sum()).backward()
+    assert bool(torch.isfinite(scale.grad))
