@@ -483,3 +483,26 @@ def test_a_video_subjects_framing_is_checked_before_any_job(tmp_path):
     assert "config key 'datasets.clips.subjects.talk.framing': 'face'; expected one of ['full', 'head']" in (
         res.stdout + res.stderr
     )
+
+
+def test_a_layer_of_an_exterior_is_worn_alone(tmp_path):
+    """config/layers.yaml: loose trains in layers, tight wears its hair alone and its dress alone, each scored
+    against a generated truth that takes only that layer (tight's own garments under loose's hair)."""
+    work = workflow_copy(tmp_path)
+    targets = [f"results/synthetic/tight/dress/{e}/dress.json" for e in ("loose-hair", "loose-dress-only")]
+    res = snakemake(work, *targets, "--configfile", "config/config.yaml", "config/layers.yaml", "--dry-run",
+                    "--printshellcmds")  # fmt: skip
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out[-3000:]
+    dress = {
+        e: re.search(rf"delta dress [^\n]*dress/{e}[^\n]*", out).group(0) for e in ("loose-hair", "loose-dress-only")
+    }
+    assert "--layers hair" in dress["loose-hair"] and "--layers clothing" in dress["loose-dress-only"]
+    assert "delta synthesize" in out and "tight.wears.loose-hair" in out
+    layers = re.findall(r"delta train [^\n]*loose[^\n]*", out)
+    assert layers and all('"layers": "split"' in line for line in layers)
+    cfg = yaml.safe_load((work / "config/layers.yaml").read_text())
+    cfg["training"] = {}  # loose trained as one NeRF: its hair cannot be taken alone
+    (work / "one.yaml").write_text(yaml.safe_dump(cfg))
+    res = snakemake(work, targets[0], "--configfile", "config/config.yaml", "one.yaml", "--dry-run")
+    assert res.returncode != 0 and "which is trained as one NeRF" in res.stdout + res.stderr
