@@ -205,6 +205,9 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
                 M.iou(img["nerf_mask"] > 0.5, full.exterior[k] > 0.5) if model.nerf is not None else np.nan
             )
             row["mesh_iou"] = M.iou(img["silhouette"] > 0.5, full.person[k] > 0.5)
+            for name in getattr(model.nerf, "names", ()):  # an exterior in layers: each against its own mask
+                if name in full.parts:
+                    row[f"{name}_layer_iou"] = M.iou(img[f"layer_{name}"] > 0.5, full.parts[name][k])
             if refined == passes[-1]:
                 worst.offer(split, row["psnr"], int(data.frame_ids[f]), img["rgb"], full.images[k])
             if gt:

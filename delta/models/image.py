@@ -101,7 +101,8 @@ CPU_CHUNK = 8192
 @torch.no_grad()
 def render_image(model: HybridAvatar, frame: int, chunk: int | None = None, supersample: int = 1,
                  view: View | None = None, soft_silhouette: bool = True) -> dict[str, torch.Tensor]:  # fmt: skip
-    """Composite, mesh-only, NeRF-only images, NeRF mask and silhouette, (H, W, ·) each.
+    """Composite, mesh-only, NeRF-only images, NeRF mask and silhouette, (H, W, ·) each; with an exterior
+    in layers also each layer's opacity (``layer_clothing``, ``layer_hair``).
 
     The image is the model's n×n crop, or ``view``. ``supersample`` s renders s² rays a pixel and
     averages them (anti-aliased edges). Rays outside the projection of the box that holds the
@@ -118,6 +119,7 @@ def render_image(model: HybridAvatar, frame: int, chunk: int | None = None, supe
     bg = model.background
     full = {"rgb": bg.expand(len(pixels), 3), "mesh": bg.expand(len(pixels), 3), "nerf": bg.expand(len(pixels), 3),
             "nerf_mask": bg.new_zeros(len(pixels)), "silhouette": bg.new_zeros(len(pixels))}  # fmt: skip
+    full |= {f"layer_{n}": bg.new_zeros(len(pixels)) for n in getattr(model.nerf, "names", ())}
     full = {k: v.clone() for k, v in full.items()}
     perturb = model.spec.render.perturb
     model.spec.render.perturb = False
@@ -125,7 +127,8 @@ def render_image(model: HybridAvatar, frame: int, chunk: int | None = None, supe
         for s in range(0, len(live), chunk):
             idx = live[s : s + chunk]
             r = model.render(frame, pixels[idx], mesh=mesh, soft=soft_silhouette)
-            for k, v in zip(full, (r.rgb, r.mesh_rgb, r.nerf_rgb, r.nerf_mask, r.silhouette)):
+            layers = r.layer_masks.unbind(1) if r.layer_masks is not None else ()
+            for k, v in zip(full, (r.rgb, r.mesh_rgb, r.nerf_rgb, r.nerf_mask, r.silhouette, *layers)):
                 full[k][idx] = v.to(full[k].dtype)
     finally:
         model.spec.render.perturb = perturb

@@ -31,7 +31,8 @@ def test_clothing_and_hair_train_as_layers_and_load_back(tiny_training, tmp_path
     tr = load_trained(tmp_path / "s1" / "model.pt", inputs["record"], inputs["body"])
     assert isinstance(tr.model.nerf, LayeredNeRF) and tr.model.nerf.names == ("clothing", "hair")
     img = render_image(tr.model, int(tr.data.train[0]))
-    assert bool(torch.isfinite(img["rgb"]).all())
+    assert bool(torch.isfinite(img["rgb"]).all()) and {"layer_clothing", "layer_hair"} <= set(img)
+    torch.testing.assert_close(img["layer_clothing"] + img["layer_hair"], img["nerf_mask"], rtol=0, atol=1e-5)
     # stage 2 starts from the layered stage 1 (the layers travel with the model, not the settings)
     run_stage(2, inputs["record"], inputs["body"], str(tmp_path / "s1" / "model.pt"), str(tmp_path / "s2"), "fast",
               [TINY_STAGE1, SPLIT, STAGE2])  # fmt: skip
