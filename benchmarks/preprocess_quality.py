@@ -7,6 +7,10 @@ of the default parser, clothing-mask IoU of a U²-Net cloth export when one is g
 and frames per second of each.
 
     python benchmarks/preprocess_quality.py --out benchmarks/preprocess_quality.csv [--cloth u2net_cloth_seg.onnx]
+
+``--data`` may be given more than once (the People Snapshot stand-ins live under the workflow's
+``data/synthetic`` as well); ``--label`` names the code measured in a ``label`` column (say a commit),
+and ``--append`` adds the rows to an existing CSV, so two versions of the parser sit side by side.
 """
 
 from __future__ import annotations
@@ -44,14 +48,17 @@ def iou(a: np.ndarray, b: np.ndarray) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--data", default="data/synthetic")
+    parser.add_argument("--data", nargs="+", default=["data/synthetic"])
+    parser.add_argument("--label", default="", help="what was measured (e.g. a commit), a column of every row")
+    parser.add_argument("--append", action="store_true", help="add the rows to --out instead of replacing it")
     parser.add_argument("--pose-model", default="resources/models/mediapipe/pose_landmark_full.onnx")
     parser.add_argument("--cloth", help="a u2net_cloth_seg.onnx export, if you have one")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", default="benchmarks/preprocess_quality.csv")
     args = parser.parse_args()
     rows = []
-    for capture in sorted(p for p in Path(args.data).iterdir() if (p / "gt" / "frames.h5").is_file()):
+    captures = sorted(p for d in args.data for p in Path(d).iterdir() if (p / "gt" / "frames.h5").is_file())
+    for capture in captures:
         name = capture.name
         pose = PoseLandmarker(args.pose_model, threads=args.threads)
         parser = VideoParser()
@@ -82,7 +89,7 @@ def main() -> None:
             t0 = time.perf_counter()
             prepare(synthetic_source(capture, name), Path(tmp) / "frames.h5", 512)
             t_prepare = time.perf_counter() - t0
-        rows.append(dict(subject=name, frames=n, resolution=res, person_iou_mean=np.mean(ious),
+        rows.append(dict(label=args.label, subject=name, frames=n, resolution=res, person_iou_mean=np.mean(ious),
                          person_iou_min=np.min(ious), keypoint_err_px_mean=np.mean(errs),
                          keypoint_err_px_median=np.median(errs), pose_fps=n / t_pose,
                          default_clothing_iou=np.mean(parts["clothing"]), default_skin_iou=np.mean(parts["skin"]),
@@ -92,7 +99,10 @@ def main() -> None:
                          cloth_fps=n / t_cloth if t_cloth else np.nan, threads=args.threads,
                          peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)))  # fmt: skip
         print(rows[-1], flush=True)
-    pd.DataFrame(rows).to_csv(args.out, index=False)
+    table = pd.DataFrame(rows)
+    if args.append and Path(args.out).is_file():
+        table = pd.concat([pd.read_csv(args.out), table], ignore_index=True)
+    table.to_csv(args.out, index=False)
 
 
 if __name__ == "__main__":
