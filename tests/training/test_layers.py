@@ -20,9 +20,16 @@ SPLIT = {"layers": "split"}
 STAGE2 = {"semantic": "none", "stage2": {"iterations": 2, "rays": 128, "checkpoint_every": 2, "preview_every": 0}}
 
 
-def test_clothing_and_hair_train_as_layers_and_load_back(tiny_training, tmp_path):
-    inputs = tiny_training["loose"]  # a dress and long hair
-    run_stage(1, inputs["record"], inputs["body"], inputs["init"], str(tmp_path / "s1"), "fast", [TINY_STAGE1, SPLIT])
+@pytest.fixture(scope="module")
+def layered(tiny_training, tmp_path_factory):
+    """A stage 1 of the loose subject (a dress and long hair) trained in layers: (inputs, its folder)."""
+    inputs, out = tiny_training["loose"], tmp_path_factory.mktemp("layers")
+    run_stage(1, inputs["record"], inputs["body"], inputs["init"], str(out / "s1"), "fast", [TINY_STAGE1, SPLIT])
+    return inputs, out
+
+
+def test_clothing_and_hair_train_as_layers_and_load_back(layered, tmp_path):
+    inputs, tmp_path = layered[0], layered[1]
     state = load_state(tmp_path / "s1" / "model.pt")
     assert state["layers"] == ["clothing", "hair"]
     assert any(k.startswith("nerf.layers.hair.") for k in state["model"])
@@ -63,3 +70,22 @@ def test_a_one_nerf_model_loads_as_before(tiny_trained):
     tr = load_trained(inputs["model"], inputs["record"], inputs["body"])
     assert isinstance(tr.model.nerf, NeRFField) and state["layers"] == []
     assert _scope({"capture": "full", "frozen_joints": []})["layers"] == []  # a file written before layers
+
+
+def test_each_layer_is_scored_against_its_own_mask(layered):
+    from delta.data.frames import load_full_frames
+    from delta.eval.evaluate import EvalSettings, evaluate, pick_frames
+    from delta.metrics import iou
+    from delta.models.image import full_view
+
+    inputs, out = layered
+    tr = load_trained(out / "s1" / "model.pt", inputs["record"], inputs["body"])
+    df = evaluate(
+        tr, inputs["record"], EvalSettings(splits=("test_view",), max_frames=1, refine_steps=0, supersample=1)
+    )
+    assert {"clothing_layer_iou", "hair_layer_iou"} <= set(df.columns)
+    frame = pick_frames(tr.data.split, ("test_view",), 1)[0][0]
+    full = load_full_frames(inputs["record"], [frame], tr.settings.background)
+    img = render_image(tr.model, frame, view=full_view(full, tr.model.resolution), soft_silhouette=False)
+    for name in ("clothing", "hair"):  # the same IoU, taken here from the render and the record's mask
+        assert df[f"{name}_layer_iou"].iloc[0] == pytest.approx(iou(img[f"layer_{name}"] > 0.5, full.parts[name][0]))
