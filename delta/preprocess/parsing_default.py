@@ -87,17 +87,29 @@ def _colour_distance(lab: np.ndarray, samples: np.ndarray, floor: tuple[float, f
 #: clothing's colour is farther still.
 LOOSE_SKIN = 2.0
 _BODY = (11, 12, 24, 23)  # shoulders and hips, round the torso
+PELVIS = 0.35
+"""The pelvis's clothing sample reaches below the hips by this share of the shoulders-to-hips length."""
 
 
-def torso_seed(shape, lm: np.ndarray, shrink: float = 0.5) -> np.ndarray:
-    """The torso's quadrilateral (shoulders, hips) shrunk towards its centre by ``shrink``: mostly clothing
-    on a dressed person (empty where a corner is not visible)."""
-    pts = lm[list(_BODY)]
+def _quad(shape, pts: np.ndarray, shrink: float) -> np.ndarray:
+    """The quadrilateral ``pts`` (4, 2) shrunk towards its centre by ``shrink``, as a mask."""
     m = np.zeros(shape, np.uint8)
-    if (pts[:, 2] > 0.5).all():
-        corners = pts[:, :2].mean(0) + (1 - shrink) * (pts[:, :2] - pts[:, :2].mean(0))
-        cv2.fillConvexPoly(m, np.round(corners - 0.5).astype(np.int32), 1)
+    corners = pts.mean(0) + (1 - shrink) * (pts - pts.mean(0))
+    cv2.fillConvexPoly(m, np.round(corners - 0.5).astype(np.int32), 1)
     return m.astype(bool)
+
+
+def clothing_seeds(shape, lm: np.ndarray, shrink: float = 0.5) -> list[np.ndarray]:
+    """Where a dressed person's clothing is, each region's colours to be sampled on their own: the torso's
+    quadrilateral (shoulders, hips) shrunk towards its centre by ``shrink``, and the pelvis below the hips
+    (down the torso's axis by :data:`PELVIS` of its length: trousers, shorts or a skirt, whatever the legs
+    wear). None where a corner is not visible."""
+    pts = lm[list(_BODY)]
+    if not (pts[:, 2] > 0.5).all():
+        return []
+    down = PELVIS * (pts[2:, :2].mean(0) - pts[:2, :2].mean(0))
+    hips = pts[2:, :2]  # right, left
+    return [_quad(shape, pts[:, :2], shrink), _quad(shape, np.concatenate([hips, hips[::-1] + down]), shrink)]
 
 
 def clothing_distance(lab: np.ndarray, seed: np.ndarray, at: np.ndarray, clusters: int = 3) -> np.ndarray:
@@ -115,20 +127,22 @@ def clothing_distance(lab: np.ndarray, seed: np.ndarray, at: np.ndarray, cluster
     return out
 
 
-def shaded_skin(lab: np.ndarray, d_skin: np.ndarray, candidates: np.ndarray, torso: np.ndarray,
+def shaded_skin(lab: np.ndarray, d_skin: np.ndarray, candidates: np.ndarray, seeds: list[np.ndarray],
                 threshold: float) -> np.ndarray:  # fmt: skip
     """Skin in shade or light (legs, forearms), farther from the face's colour than ``threshold``: up to
-    :data:`LOOSE_SKIN` times it, the ``candidates`` nearer the skin's colour than the clothing's, the
-    clothing's colours sampled in the ``torso``. Nothing where the torso is not dressed (its colour as
-    near the skin's as that) or not seen."""
-    dressed = torso & candidates
-    if dressed.sum() < 50 or np.median(d_skin[dressed]) <= LOOSE_SKIN * threshold:
+    :data:`LOOSE_SKIN` times it, the ``candidates`` nearer the skin's colour than to any clothing colour
+    sampled in the ``seeds`` (:func:`clothing_seeds`). Nothing where the torso is not dressed (its colour
+    as near the skin's as that) or not seen."""
+    dressed = [seed & candidates for seed in seeds]
+    dressed = [d for d in dressed if d.sum() >= 50]
+    if not dressed or np.median(d_skin[dressed[0]]) <= LOOSE_SKIN * threshold:
         return np.zeros_like(candidates)
     near = candidates & (d_skin < LOOSE_SKIN * threshold)
     out = np.zeros_like(candidates)
     idx = np.flatnonzero(near)
     if len(idx):
-        out.ravel()[idx] = d_skin.ravel()[idx] < clothing_distance(lab, dressed.ravel(), idx)
+        d_clothing = np.min([clothing_distance(lab, d.ravel(), idx) for d in dressed], axis=0)
+        out.ravel()[idx] = d_skin.ravel()[idx] < d_clothing
     return out
 
 
@@ -193,7 +207,7 @@ def _parse(rgb, alpha, pose, threshold, skin_model):
             skin |= person & _disc(shape, lm[k, :2] + [0, -0.05 * ear_span], 0.22 * ear_span)
         skin |= person & _disc(shape, lm[[9, 10], :2].mean(0), 0.25 * ear_span)
     hair = _hair(lab, shape, person & ~skin, head, lm, threshold, facing_away)
-    skin |= shaded_skin(lab, d_skin, person & ~skin & ~hair, torso_seed(shape, lm), threshold)
+    skin |= shaded_skin(lab, d_skin, person & ~skin & ~hair, clothing_seeds(shape, lm), threshold)
     clothing = person & ~skin & ~hair
     masks = {k: m.astype(np.uint8) for k, m in (("skin", skin), ("hair", hair), ("clothing", clothing))}
     return masks, model, frontal

@@ -6,10 +6,11 @@ import numpy as np
 
 from delta.preprocess.parsing_default import (
     EAR_SPAN_PER_NECK,
+    PELVIS,
     clothing_distance,
+    clothing_seeds,
     head_span,
     shaded_skin,
-    torso_seed,
 )
 
 
@@ -34,15 +35,17 @@ def test_the_head_keeps_its_size_when_it_turns_to_profile():
     assert head_span(hidden) == 2.0
 
 
-def test_the_torso_sample_lies_inside_the_torso():
+def test_the_clothing_samples_lie_on_the_torso_and_the_pelvis():
     lm = landmarks((30.0, 70.0))
-    seed = torso_seed((200, 100), lm)
+    torso, pelvis = clothing_seeds((200, 100), lm)
     quad = np.zeros((200, 100), np.uint8)
     cv2.fillConvexPoly(quad, np.round(lm[[11, 12, 24, 23], :2] - 0.5).astype(np.int32), 1)
-    assert seed.any() and not (seed & ~quad.astype(bool)).any()
-    assert 0.2 < seed.sum() / quad.sum() < 0.3  # shrunk by half towards the centre: a quarter of the area
+    assert torso.any() and not (torso & ~quad.astype(bool)).any()
+    assert 0.2 < torso.sum() / quad.sum() < 0.3  # shrunk by half towards the centre: a quarter of the area
+    rows = np.nonzero(pelvis)[0]  # below the hips (v = 170), down the torso's axis by PELVIS of its 80 px
+    assert rows.min() >= 170 and rows.max() <= 170 + PELVIS * 80 and not (pelvis & torso).any()
     lm[23, 2] = 0.0
-    assert not torso_seed((200, 100), lm).any()
+    assert clothing_seeds((200, 100), lm) == []
 
 
 def _lab(colours: np.ndarray) -> np.ndarray:
@@ -60,7 +63,8 @@ def test_clothing_of_several_colours_is_near_all_of_them():
 
 def test_shaded_skin_is_skin_where_it_is_nearer_skin_than_the_clothing():
     """A dress of one colour on the torso; legs in skin's colour in shade, beyond the strict threshold:
-    they are skin. Where the torso itself is skin-coloured (no clothing to tell apart), nothing is added."""
+    they are skin. Trousers of a colour nearer skin than the shirt's, sampled at the pelvis: not skin.
+    Where the torso itself is skin-coloured (no clothing to tell apart), nothing is added."""
     lab = _lab(
         np.array([[40, 160, 170]] * 300 + [[150, 105, 80]] * 100 + [[60, 200, 210]] * 50)
     )  # dress, leg, dress in light
@@ -68,10 +72,16 @@ def test_shaded_skin_is_skin_where_it_is_nearer_skin_than_the_clothing():
     candidates = np.ones(450, bool)
     torso = np.zeros(450, bool)
     torso[:300] = True
-    out = shaded_skin(lab, d_skin.reshape(1, -1), candidates.reshape(1, -1), torso.reshape(1, -1), 3.0)[0]
+    out = shaded_skin(lab, d_skin.reshape(1, -1), candidates.reshape(1, -1), [torso.reshape(1, -1)], 3.0)[0]
     assert out[300:400].all() and not out[:300].any() and not out[400:].any()
-    bare = shaded_skin(lab, np.full((1, 450), 4.0), candidates.reshape(1, -1), torso.reshape(1, -1), 3.0)
+    bare = shaded_skin(lab, np.full((1, 450), 4.0), candidates.reshape(1, -1), [torso.reshape(1, -1)], 3.0)
     assert not bare.any()  # a torso as near the skin's colour as the legs: not dressed, nothing decided
+    khaki = _lab(np.array([[40, 160, 170]] * 300 + [[165, 140, 100]] * 150))  # shirt, khaki trousers
+    d = np.concatenate([np.full(300, 20.0), np.full(150, 4.5)]).reshape(1, -1)
+    pelvis = np.zeros((1, 450), bool)
+    pelvis[0, 380:] = True
+    assert shaded_skin(khaki, d, np.ones((1, 450), bool), [torso.reshape(1, -1)], 3.0)[0, 300:].all()  # unsampled
+    assert not shaded_skin(khaki, d, np.ones((1, 450), bool), [torso.reshape(1, -1), pelvis], 3.0).any()
 
 
 def test_a_back_view_with_the_hands_hidden_does_not_become_the_skin_model():
