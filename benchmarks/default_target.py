@@ -11,6 +11,11 @@ command runs there, with the default config plus only what the options below cha
   ``resources/`` instead of building them in the copy (they are built once per machine: ~2 min and
   ~2 min on 2 cores, timed in their own rows when not reused).
 
+- ``--prepared DIR``: start from an earlier run's folder (a ``--work`` of this script): its generated
+  captures, converted body models and, for each subject, what comes before training (frames, parsing,
+  init fit, scene analysis) are copied, so the command trains, scores and exports only — for another
+  preset on the same subjects (its job rows then lack the steps it did not run).
+
 One CSV row per job (``kind=job``: the rule, its wildcards, wall seconds and peak memory from the
 rule's Snakemake benchmark file), one per rule (``kind=rule``: jobs and seconds summed), one per
 subject (``kind=subject``: its row of the metrics table's scores), and one ``kind=total`` row: the
@@ -23,6 +28,8 @@ repository root::
         --csv benchmarks/default_target_one_subject.csv
     PYTHONPATH=$PWD python3 benchmarks/default_target.py --reuse-builds --preset balanced \\
         --csv benchmarks/default_target_balanced.csv
+    PYTHONPATH=$PWD python3 benchmarks/default_target.py --reuse-builds --preset balanced --subjects male-3-casual \\
+        --prepared /tmp/fast-run --csv benchmarks/default_target_balanced.csv
 """
 
 from __future__ import annotations
@@ -72,6 +79,27 @@ def extra_config(work: Path, subjects: list[str] | None, preset: str | None, reu
     return ["--configfile", "config/config.yaml", "benchmark.yaml"]
 
 
+#: what a subject's folder holds before training, copied by ``--prepared``
+BEFORE_TRAINING = ("frames.h5", "frames.json", "parsing.h5", "init", "scene.json")
+
+
+def copy_prepared(source: Path, work: Path) -> None:
+    """An earlier run's generated data, body models and each subject's steps before training, into ``work``
+    (modification times kept, so Snakemake takes them as done)."""
+    for name in ("data", "resources", "results/body"):
+        if (source / name).exists():
+            shutil.copytree(source / name, work / name, dirs_exist_ok=True)
+    for subject in (source / "results" / "peoplesnapshot").iterdir():
+        for name in BEFORE_TRAINING:
+            src = subject / name
+            dst = work / "results" / "peoplesnapshot" / subject.name / name
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            if src.is_dir():
+                shutil.copytree(src, dst, dirs_exist_ok=True)
+            elif src.is_file():
+                shutil.copy2(src, dst)
+
+
 def job_rows(work: Path) -> list[dict]:
     rows = []
     for tsv in sorted((work / "results" / "benchmarks").rglob("*.tsv")):
@@ -91,10 +119,13 @@ def main() -> None:
     ap.add_argument("--cores", type=int, default=2)
     ap.add_argument("--work", type=Path, help="folder to run in (default: a temporary one, removed afterwards)")
     ap.add_argument("--csv", type=Path, default=REPO / "benchmarks" / "default_target.csv")
+    ap.add_argument("--prepared", type=Path, help="an earlier run's folder whose steps before training are reused")
     a = ap.parse_args()
     work = a.work or Path(tempfile.mkdtemp(prefix="delta-default-"))
     work.mkdir(parents=True, exist_ok=True)
     workflow_copy(work)
+    if a.prepared:
+        copy_prepared(a.prepared, work)
     wall = run_snakemake(work, TARGET, *extra_config(work, a.subjects, a.preset, a.reuse_builds), cores=a.cores)
     rows = job_rows(work)
     by_rule = pd.DataFrame(rows).groupby("rule")["seconds"].agg(["count", "sum"])
@@ -108,6 +139,7 @@ def main() -> None:
                     | {k: row[k] for k in SCORES if k in row.index})  # fmt: skip
     total = {"kind": "total", "rule": "all", "seconds": round(wall, 1), "minutes": round(wall / 60, 1),
              "subjects": " ".join(subjects), "cores": a.cores, "reused_builds": a.reuse_builds,
+             "prepared_from": str(a.prepared or ""),
              "machine": f"{platform.machine()} {os.cpu_count()} CPUs", "python": platform.python_version()}  # fmt: skip
     total |= {k: mean[k] for k in SCORES if k in mean.index}
     rows.append(total)
