@@ -85,10 +85,11 @@ def resolve_scope(body, st: TrainSettings, init: InitParams, data: FrameData) ->
 
 def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, stage: int, device,
                  scope: dict | None = None) -> HybridAvatar:  # fmt: skip
-    """The avatar of a stage; ``scope`` (capture, frozen_joints) as resolved earlier, else resolved here."""
+    """The avatar of a stage; ``scope`` (capture, frozen_joints and optionally the exterior's layers, none
+    when not given) as resolved earlier, else resolved here."""
     scope = scope or resolve_scope(body, st, init, data)
     spec = dataclasses.replace(st.avatar, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]),
-                               layers=tuple(scope["layers"]))  # fmt: skip
+                               layers=tuple(scope.get("layers", ())))  # fmt: skip
     if not wants_exterior(st, data):
         spec = dataclasses.replace(spec, nerf=None)
     if stage == 2 and spec.nerf is not None:

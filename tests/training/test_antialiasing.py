@@ -34,6 +34,7 @@ class _Frames:
         self.person = self.exterior = self.interior = v.clone()
         self.boxes = torch.tensor([[2, 6, 1, 7]])
         self.resolution = n
+        self.hair = None  # no hair mask loaded (an exterior of one NeRF)
 
 
 def test_jittered_rays_pass_through_the_pixel_whose_target_they_carry():
