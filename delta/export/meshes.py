@@ -121,12 +121,14 @@ def edge_lengths(part: MeshPart) -> np.ndarray:
 def split_long_edges(vertices: np.ndarray, faces: np.ndarray, longest: float) -> tuple[np.ndarray, np.ndarray]:
     """Midpoint subdivision of every edge longer than ``longest`` until none is (the surface unchanged:
     new vertices lie on the old edges)."""
-    part = MeshPart(vertices, faces, np.zeros_like(vertices))
-    if longest <= 0 or part.empty or edge_lengths(part).max() <= longest:
+    if longest <= 0 or len(faces) == 0:
+        return vertices, faces
+    edge = edge_lengths(MeshPart(vertices, faces, np.zeros_like(vertices))).max()
+    if edge <= longest:
         return vertices, faces
     ms = pymeshlab.MeshSet()
     ms.add_mesh(pymeshlab.Mesh(vertex_matrix=vertices, face_matrix=faces.astype(np.int32)))
-    passes = math.ceil(math.log2(edge_lengths(part).max() / longest)) + 1
+    passes = math.ceil(math.log2(edge / longest)) + 1
     ms.meshing_surface_subdivision_midpoint(iterations=passes, threshold=pymeshlab.PureValue(longest))
     m = ms.current_mesh()
     return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64).reshape(-1, 3)

@@ -33,10 +33,10 @@ EAR_SPAN_PER_NECK = 0.65
 def head_span(lm: np.ndarray) -> float:
     """The head's width (px): the ears' span, or, turned away from the camera where the ears' span
     collapses (1–5 px in profile), :data:`EAR_SPAN_PER_NECK` of the nose-to-shoulders distance."""
-    ear_span = float(np.linalg.norm(lm[7, :2] - lm[8, :2]))
+    span = float(np.linalg.norm(lm[7, :2] - lm[8, :2]))
     if (lm[[0, 11, 12], 2] > 0.5).all():
-        ear_span = max(ear_span, EAR_SPAN_PER_NECK * float(np.linalg.norm(lm[0, :2] - lm[[11, 12], :2].mean(0))))
-    return ear_span
+        span = max(span, EAR_SPAN_PER_NECK * float(np.linalg.norm(lm[0, :2] - lm[[11, 12], :2].mean(0))))
+    return span
 
 
 def seed_regions(shape, lm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -119,11 +119,11 @@ def clothing_distance(lab: np.ndarray, seed: np.ndarray, at: np.ndarray, cluster
     k = min(clusters, max(1, len(samples) // 30))
     criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 20, 0.5)
     _, labels, _ = cv2.kmeans(samples, k, None, criteria, 2, cv2.KMEANS_PP_CENTERS)
-    out = np.full(len(at), np.inf)
+    pixels, out = lab[at], np.full(len(at), np.inf)
     for c in range(k):
         members = samples[labels.ravel() == c].astype(np.float64)
         if len(members) >= 10:
-            out = np.minimum(out, _distance(lab[at], colour_model(members, (9.0, 4.0, 4.0))))
+            out = np.minimum(out, _colour_distance(pixels, members, (9.0, 4.0, 4.0)))
     return out
 
 
