@@ -16,8 +16,9 @@ command runs there, with the default config plus only what the options below cha
   init fit, scene analysis) are copied, so the command trains, scores and exports only — for another
   preset on the same subjects (its job rows then lack the steps it did not run).
 
-One CSV row per job (``kind=job``: the rule, its wildcards, wall seconds and peak memory from the
-rule's Snakemake benchmark file), one per rule (``kind=rule``: jobs and seconds summed), one per
+One CSV row per job (``kind=job``: the rule, its wildcards, wall and CPU seconds and peak memory from the
+rule's Snakemake benchmark file; CPU seconds hold when other work shared the cores), one per rule
+(``kind=rule``: jobs and seconds summed), one per
 subject (``kind=subject``: its row of the metrics table's scores), and one ``kind=total`` row: the
 command's wall time, the subjects, preset, cores, the machine, and the mean row of
 ``results/peoplesnapshot/metrics.csv`` (its full-frame scores and their convention). Run from the
@@ -107,7 +108,8 @@ def job_rows(work: Path) -> list[dict]:
         last = df.iloc[-1]
         rel = tsv.relative_to(work / "results" / "benchmarks")
         rows.append({"kind": "job", "rule": rel.parts[0], "job": str(rel.with_suffix("")),
-                     "seconds": round(float(last["s"]), 1), "max_rss_mb": float(last.get("max_rss", float("nan")))})  # fmt: skip
+                     "seconds": round(float(last["s"]), 1), "cpu_seconds": round(float(last.get("cpu_time", float("nan"))), 1),
+                     "max_rss_mb": float(last.get("max_rss", float("nan")))})  # fmt: skip
     return rows
 
 
@@ -128,9 +130,10 @@ def main() -> None:
         copy_prepared(a.prepared, work)
     wall = run_snakemake(work, TARGET, *extra_config(work, a.subjects, a.preset, a.reuse_builds), cores=a.cores)
     rows = job_rows(work)
-    by_rule = pd.DataFrame(rows).groupby("rule")["seconds"].agg(["count", "sum"])
-    rows += [{"kind": "rule", "rule": r, "jobs": int(v["count"]), "seconds": round(float(v["sum"]), 1)}
-             for r, v in by_rule.iterrows()]  # fmt: skip
+    by_rule = pd.DataFrame(rows).groupby("rule").agg(count=("seconds", "count"), seconds=("seconds", "sum"),
+                                                     cpu=("cpu_seconds", "sum"))  # fmt: skip
+    rows += [{"kind": "rule", "rule": r, "jobs": int(v["count"]), "seconds": round(float(v["seconds"]), 1),
+              "cpu_seconds": round(float(v["cpu"]), 1)} for r, v in by_rule.iterrows()]  # fmt: skip
     table = pd.read_csv(work / TARGET)
     mean = table[table["subject"] == "mean"].iloc[0]
     subjects = [s for s in table["subject"] if s != "mean"]
