@@ -12,6 +12,18 @@ over its k nearest posed vertices v_i; w are skinning weights and nn the nearest
 Points farther than ``max_dist`` from every vertex are invalid (the renderer gives them
 no density and does not evaluate the NeRF there).
 
+Contact (a frame prepared with ``contact_cell`` > 0): where two parts of the body that lie apart in
+the canonical space touch in a pose (a hand resting on the hip, an arm raised beside the head), a posed
+point's neighbours come from both, and blending their maps puts it in the canonical space between
+them, where neither part's clothing is. A vertex is on the nearest vertex's *surface* when their
+canonical distance is at most ``CONTACT_STRETCH`` times the posed path between them through the point
+plus ``CONTACT_SLACK``; neighbours on another surface are left out of the blend. The kNN's neighbours
+lie within a centimetre on a dense mesh, so the other surface is looked for among a sparse subset of
+the vertices (one per ``contact_cell`` voxel of the canonical space, ``CONTACT_K`` nearest): the
+nearest of them on another surface starts a second blend over the subset's vertices of its surface,
+the point's *other* candidate. The renderer evaluates the NeRF at both and keeps the denser (a point
+belongs to the part whose clothing is there), as forward skinning keeps the densest of its roots.
+
 Contract (InstantAvatar-style, with no hidden state): ``prepare(...) -> SkinningFrame``
 once per frame, then ``deform(frame, points)``.
 """
@@ -19,6 +31,7 @@ once per frame, then ``deform(frame, points)``.
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Optional
 
 import torch
@@ -41,6 +54,40 @@ class SkinningFrame:
     """kNN structure over the detached posed vertices, on their device (non-differentiable selection)."""
     near: Optional[distance_grid.DistanceGrid] = None
     """Coarse distance field to the posed vertices, with each voxel's nearest vertex (culling), when asked for."""
+    canonical: Optional[torch.Tensor] = None
+    """(V, 3) each vertex's canonical position (detached): what tells the surfaces in contact apart."""
+    sparse: Optional[torch.Tensor] = None
+    """(P,) int64 the vertices the contact probe searches (one per voxel of the canonical space; None: off)."""
+    sparse_index: Optional[PointIndex] = None
+    """kNN structure over those vertices' detached posed positions."""
+    touching: Optional[torch.Tensor] = None
+    """(V,) bool: vertices near another surface in this pose; only samples whose nearest vertex is one are
+    probed (the sparse fields are None in a pose where no surfaces touch)."""
+
+
+#: a neighbour is on the nearest vertex's surface when their canonical distance is at most this many
+#: times their posed distance through the point, plus ``CONTACT_SLACK`` (m): skinning stretches a
+#: surface by far less, parts that only touch in the pose lie much farther apart in the canonical space
+CONTACT_STRETCH = 2.0
+CONTACT_SLACK = 0.02
+#: vertices of the sparse subset a contact probe looks at
+CONTACT_K = 16
+#: sparse neighbours of a sparse vertex looked at for contact in a pose
+TOUCH_K = 32
+
+
+@dataclasses.dataclass
+class Other:
+    """The second candidate of the points near two surfaces in contact (M of the N points)."""
+
+    rows: torch.Tensor
+    """(M,) int64: which of the deformed points have one."""
+    canonical: torch.Tensor
+    """(M, 3) their canonical points by the other surface's maps."""
+    valid: torch.Tensor
+    """(M,) bool: the other surface is within ``max_dist``."""
+    posed_ref: torch.Tensor
+    """(M, 3) the other surface's kNN-weighted posed point."""
 
 
 @dataclasses.dataclass
@@ -53,6 +100,8 @@ class Deformed:
     """(N, 3) kNN-weighted posed body point (the pose cue of the deformation network F_e)."""
     distance: torch.Tensor
     """(N,) distance to the nearest posed vertex."""
+    other: Optional[Other] = None
+    """Second candidates where the point is near two surfaces in contact (a frame with ``contact_cell``)."""
 
 
 def affine_inverse(T: torch.Tensor) -> torch.Tensor:
@@ -67,7 +116,8 @@ def compose(P: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
 
 
 def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tensor, canonical_T: torch.Tensor,
-            weights: torch.Tensor, near_cell: float = 0.0, near_pad: float = 0.0) -> SkinningFrame:  # fmt: skip
+            weights: torch.Tensor, near_cell: float = 0.0, near_pad: float = 0.0,
+            contact_cell: float = 0.0) -> SkinningFrame:  # fmt: skip
     """Per-vertex maps posed -> canonical.
 
     Args:
@@ -75,6 +125,7 @@ def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tens
         displacement: (V, 3) d_i = rest_i - template_i; canonical_T: (V, 3, 4) G^c_i;
         weights: (V, J) skinning weights.
         near_cell, near_pad: also build a distance grid of this cell size with this room (0: none).
+        contact_cell: tell surfaces in contact apart, probing one vertex per voxel of this size (0: off).
     """
     inv = affine_inverse(posed_T)
     eye = torch.eye(3, dtype=inv.dtype, device=inv.device).expand_as(inv[..., :3])
@@ -82,7 +133,46 @@ def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tens
     to_canonical = compose(canonical_T, compose(untranslate, inv))
     pts = posed.detach()
     near = distance_grid.build(pts, near_cell, near_pad, nearest=True) if near_cell > 0 else None
-    return SkinningFrame(posed=posed, to_canonical=to_canonical, weights=weights, index=PointIndex(pts), near=near)
+    tc = to_canonical.detach()
+    canonical = (tc[..., :3] @ pts[..., None]).squeeze(-1) + tc[..., 3]
+    frame = SkinningFrame(posed=posed, to_canonical=to_canonical, weights=weights, index=PointIndex(pts), near=near,
+                          canonical=canonical)  # fmt: skip
+    if contact_cell > 0:
+        sparse = voxel_subset(canonical, contact_cell)
+        sparse_index = PointIndex(pts[sparse])
+        touching = _touching(pts, canonical, sparse, sparse_index, contact_cell)
+        if bool(touching.any()):  # else nothing to tell apart: the frame deforms as without contact
+            frame.sparse, frame.sparse_index, frame.touching = sparse, sparse_index, touching
+    return frame
+
+
+@torch.no_grad()
+def _touching(posed, canonical, sparse, sparse_index: PointIndex, cell: float) -> torch.Tensor:
+    """(V,) bool: the vertices near another surface (the sparse vertex nearest each lies within two cells of
+    a sparse vertex that has a sparse neighbour of another surface, by ``same_surface`` with the path
+    between them)."""
+    k = min(TOUCH_K, len(sparse))
+    d, j = sparse_index.query(posed[sparse], k)
+    d = d.to(posed.dtype)
+    apart = (canonical[sparse][j] - canonical[sparse][:, None]).norm(dim=-1)
+    contact = (apart > CONTACT_STRETCH * d + CONTACT_SLACK).any(1)
+    grown = (contact[j] & (d <= 2 * cell)).any(1)  # j[:, 0] is the vertex itself
+    return grown[sparse_index.query(posed, 1)[1][:, 0]]
+
+
+@torch.no_grad()
+def voxel_subset(points: torch.Tensor, cell: float) -> torch.Tensor:
+    """(P,) int64 indices of points (V, 3): in each occupied voxel of side ``cell``, the point nearest its
+    centre (ascending indices; deterministic)."""
+    key = torch.floor(points / cell)
+    off = (points / cell - key - 0.5).norm(dim=-1)
+    _, cell_of = torch.unique(key, dim=0, return_inverse=True)
+    order = torch.argsort(off, stable=True)  # nearest its voxel's centre first
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(len(order), device=points.device)
+    best = torch.full((int(cell_of.max()) + 1,), len(points), dtype=torch.long, device=points.device)
+    best = best.scatter_reduce(0, cell_of, rank, "amin", include_self=True)
+    return torch.sort(order[best]).values
 
 
 def knn(frame: SkinningFrame, points: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -93,37 +183,102 @@ def knn(frame: SkinningFrame, points: torch.Tensor, k: int) -> tuple[torch.Tenso
     return idx, torch.sqrt((diff * diff).sum(-1) + 1e-12)
 
 
-def blend_weights(frame: SkinningFrame, idx: torch.Tensor, dist: torch.Tensor, sigma: float) -> torch.Tensor:
-    """α (N, k): softmax of -‖x - v_i‖ ‖w_nn - w_i‖ / (2σ²) (log-space normalisation never underflows)."""
-    return torch.softmax(-dist * weight_distance(frame.weights, idx) / (2 * sigma * sigma), dim=-1)
+def blend_weights(frame: SkinningFrame, idx: torch.Tensor, dist: torch.Tensor, sigma: float,
+                  ref: Optional[torch.Tensor] = None, keep: Optional[torch.Tensor] = None) -> torch.Tensor:  # fmt: skip
+    """α (N, k): softmax of -‖x - v_i‖ ‖w_ref - w_i‖ / (2σ²) (log-space normalisation never underflows).
+
+    ``ref`` (N,): the reference vertex (default: the nearest, ``idx[:, 0]``); ``keep`` (N, k) bool: the
+    neighbours that may take part (the others get α = 0; each row keeps at least its reference)."""
+    logits = -dist * weight_distance(frame.weights, idx, ref) / (2 * sigma * sigma)
+    if keep is not None:
+        logits = logits.masked_fill(~keep, -math.inf)
+    return torch.softmax(logits, dim=-1)
 
 
 @torch.no_grad()
-def weight_distance(weights: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """‖w_nn - w_i‖ (N, k) for neighbour lists idx (N, k), nearest first (constant: no gradient).
+def weight_distance(weights: torch.Tensor, idx: torch.Tensor, ref: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """‖w_ref - w_i‖ (N, k) for neighbour lists idx (N, k), nearest first, ``ref`` (N,) defaulting to the
+    nearest (constant: no gradient).
 
-    Computed once per distinct (nearest, neighbour) vertex pair: the N·k pairs of a batch of samples
+    Computed once per distinct (reference, neighbour) vertex pair: the N·k pairs of a batch of samples
     repeat a few thousand vertex pairs, so this gathers far fewer (J,) weight rows than N·k of them.
     """
     n, k = idx.shape
-    pairs = idx[:, :1] * weights.shape[0] + idx
+    ref = idx[:, :1] if ref is None else ref[:, None]
+    pairs = ref * weights.shape[0] + idx
     uniq, inverse = torch.unique(pairs.reshape(-1), return_inverse=True)
     a, b = uniq // weights.shape[0], uniq % weights.shape[0]
     return (weights[a] - weights[b]).norm(dim=-1)[inverse].view(n, k)
 
 
+def _blend(frame: SkinningFrame, points: torch.Tensor, idx: torch.Tensor, alpha: torch.Tensor):
+    """Canonical points (N, 3) and kNN-weighted posed points (N, 3) of blend weights α over idx (N, k)."""
+    M = (alpha[..., None, None] * frame.to_canonical[idx]).sum(1)  # (N, 3, 4)
+    canonical = (M[..., :3] @ points[..., None]).squeeze(-1) + M[..., 3]
+    return canonical, (alpha[..., None] * frame.posed[idx]).sum(1)
+
+
+@torch.no_grad()
+def same_surface(frame: SkinningFrame, idx: torch.Tensor, dist: torch.Tensor, ref: torch.Tensor,
+                 ref_dist: torch.Tensor) -> torch.Tensor:  # fmt: skip
+    """(N, k) bool: which vertices idx (N, k), at posed distances dist from their point, lie on the surface of
+    the vertex ``ref`` (N,) at ``ref_dist`` (N,) from it: canonical distance to it at most
+    ``CONTACT_STRETCH`` × (dist + ref_dist) + ``CONTACT_SLACK``."""
+    apart = (frame.canonical[idx] - frame.canonical[ref][:, None]).norm(dim=-1)
+    return apart <= CONTACT_STRETCH * (dist + ref_dist[:, None]) + CONTACT_SLACK
+
+
 def deform(frame: SkinningFrame, points: torch.Tensor, k: int = 6, sigma: float = 0.1,
            max_dist: float = 0.2) -> Deformed:  # fmt: skip
-    """Map posed points (N, 3) to the canonical space."""
+    """Map posed points (N, 3) to the canonical space (with second candidates near surfaces in contact
+    when the frame was prepared with ``contact_cell``: the module's note)."""
     if len(points) == 0:
         empty = points.new_zeros((0,))
         return Deformed(points, empty.bool(), points, empty)
     idx, dist = knn(frame, points, k)
-    alpha = blend_weights(frame, idx, dist, sigma)
-    M = (alpha[..., None, None] * frame.to_canonical[idx]).sum(1)  # (N, 3, 4)
-    canonical = (M[..., :3] @ points[..., None]).squeeze(-1) + M[..., 3]
-    posed_ref = (alpha[..., None] * frame.posed[idx]).sum(1)
-    return Deformed(canonical, dist[:, 0] < max_dist, posed_ref, dist[:, 0])
+    keep = None
+    if frame.sparse_index is not None:
+        keep = same_surface(frame, idx, dist.detach(), idx[:, 0], dist[:, 0].detach())
+    canonical, posed_ref = _blend(frame, points, idx, blend_weights(frame, idx, dist, sigma, keep=keep))
+    out = Deformed(canonical, dist[:, 0] < max_dist, posed_ref, dist[:, 0])
+    if frame.sparse_index is not None:
+        out.other = _other_surface(frame, points, idx[:, 0], dist[:, 0].detach(), sigma, max_dist)
+    return out
+
+
+def _other_surface(frame: SkinningFrame, points, nearest, nearest_dist, sigma: float, max_dist: float):
+    """The second candidates (``Other``) of the points whose sparse neighbours include another surface
+    than their nearest vertex's; None when none has."""
+    probe = torch.nonzero(frame.touching[nearest]).squeeze(1)
+    if len(probe) == 0:
+        return None
+    si = frame.sparse_index.query(points[probe], CONTACT_K)[1]
+    sidx = frame.sparse[si]  # (P, K) vertex indices
+    diff = points[probe, None] - frame.posed[sidx]
+    sdist = torch.sqrt((diff * diff).sum(-1) + 1e-12)
+    apart = ~same_surface(frame, sidx, sdist.detach(), nearest[probe], nearest_dist[probe])
+    found = torch.nonzero(apart.any(1)).squeeze(1)
+    if len(found) == 0:
+        return None
+    rows, i2, d2 = probe[found], sidx[found], sdist[found]
+    apart = apart[found]
+    first = apart.to(torch.int8).argmax(1)
+    pick = torch.arange(len(rows), device=rows.device)
+    ref, ref_dist = i2[pick, first], d2.detach()[pick, first]
+    alpha = blend_weights(frame, i2, d2, sigma, ref=ref, keep=same_surface(frame, i2, d2.detach(), ref, ref_dist))
+    c2, p2 = _blend(frame, points[rows], i2, alpha)
+    return Other(rows, c2, ref_dist < max_dist, p2)
+
+
+@torch.no_grad()
+def near_contact(frame: SkinningFrame, points: torch.Tensor) -> torch.Tensor:
+    """(N,) bool: points whose distance-grid voxel's nearest vertex is near another surface (``touching``;
+    needs ``frame.near``)."""
+    if frame.touching is None:
+        return torch.zeros(len(points), dtype=torch.bool, device=points.device)
+    _, who = distance_grid.lookup_nearest(frame.near, points)
+    who = who.to(frame.touching.device)
+    return (frame.touching[who.clamp_min(0)] & (who >= 0)).to(points.device)
 
 
 @torch.no_grad()

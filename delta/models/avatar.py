@@ -228,6 +228,7 @@ class HybridAvatar(nn.Module):
                 self.body.weights[ids],
                 cell,
                 rs.max_dist + 2 * rs.probe_cell,
+                rs.contact_cell,
             )
         mesh = PosedMesh(verts, self.body.faces, self.albedo(), uv, skinning)
         return mesh, offsets, out

@@ -63,6 +63,10 @@ class RenderSettings:
     """Probe points a ray that find where it passes within ``max_dist`` of the body; samples go there only."""
     probe_cell: float = 0.02
     """Voxel size of the distance grid the probes read (m)."""
+    contact_cell: float = 0.0
+    """Tell body surfaces in contact apart (a hand on the hip): a sample also looks for another surface
+    than its nearest vertex's among one vertex per voxel of this side (m) of the canonical space; its
+    map from there is a second candidate and the denser one renders (``deformers/knn.py``; 0: off)."""
     knn_vertices: str = "base"
     """Backward skinning over the ``base`` mesh's vertices (before upsampling; 4× fewer) or ``all``."""
     perturb: bool = True
@@ -190,7 +194,10 @@ def early_cull(skinning: deformer.SkinningFrame, points: torch.Tensor, max_dist:
     rough, dist = deformer.rough_canonical(skinning, points)
     keep = dist < max_dist + math.sqrt(3) * skinning.near.cell * (1 + 1e-6)
     if occupied is not None:
-        keep &= occupied(rough, grow=EARLY_GROW)
+        inside = occupied(rough, grow=EARLY_GROW)
+        if skinning.touching is not None:  # near a contact the nearest vertex's map is one candidate of two
+            inside |= deformer.near_contact(skinning, points)
+        keep &= inside
     return keep
 
 
@@ -214,24 +221,43 @@ def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: Ne
     idx = torch.nonzero(live).squeeze(1)
     if settings.early_cull and mesh.skinning.near is not None and len(idx):
         idx = idx[early_cull(mesh.skinning, flat[idx], settings.max_dist, occupied)]
+    evaluated = 0
     if len(idx):
         d = deformer.deform(mesh.skinning, flat[idx], settings.k, settings.sigma, settings.max_dist)
+        x_c, ref, rows = d.canonical, d.posed_ref, torch.arange(len(idx), device=idx.device)
         valid = d.valid
+        if d.other is not None:  # second candidates near surfaces in contact: evaluated beside the first
+            x_c, ref = torch.cat([x_c, d.other.canonical]), torch.cat([ref, d.other.posed_ref])
+            rows, valid = torch.cat([rows, d.other.rows]), torch.cat([valid, d.other.valid])
         if occupied is not None:
-            valid = valid & occupied(d.canonical)
+            valid = valid & occupied(x_c)
         keep = torch.nonzero(valid).squeeze(1)
-        idx = idx[keep]
-        if len(idx):
-            x_c = d.canonical[keep]
+        evaluated = len(keep)
+        if len(keep):
+            x_c = x_c[keep]
             if nonrigid is not None:
-                x_c = x_c + nonrigid(x_c, d.posed_ref[keep])
+                x_c = x_c + nonrigid(x_c, ref[keep])
+            s_layers = None
             if layered:
                 c, s, s_layers = nerf.with_layers(x_c)
-                layer_sigma = layer_sigma.index_put((idx,), s_layers)
             else:
                 c, s = nerf(x_c)
-            sigma = sigma.index_put((idx,), s)
-            rgb = rgb.index_put((idx,), c)
+            at, pick = denser(rows[keep], s)
+            at = idx[at]
+            sigma = sigma.index_put((at,), s[pick])
+            rgb = rgb.index_put((at,), c[pick])
+            if layered:
+                layer_sigma = layer_sigma.index_put((at,), s_layers[pick])
     if layered:
         layer_sigma = layer_sigma.view(R, S - 1, -1)
-    return sigma.view(R, S - 1), rgb.view(R, S - 1, 3), layer_sigma, int(len(idx))
+    return sigma.view(R, S - 1), rgb.view(R, S - 1, 3), layer_sigma, evaluated
+
+
+def denser(rows: torch.Tensor, sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Of candidates (M,) for points ``rows`` (M,), the densest of each point: the distinct points (P,) and
+    the index (P,) of their candidate (ties: the first listed)."""
+    order = torch.argsort(sigma.detach(), descending=True, stable=True)
+    at, first = torch.unique(rows[order], return_inverse=True)
+    pick = torch.full((len(at),), len(order), dtype=torch.long, device=rows.device)
+    pick = pick.scatter_reduce(0, first, torch.arange(len(order), device=rows.device), "amin")
+    return at, order[pick]
