@@ -22,11 +22,12 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import torch
 
 from delta.deformers import knn
-from delta.eval.evaluate import EvalSettings, evaluate
+from delta.eval.evaluate import SPLITS, EvalSettings, evaluate
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -52,6 +53,26 @@ def with_contact(model, cell: float) -> None:
     model.spec = dataclasses.replace(model.spec, render=dataclasses.replace(model.spec.render, contact_cell=cell))
 
 
+def contact_frames(model, frames) -> list[int]:
+    """The frames among ``frames`` whose posed body has surfaces in contact (at a 3-cm probe)."""
+    with_contact(model, 0.03)
+    out = []
+    with torch.no_grad():
+        for f in frames:
+            if model.posed_mesh(int(f))[0].skinning.touching is not None:
+                out.append(int(f))
+    return out
+
+
+def restrict_to_contact(trained, splits) -> None:
+    """Leave only the frames with contact in the scored splits (the others get no split)."""
+    split = trained.data.split
+    scored = [int(f) for f in np.flatnonzero(np.isin(split, [SPLITS[s] for s in splits]))]
+    keep = contact_frames(trained.model, scored)
+    print(f"{len(keep)} of {len(scored)} frames have surfaces in contact: {keep}")
+    trained.data.split = np.where(np.isin(np.arange(len(split)), keep), split, -1)
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--model", required=True)
@@ -60,6 +81,9 @@ def main() -> None:
     p.add_argument("--subject", required=True)
     p.add_argument("--splits", nargs="+", default=["test_pose"])
     p.add_argument("--max-frames", type=int, default=0, help="frames a split (0: every one)")
+    p.add_argument(
+        "--contact-only", action="store_true", help="score only the frames whose pose has surfaces in contact"
+    )
     p.add_argument("--cells", default="0,0.03", help="contact_cell values to score (0: the plain blend)")
     p.add_argument("--supersample", type=int, default=2)
     p.add_argument("--perceptual", default="resources/models/stlpips")
@@ -68,6 +92,8 @@ def main() -> None:
     a = p.parse_args()
     torch.set_num_threads(a.threads)
     trained = load_trained(a.model, a.record, a.body)
+    if a.contact_only:
+        restrict_to_contact(trained, a.splits)
     st = EvalSettings(splits=tuple(a.splits), max_frames=a.max_frames, refine_steps=0, report_unrefined=False,
                       supersample=a.supersample, worst=0, perceptual_dir=a.perceptual)  # fmt: skip
     from delta.render import hybrid

@@ -11,6 +11,8 @@ pose and camera were refined (with the model frozen) before scoring.
 
 from __future__ import annotations
 
+import math
+
 import dataclasses
 import json
 import logging
@@ -141,6 +143,26 @@ def score_image(img: dict, gt: torch.Tensor, masks: dict[str, torch.Tensor], per
     return row
 
 
+def exterior_leaks(nerf_mask: torch.Tensor, person: torch.Tensor, interior: torch.Tensor,
+                   face: torch.Tensor) -> dict[str, float]:  # fmt: skip
+    """Where the exterior's opacity should not be, from one render's NeRF opacity (H, W) and the capture's
+    person alpha, visible-body (skin) alpha and the body mesh's face pixels (H, W):
+
+    - ``nerf_on_skin``: mean opacity over the pixels the capture shows as skin (interior > 0.5);
+    - ``nerf_on_face``: the same over those of them on the face;
+    - ``nerf_off_person``: opacity summed outside the person (alpha < 0.5), as a share of the capture's
+      exterior area (person − skin): what floats free of the body, relative to the clothing and hair.
+
+    NaN where a region is empty."""
+    skin = interior > 0.5
+    face_skin = skin & face
+    outside = person < 0.5
+    area = float((person - interior).clamp_min(0).sum())
+    mean = lambda m: float(nerf_mask[m].mean()) if bool(m.any()) else math.nan  # noqa: E731
+    return {"nerf_on_skin": mean(skin), "nerf_on_face": mean(face_skin),
+            "nerf_off_person": float(nerf_mask[outside].sum()) / area if area > 0 else math.nan}  # fmt: skip
+
+
 def gt_body_vertices(meshes_h5: str | Path, frame_ids) -> dict[int, np.ndarray]:
     with h5py.File(meshes_h5, "r") as f:
         if "body_vertices" not in f:
@@ -204,6 +226,8 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
             row["nerf_iou"] = (
                 M.iou(img["nerf_mask"] > 0.5, full.exterior[k] > 0.5) if model.nerf is not None else np.nan
             )
+            if model.nerf is not None:
+                row |= exterior_leaks(img["nerf_mask"], full.person[k], full.interior[k], masks["face"])
             row["mesh_iou"] = M.iou(img["silhouette"] > 0.5, full.person[k] > 0.5)
             for name in getattr(model.nerf, "names", ()):  # an exterior in layers: each against its own mask
                 if name in full.parts:

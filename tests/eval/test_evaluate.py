@@ -8,7 +8,15 @@ import pytest
 import torch
 
 from delta import DeltaError
-from delta.eval.evaluate import EvalSettings, evaluate, face_pixels, pick_frames, summarize, train_body_error_mm
+from delta.eval.evaluate import (
+    EvalSettings,
+    evaluate,
+    exterior_leaks,
+    face_pixels,
+    pick_frames,
+    summarize,
+    train_body_error_mm,
+)
 from delta.eval.heldout import refine_frame
 from delta.models.image import View, render_image
 from delta.training.run import load_trained
@@ -190,3 +198,27 @@ def test_whole_frames_are_scored_at_the_capture_size_as_an_independent_scorer_wo
         assert row.psnr == pytest.approx(peak_signal_noise_ratio(gt, render, data_range=1.0), abs=1e-4)
         assert row.ssim == pytest.approx(structural_similarity(gt, render, **kw), abs=1e-4)
     src.close()
+
+
+def test_exterior_leaks_against_counted_pixels():
+    """A 10x10 frame: a person of 40 pixels, 24 of them skin (8 of those on the face), 16 clothing."""
+    person = torch.zeros(10, 10)
+    person[2:8, 3:7] = 1.0  # 24 pixels
+    person[8:10, 2:10] = 1.0  # 16 pixels: 40 in all
+    interior = torch.zeros(10, 10)
+    interior[2:8, 3:7] = 1.0  # the skin: the top block
+    face = torch.zeros(10, 10, dtype=torch.bool)
+    face[2:4, 3:7] = True  # 8 of the skin pixels
+    face[0, 0] = True  # a face pixel that is not skin in the capture: not counted
+    nerf = torch.zeros(10, 10)
+    nerf[8:10, 2:10] = 1.0  # the clothing, exactly
+    assert exterior_leaks(nerf, person, interior, face) == {"nerf_on_skin": 0.0, "nerf_on_face": 0.0,
+                                                            "nerf_off_person": 0.0}  # fmt: skip
+    nerf[2, 3:7] = 0.5  # half-opaque hair over 4 face pixels
+    nerf[0, 0:4] = 1.0  # a floater of 4 pixels outside the person
+    got = exterior_leaks(nerf, person, interior, face)
+    assert got["nerf_on_skin"] == pytest.approx(4 * 0.5 / 24)
+    assert got["nerf_on_face"] == pytest.approx(4 * 0.5 / 8)
+    assert got["nerf_off_person"] == pytest.approx(4 / 16)
+    empty = exterior_leaks(nerf, torch.zeros(10, 10), torch.zeros(10, 10), face)
+    assert all(math.isnan(v) for v in (empty["nerf_on_skin"], empty["nerf_on_face"], empty["nerf_off_person"]))
