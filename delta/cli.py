@@ -268,6 +268,15 @@ def cmd_animate(args: argparse.Namespace) -> None:
     animate_avatar(args.model, args.record, args.body, args.motion, args.out, st, args.clothing, args.device)
 
 
+def cmd_reenact(args: argparse.Namespace) -> None:
+    from delta.applications.reenact import reenact_avatar
+
+    _threads(args.threads)
+    reenact_avatar(args.model, args.record, args.body, args.driver_model, args.driver_record, args.out,
+                   anchor=args.anchor, reference=args.reference, max_frames=args.max_frames, fps=args.fps,
+                   device=args.device)  # fmt: skip
+
+
 def _layers_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument("--layers", nargs="+", choices=LAYERS, default=[],
                    help="only these layers of the wearer's exterior (trained with training.layers: split); "
@@ -635,6 +644,18 @@ def build_parser() -> argparse.ArgumentParser:
     settings.add_arguments(p, AnimateSettings)
     _job_arguments(p)
     p.set_defaults(func=cmd_animate)
+
+    p = sub.add_parser("reenact", help="a head avatar driven by another head avatar's expressions and head motion")
+    _avatar_arguments(p)
+    p.add_argument("--driver-model", required=True, help="the driving avatar (a tracked face): a stage's model.pt")
+    p.add_argument("--driver-record", required=True, help="the frame record the driver was trained on")
+    p.add_argument("--anchor", type=int, default=0, help="the avatar's frame that is driven (its body, place, camera)")
+    p.add_argument("--reference", type=int, default=0, help="the driver's frame whose head pose means 'no turn'")
+    p.add_argument("--max-frames", type=int, default=0, help="at most this many driver frames, evenly spread (0: all)")
+    p.add_argument("--fps", type=int, default=25)
+    p.add_argument("--out", required=True, help="folder for reenactment.mp4 and reenactment.json")
+    _job_arguments(p)
+    p.set_defaults(func=cmd_reenact)
 
     p = sub.add_parser("dress", help="put one avatar's exterior (clothing, hair) on another avatar's body")
     _avatar_arguments(p, "the body avatar: ")
