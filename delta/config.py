@@ -329,6 +329,15 @@ def subject_ref(config: dict, ref: str) -> tuple[str, str] | None:
     return (dataset, renamed[subject]) if subject in renamed else None
 
 
+def tracks_face(config: dict, dataset: str, subject: str) -> bool:
+    """A subject whose face is tracked and modelled with expressions: a video's head close-up (``framing:
+    head``) or a synthetic talking face (``expressions`` other than ``none``)."""
+    spec = config["datasets"][dataset]["subjects"].get(subject) or {}
+    if spec.get("framing") == "head" and (dataset != "synthetic"):
+        return True
+    return dataset == "synthetic" and spec.get("expressions", "none") != "none"
+
+
 def motion_source(config: dict, name: str) -> tuple[str, str] | str:
     """Where the configured motion ``name`` comes from: (dataset, subject) of a subject whose fitted motion
     it is, or the path of a motion file."""
@@ -354,7 +363,8 @@ def exterior_layers(config: dict, name: str) -> list[str]:
 
 
 #: Each application: the config key of the names its avatars take (motions, exteriors).
-APPLICATIONS = {"animate": "motions", "dress": "exteriors", "reshape": "shapes", "tryon": "exteriors"}
+APPLICATIONS = {"animate": "motions", "dress": "exteriors", "reshape": "shapes", "tryon": "exteriors",
+                "reenact": "drivers"}  # fmt: skip
 
 
 def application_jobs(config: dict, application: str) -> list[tuple[str, str, str]]:
@@ -386,6 +396,19 @@ def _check_applications(config: dict, base: Path) -> list[str]:
                        "optionally ':clothing' or ':hair')")  # fmt: skip
         else:
             out += _check_exterior_layers(config, key, source)
+    for name, source in apps["drivers"].items():
+        key = f"config key 'applications.drivers.{name}'"
+        if not SAFE_NAME.match(name):
+            out.append(f"{key}: driver name {name!r} is not allowed (it names a folder: letters, digits, '_' and '-')")
+        elif subject_ref(config, source) is None:
+            out.append(f"{key}: {source!r} names no configured subject (expected 'dataset/subject')")
+        elif not tracks_face(config, *subject_ref(config, source)):
+            out.append(f"{key}: {source!r} is not a tracked face (framing: head, or a synthetic talking face)")
+    for avatar in apps["reenact"]["avatars"]:
+        ref = subject_ref(config, avatar)
+        if ref is not None and not tracks_face(config, *ref):
+            out.append(f"config key 'applications.reenact.avatars.{avatar}': {avatar!r} is not a tracked face "
+                       "(framing: head, or a synthetic talking face): only such an avatar has expressions to drive")  # fmt: skip
     for name in apps["shapes"]:
         if not SAFE_NAME.match(name):
             out.append(f"config key 'applications.shapes.{name}': shape name {name!r} is not allowed (it names a "

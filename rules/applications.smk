@@ -176,3 +176,37 @@ rule tryon:
         " --wearer-model {input.wearer_model:q} --wearer-record {input.wearer_record:q}"
         " --wearer-body {input.wearer_body:q} --out {params.out:q} {params.layers:q}"
         " --settings {params.settings:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"
+
+
+rule reenact:
+    input:
+        unpack(reenact_inputs),
+    output:
+        video=report(
+            PATHS["reenactment"],
+            caption="../workflow/report/reenactment.rst",
+            category="Applications",
+            subcategory="{dataset} {subject}",
+            labels={"subject": "{subject}", "driven by": "{driver}"},
+        ),
+        summary=PATHS["reenact_json"],
+    log:
+        log_path("reenact", "{dataset}_{subject}_{driver}"),
+    benchmark:
+        benchmark_path("reenact", "{dataset}_{subject}_{driver}")
+    conda:
+        "../workflow/envs/delta.yaml"
+    threads: 2
+    resources:
+        mem_mb=lambda w, attempt: _grow(3000, attempt),
+        runtime=lambda w, attempt: 30 * attempt,
+    params:
+        out=lambda w: PATHS["reenact_dir"].format(**w),
+        max_frames=REENACT["max_frames"],
+        fps=REENACT["fps"],
+        device=config["device"],
+    shell:
+        "delta reenact --model {input.model:q} --record {input.record:q} --body {input.body:q}"
+        " --driver-model {input.driver_model:q} --driver-record {input.driver_record:q}"
+        " --max-frames {params.max_frames} --fps {params.fps} --out {params.out:q}"
+        " --device {params.device:q} --threads {threads} > {log:q} 2>&1"

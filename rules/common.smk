@@ -9,6 +9,7 @@ from delta.config import (
     exterior_layers,
     exterior_source,
     motion_source,
+    subject_ref,
 )
 from delta.config import subject_training as _subject_training
 from delta.config import validate_workflow_config
@@ -128,6 +129,9 @@ PATHS = {
     "animation": "results/{dataset}/{subject}/animate/{motion}/animation.mp4",
     "animation_json": "results/{dataset}/{subject}/animate/{motion}/animation.json",
     "animation_glb": "results/{dataset}/{subject}/animate/{motion}/animation.glb",
+    "reenact_dir": "results/{dataset}/{subject}/reenact/{driver}",
+    "reenactment": "results/{dataset}/{subject}/reenact/{driver}/reenactment.mp4",
+    "reenact_json": "results/{dataset}/{subject}/reenact/{driver}/reenactment.json",
     "dress_dir": "results/{dataset}/{subject}/dress/{exterior}",
     "dressed": "results/{dataset}/{subject}/dress/{exterior}/dressed.png",
     "dressed_turntable": "results/{dataset}/{subject}/dress/{exterior}/turntable.mp4",
@@ -648,6 +652,10 @@ def application_targets():
             for d, s, e in application_jobs(config, "tryon")
         ]
         + [
+            PATHS["reenactment"].format(dataset=d, subject=s, driver=r)
+            for d, s, r in application_jobs(config, "reenact")
+        ]
+        + [
             PATHS["application_scores"].format(dataset=d)
             for d in sorted({d for d, _, _ in scored_jobs()})
         ]
@@ -783,6 +791,21 @@ def tryon_inputs(wildcards):
         "wearer_model": PATHS["stage_model"].format(stage=EVAL["stage"], **theirs),
         "wearer_record": PATHS["record"].format(**theirs),
         "wearer_body": body_model_file(theirs),
+    }
+
+
+REENACT = config["applications"]["reenact"]
+
+
+def reenact_inputs(wildcards):
+    """The avatar and the driving avatar (each its evaluated stage's model and its frames)."""
+    dataset, subject = subject_ref(
+        config, config["applications"]["drivers"][wildcards.driver]
+    )
+    driver = {"dataset": dataset, "subject": subject}  # validated with the config
+    return trained_inputs(wildcards) | {
+        "driver_model": PATHS["stage_model"].format(stage=EVAL["stage"], **driver),
+        "driver_record": PATHS["record"].format(**driver),
     }
 
 
