@@ -28,6 +28,7 @@ import torch
 
 from delta.deformers import knn
 from delta.eval.evaluate import SPLITS, EvalSettings, evaluate
+from delta.render import hybrid
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -96,8 +97,6 @@ def main() -> None:
         restrict_to_contact(trained, a.splits)
     st = EvalSettings(splits=tuple(a.splits), max_frames=a.max_frames, refine_steps=0, report_unrefined=False,
                       supersample=a.supersample, worst=0, perceptual_dir=a.perceptual)  # fmt: skip
-    from delta.render import hybrid
-
     rows = []
     for cell in (float(c) for c in a.cells.split(",")):
         with_contact(trained.model, cell)

@@ -333,9 +333,9 @@ def tracks_face(config: dict, dataset: str, subject: str) -> bool:
     """A subject whose face is tracked and modelled with expressions: a video's head close-up (``framing:
     head``) or a synthetic talking face (``expressions`` other than ``none``)."""
     spec = config["datasets"][dataset]["subjects"].get(subject) or {}
-    if spec.get("framing") == "head" and (dataset != "synthetic"):
-        return True
-    return dataset == "synthetic" and spec.get("expressions", "none") != "none"
+    if dataset == "synthetic":
+        return spec.get("expressions", "none") != "none"
+    return config["datasets"][dataset].get("kind") == "video" and spec.get("framing") == "head"
 
 
 def motion_source(config: dict, name: str) -> tuple[str, str] | str:

@@ -12,6 +12,7 @@ from delta.config import (
     subject_ref,
 )
 from delta.config import subject_training as _subject_training
+from delta.config import tracks_face as _tracks_face
 from delta.config import validate_workflow_config
 from delta.config import variant_training as _variant_training
 from delta.data.sources import PROVIDES
@@ -178,11 +179,9 @@ def tracks_face(wildcards):
     points), or a video's head close-up (its face-mesh landmarks placed on the body mesh).
     """
     dataset, subject = wildcards.get("dataset"), wildcards.get("subject")
-    if subject_framing(wildcards) == "head":
-        return True
-    if dataset != "synthetic" or subject not in SYNTHETIC:
+    if dataset not in DATASETS or subject not in DATASETS[dataset]["subjects"]:
         return False
-    return SYNTHETIC[subject].expressions != "none"
+    return _tracks_face(config, dataset, subject)
 
 
 def head_models(wildcards):

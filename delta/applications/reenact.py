@@ -23,13 +23,14 @@ import time
 from pathlib import Path
 from typing import Iterator, Sequence
 
+import numpy as np
 import torch
 from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 
 from delta import DeltaError
 from delta.body.lbs import batch_rodrigues
 from delta.data.frames import load_full_frames
-from delta.export.video import to_bgr, write_video
+from delta.export.video import posed_as, to_bgr, write_video
 from delta.io import require_files, save_json
 from delta.models.avatar import HybridAvatar
 from delta.models.image import full_view, render_image
@@ -75,19 +76,14 @@ def driven_face(
 
 
 @contextlib.contextmanager
-def face_as(model: HybridAvatar, frame: int, joints: Sequence[int], rotations: torch.Tensor,
-            expression: torch.Tensor) -> Iterator[None]:  # fmt: skip
-    """Temporarily give ``frame`` these face joints' rotations (K, 3) and expression (E,), out of the
-    training sequence (restored on exit)."""
-    j = list(joints)
-    old = model.poses.data[frame, j].clone(), model.expression.data[frame].clone(), model.frame_time[frame].clone()
+def expression_as(model: HybridAvatar, frame: int, expression: torch.Tensor) -> Iterator[None]:
+    """Temporarily give ``frame`` another expression (E,) (restored on exit)."""
+    old = model.expression.data[frame].clone()
     try:
-        model.poses.data[frame, j] = rotations.to(model.poses)
         model.expression.data[frame] = expression.to(model.expression)
-        model.frame_time[frame] = float("nan")
         yield
     finally:
-        model.poses.data[frame, j], model.expression.data[frame], model.frame_time[frame] = old
+        model.expression.data[frame] = old
 
 
 @torch.no_grad()
@@ -99,7 +95,10 @@ def reenact_frames(target: HybridAvatar, anchor: int, driver: HybridAvatar, fram
     frames = list(frames)
     rot = driven_face(target.poses.data[anchor], driver.poses.data[frames + [reference]], len(frames), joints)
     for k, f in enumerate(frames):
-        with face_as(target, anchor, joints, rot[k], driver.expression.data[f]):
+        pose = target.poses.data[anchor].clone()
+        pose[joints] = rot[k].to(pose)
+        with posed_as(target, anchor, pose, target.transl.data[anchor], timeless=True), \
+                expression_as(target, anchor, driver.expression.data[f]):  # fmt: skip
             yield render_image(target, anchor, view=view, soft_silhouette=False)["rgb"]
 
 
@@ -120,7 +119,7 @@ def reenact_avatar(model_path: str | Path, record: str | Path, body_path: str | 
             raise DeltaError(f"--{name} {value}: the {'avatar' if name == 'anchor' else 'driver'} has {count} frames")
     frames = list(range(n_driver))
     if max_frames and n_driver > max_frames:
-        frames = sorted({round(i * (n_driver - 1) / (max_frames - 1)) for i in range(max_frames)})
+        frames = np.linspace(0, n_driver - 1, max_frames).round().astype(int).tolist()
     full = load_full_frames(record, [anchor], tr.settings.background)
     view = full_view(full, tr.model.resolution)
     out = Path(out_dir)

@@ -55,7 +55,8 @@ class SkinningFrame:
     near: Optional[distance_grid.DistanceGrid] = None
     """Coarse distance field to the posed vertices, with each voxel's nearest vertex (culling), when asked for."""
     canonical: Optional[torch.Tensor] = None
-    """(V, 3) each vertex's canonical position (detached): what tells the surfaces in contact apart."""
+    """(V, 3) each vertex's canonical position (detached; with ``contact_cell``): what tells the surfaces in
+    contact apart."""
     sparse: Optional[torch.Tensor] = None
     """(P,) int64 the vertices the contact probe searches (one per voxel of the canonical space; None: off)."""
     sparse_index: Optional[PointIndex] = None
@@ -133,11 +134,10 @@ def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tens
     to_canonical = compose(canonical_T, compose(untranslate, inv))
     pts = posed.detach()
     near = distance_grid.build(pts, near_cell, near_pad, nearest=True) if near_cell > 0 else None
-    tc = to_canonical.detach()
-    canonical = (tc[..., :3] @ pts[..., None]).squeeze(-1) + tc[..., 3]
-    frame = SkinningFrame(posed=posed, to_canonical=to_canonical, weights=weights, index=PointIndex(pts), near=near,
-                          canonical=canonical)  # fmt: skip
+    frame = SkinningFrame(posed=posed, to_canonical=to_canonical, weights=weights, index=PointIndex(pts), near=near)
     if contact_cell > 0:
+        tc = to_canonical.detach()
+        frame.canonical = canonical = (tc[..., :3] @ pts[..., None]).squeeze(-1) + tc[..., 3]
         sparse = voxel_subset(canonical, contact_cell)
         sparse_index = PointIndex(pts[sparse])
         touching = _touching(pts, canonical, sparse, sparse_index, contact_cell)

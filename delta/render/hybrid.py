@@ -242,7 +242,9 @@ def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: Ne
                 c, s, s_layers = nerf.with_layers(x_c)
             else:
                 c, s = nerf(x_c)
-            at, pick = denser(rows[keep], s)
+            at, pick = rows[keep], slice(None)  # one candidate a point: each is its point's own
+            if d.other is not None:
+                at, pick = denser(at, s)
             at = idx[at]
             sigma = sigma.index_put((at,), s[pick])
             rgb = rgb.index_put((at,), c[pick])
