@@ -102,6 +102,13 @@ def prepare_workflow(work: Path, subjects: dict[str, dict], tiny: bool, reuse: b
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--count", type=int, default=8)
+    ap.add_argument("--only", nargs="*", help="run only these of the family (names gen0, gen1, ...)")
+    ap.add_argument(
+        "--shipped",
+        nargs="*",
+        default=[],
+        help="shipped synthetic subjects run beside the family, as the config holds them (no settings of their own)",
+    )
     ap.add_argument("--seed", type=int, default=2026)
     ap.add_argument("--cores", type=int, default=2)
     ap.add_argument("--tiny", action="store_true", help="tiny sizes: checks the script, measures nothing")
@@ -109,7 +116,15 @@ def main() -> None:
     ap.add_argument("--work", type=Path, help="folder to run in (default: a temporary one, removed afterwards)")
     ap.add_argument("--csv", type=Path, default=REPO / "benchmarks" / "generalization.csv")
     a = ap.parse_args()
-    subjects = family(a.count, a.seed)
+    drawn = family(a.count, a.seed)
+    shipped = yaml.safe_load((REPO / "config/config.yaml").read_text())["datasets"]["synthetic"]["subjects"]
+    unknown = [n for n in a.shipped if n not in shipped]
+    if unknown:
+        sys.exit(f"--shipped: no such shipped synthetic subjects: {unknown}")
+    unknown += [n for n in a.only or [] if n not in drawn]
+    if unknown:
+        sys.exit(f"--only: not in the family of {a.count}: {unknown}")
+    subjects = {n: s for n, s in drawn.items() if a.only is None or n in a.only} | {n: shipped[n] for n in a.shipped}
     work = a.work or Path(tempfile.mkdtemp(prefix="delta-generalization-"))
     work.mkdir(parents=True, exist_ok=True)
     prepare_workflow(work, subjects, a.tiny, a.reuse_builds)
@@ -118,11 +133,12 @@ def main() -> None:
     table = pd.read_csv(work / "results/synthetic/metrics.csv").set_index("subject")
     rows = []
     for name, spec in subjects.items():
-        row = {"subject": name, "description": describe(spec), "seed": spec["seed"], "camera": spec["camera"],
-               "hair": spec["hair"], "tiny": a.tiny}  # fmt: skip
+        row = {"subject": name, "description": describe(spec) + (" (shipped)" if name in a.shipped else ""),
+               "seed": spec["seed"], "camera": spec["camera"], "hair": spec.get("hair", "none"), "tiny": a.tiny}  # fmt: skip
         row |= {k: table.loc[name, k] for k in SCORES if k in table.columns}
         scene = json.loads((work / "results/synthetic" / name / "scene.json").read_text())["decisions"]
         row |= {"scene_max_dist": scene["render"]["max_dist"], "scene_samples": scene["render"]["samples"],
+                "scene_stage2_factor": scene.get("stage2", {}).get("length_factor"),
                 "scene_exterior": scene["exterior"], "scene_capture": scene["capture"]}  # fmt: skip
         rows.append(row)
     df = pd.DataFrame(rows)

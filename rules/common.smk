@@ -445,7 +445,7 @@ def stage_training(wildcards):
     return json.dumps(
         {
             "preset": preset,
-            "user_set": user_decided(set_keys(overrides)),
+            "user_set": user_decided(set_keys(overrides), int(wildcards.stage)),
             **stage_view(raw, int(wildcards.stage)),
         },
         sort_keys=True,

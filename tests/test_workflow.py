@@ -112,6 +112,10 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
         taken = json.loads((work / "results" / dataset / subject / "stage1" / "settings.json").read_text())["settings"]
         own = main["training"].get("subjects", {}).get(subject, {}).get("render", {}).get("max_dist")
         assert taken["render"]["max_dist"] == (own if own is not None else scene["decisions"]["render"]["max_dist"])
+        # stage 2's length: the config's own where it sets one (the CI config does), else scaled by the room
+        assert scene["decisions"]["stage2"]["length_factor"] >= 1.0
+        taken2 = json.loads((work / "results" / dataset / subject / "stage2" / "settings.json").read_text())["settings"]
+        assert taken2["stage2"]["iterations"] == 4
     # both training stages ran on every subject, resumable checkpoints beside their outputs
     for dataset, subject in (("synthetic", "loose"), ("peoplesnapshot", STANDIN)):
         for stage in (1, 2):

@@ -8,17 +8,21 @@ concern.
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 from delta import DeltaError
 
-#: The keys the analysis decides (dotted paths of the training settings).
-DECIDED = ("exterior", "capture", "render.max_dist", "render.samples")
+#: The keys the analysis decides (dotted paths of the training settings). ``stage2.iterations`` is
+#: decided as a multiple of the resolved one (the scene's ``stage2.length_factor``).
+DECIDED = ("exterior", "capture", "render.max_dist", "render.samples", "stage2.iterations")
 
 
-def user_decided(user_set: list[str]) -> list[str]:
-    """The config's own keys (``user_set``, dotted) that overrule a scene decision, sorted."""
-    return sorted(k for k in set(user_set) if k in DECIDED)
+def user_decided(user_set: list[str], stage: int | None = None) -> list[str]:
+    """The config's own keys (``user_set``, dotted) that overrule a scene decision, sorted; with a
+    ``stage``, only those that stage reads (another stage's key must not rerun it)."""
+    other = {1: "stage2.", 2: "stage1."}.get(stage, "\0")
+    return sorted(k for k in set(user_set) if k in DECIDED and not k.startswith(other))
 
 
 def _get(d: dict, dotted: str):
@@ -32,7 +36,8 @@ def _get(d: dict, dotted: str):
 def scene_settings(scene_path: str | Path, resolved: dict, user_set: list[str]) -> dict:
     """The training settings the scene decides, as an override: every decision of ``scene.json`` whose
     key the user did not set (``user_set``: dotted keys of the config's overrides); ``exterior`` and
-    ``capture`` only where ``resolved`` leaves them ``auto``."""
+    ``capture`` only where ``resolved`` leaves them ``auto``; stage 2's steps as ``resolved``'s times the
+    scene's ``stage2.length_factor``."""
     try:
         decisions = json.loads(Path(scene_path).read_text())["decisions"]
     except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
@@ -40,6 +45,9 @@ def scene_settings(scene_path: str | Path, resolved: dict, user_set: list[str]) 
     out: dict = {}
     for key in DECIDED:
         value = _get(decisions, key)
+        if key == "stage2.iterations":
+            factor, steps = _get(decisions, "stage2.length_factor"), _get(resolved, key)
+            value = None if factor is None or steps is None else math.ceil(steps * float(factor) - 1e-9)
         if value is None or key in user_set:
             continue
         if key in ("exterior", "capture") and resolved.get(key) != "auto":

@@ -7,7 +7,7 @@ import h5py
 import numpy as np
 import pytest
 
-from delta.scene.analysis import analyze, room_and_samples
+from delta.scene.analysis import analyze, room_and_samples, stage2_factor
 from delta.scene.settings import scene_settings, user_decided
 from delta.scene.reach import beyond_body, region_reach
 
@@ -48,6 +48,17 @@ def test_room_and_samples_follow_the_reach_from_the_presets_floor():
     assert room_and_samples(5.0, 0.1, 16) == (0.6, 64)  # capped room, at most 4x the samples
 
 
+def test_stage_two_grows_with_the_room_from_the_configured_length(tmp_path):
+    assert stage2_factor(0.1, 0.1) == 1.0  # the preset's room: the configured steps
+    assert stage2_factor(0.05, 0.1) == 1.0  # never fewer
+    assert stage2_factor(0.286, 0.1) == 2.86  # a dress's room
+    assert stage2_factor(0.6, 0.1) == 3.0  # at most 3x
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps({"decisions": {"stage2": {"length_factor": 2.86}}}))
+    assert scene_settings(path, {"stage2": {"iterations": 300}}, []) == {"stage2": {"iterations": 858}}
+    assert scene_settings(path, {"stage2": {"iterations": 300}}, ["stage2.iterations"]) == {}  # the user's wins
+
+
 def test_decisions_apply_only_where_the_config_is_silent(tmp_path):
     path = tmp_path / "scene.json"
     path.write_text(json.dumps({"decisions": {"exterior": "no", "capture": "upper",
@@ -72,6 +83,10 @@ def test_a_dress_reaches_farther_than_trousers_and_a_wider_silhouette_reaches_fa
     r_tight, r_dress = tight["evidence"]["reach"]["reach_m"], dress["evidence"]["reach"]["reach_m"]
     assert r_dress > r_tight + 0.03, (r_tight, r_dress)
     assert dress["decisions"]["render"]["max_dist"] >= tight["decisions"]["render"]["max_dist"]
+    # stage 2 is as long as the room asks: the dress's longer than the trousers' (the same preset)
+    rooms = [s["decisions"]["render"]["max_dist"] for s in (tight, dress)]
+    factors = [s["decisions"]["stage2"]["length_factor"] for s in (tight, dress)]
+    assert factors == [stage2_factor(r, 0.1) for r in rooms] and factors[1] >= factors[0]
     assert tight["decisions"]["exterior"] == dress["decisions"]["exterior"] == "yes"
     assert tight["decisions"]["capture"] == "full"
     # the same capture with every person mask grown by 3 pixels (about 9 cm at this size) reaches farther
@@ -93,6 +108,7 @@ def test_a_dress_reaches_farther_than_trousers_and_a_wider_silhouette_reaches_fa
                 h5[m][...] = 0
     none = analyze(bare, t["init"], t["body"], 0.1, 16, size=64, frames=6)
     assert none["decisions"]["exterior"] == "no" and "0.0%" in none["evidence"]["exterior"]["why"]
+    assert "stage2" not in none["decisions"]
 
 
 @pytest.mark.slow
@@ -120,3 +136,6 @@ def test_only_the_keys_the_scene_decides_are_passed_to_training():
     set_by_config = ["stage2.lr_final", "render.samples", "render.sil_sigma", "exterior", "stage1.iterations"]
     assert user_decided(set_by_config) == ["exterior", "render.samples"]
     assert user_decided([]) == []
+    # a stage's job carries only the keys it reads: stage 2's length must not rerun stage 1
+    assert user_decided(set_by_config + ["stage2.iterations"], 1) == ["exterior", "render.samples"]
+    assert user_decided(set_by_config + ["stage2.iterations"], 2) == ["exterior", "render.samples", "stage2.iterations"]
