@@ -87,6 +87,7 @@ def prepare_workflow(work: Path, subjects: dict[str, dict], tiny: bool, reuse: b
     main["datasets"] = {"synthetic": {"subjects": {n: (s | TINY if tiny else s) for n, s in subjects.items()}}}
     main.setdefault("training", {})["subjects"] = {}  # a new subject has no settings of its own
     main.setdefault("fitting", {}).pop("subjects", None)
+    main.pop("applications", None)  # they name the shipped subjects; scored here: the avatars themselves
     if tiny:
         main["training"]["overrides"] = TINY_TRAINING
         main["preprocess"]["resolution"] = 64
