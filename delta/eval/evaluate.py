@@ -131,8 +131,11 @@ class Perceptual:
                 for k, net in self.nets.items()}  # fmt: skip
 
 
-def score_image(img: dict, gt: torch.Tensor, masks: dict[str, torch.Tensor], perceptual: Perceptual) -> dict:
-    """Whole-image and per-region scores of one render (dict from render_image)."""
+def score_image(img: dict, gt: torch.Tensor, masks: dict[str, torch.Tensor], perceptual: Perceptual,
+                perceptual_regions: tuple[str, ...] = (), background=(1.0, 1.0, 1.0)) -> dict:  # fmt: skip
+    """Whole-image and per-region scores of one render (dict from render_image). The regions named in
+    ``perceptual_regions`` are also scored perceptually, both images with everything outside the region
+    set to the ``background`` colour (as NHA's protocol masks its face-hair-neck images)."""
     rgb = img["rgb"].clamp(0, 1)
     row = {"psnr": M.psnr(rgb, gt), "ssim": M.ssim(rgb, gt), "l1": M.l1(rgb, gt)}
     row |= perceptual(rgb, gt)
@@ -140,7 +143,18 @@ def score_image(img: dict, gt: torch.Tensor, masks: dict[str, torch.Tensor], per
         row[f"psnr_{name}"] = M.psnr(rgb, gt, m)
         row[f"ssim_{name}"] = M.ssim(rgb, gt, m)
         row[f"l1_{name}"] = M.l1(rgb, gt, m)
+        if name in perceptual_regions:
+            inside = m[..., None].to(rgb.device)
+            fill = torch.as_tensor(background, dtype=rgb.dtype, device=rgb.device)
+            cut = lambda x: torch.where(inside, x, fill)  # noqa: E731
+            row |= {f"{k}_{name}": v for k, v in perceptual(cut(rgb), cut(gt.to(rgb.device))).items()}
     return row
+
+
+def head_region(person: torch.Tensor, clothing: torch.Tensor) -> torch.Tensor:
+    """(H, W) bool: a head-and-shoulders capture's face, hair and neck: the person less its clothing (the
+    region DELTA and NHA score head avatars on, which leaves out the torso's clothes)."""
+    return (person > 0.5) & ~(clothing > 0)
 
 
 def exterior_leaks(nerf_mask: torch.Tensor, person: torch.Tensor, interior: torch.Tensor,
@@ -214,6 +228,8 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
             body = full.interior[k] > 0.5
             masks = {"body": body, "face": face_pixels(model, f, mesh.vertices, view) & body}
             masks |= {name: m[k] for name, m in full.parts.items()}
+            if model.spec.capture == "upper" and "clothing" in full.parts:
+                masks["head"] = head_region(full.person[k], full.parts["clothing"][k])
             row = {"subject": subject, "frame": f, "frame_id": int(data.frame_ids[f]), "split": split,
                    "refined": refined, "refine_steps": fit.steps if fit else 0, "stage": trained.stage,
                    "preset": trained.preset, "background": bg, "image": "full",
@@ -222,7 +238,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
             if fit:  # the refinement's residual: its loss on one fixed probe draw of rays before and after
                 row |= {"refine_loss_start": fit.loss_start, "refine_loss_end": fit.loss_end,
                         "refine_converged": fit.converged}  # fmt: skip
-            row |= score_image(img, full.images[k], masks, perceptual)
+            row |= score_image(img, full.images[k], masks, perceptual, ("head",), trained.settings.background)
             row["nerf_iou"] = (
                 M.iou(img["nerf_mask"] > 0.5, full.exterior[k] > 0.5) if model.nerf is not None else np.nan
             )

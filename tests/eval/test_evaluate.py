@@ -13,7 +13,9 @@ from delta.eval.evaluate import (
     evaluate,
     exterior_leaks,
     face_pixels,
+    head_region,
     pick_frames,
+    score_image,
     summarize,
     train_body_error_mm,
 )
@@ -222,3 +224,31 @@ def test_exterior_leaks_against_counted_pixels():
     assert got["nerf_off_person"] == pytest.approx(4 / 16)
     empty = exterior_leaks(nerf, torch.zeros(10, 10), torch.zeros(10, 10), face)
     assert all(math.isnan(v) for v in (empty["nerf_on_skin"], empty["nerf_on_face"], empty["nerf_off_person"]))
+
+
+def test_the_head_region_is_scored_on_its_own_pixels_alone():
+    """Face, hair and neck (the person less its clothing); its perceptual score sees nothing else."""
+    person = torch.zeros(12, 12)
+    person[2:12, 3:9] = 1.0
+    clothing = torch.zeros(12, 12, dtype=torch.bool)
+    clothing[7:12, 3:9] = True
+    head = head_region(person, clothing)
+    assert int(head.sum()) == 5 * 6 and bool(head[2:7, 3:9].all())
+    gt = torch.full((12, 12, 3), 0.5)
+    rgb = gt.clone()
+    rgb[8:12] = 0.0  # wrong on the clothes and below: the head region is untouched
+    seen = []
+
+    def perceptual(a, b):  # records what the perceptual net is shown; its distance: the mean abs difference
+        seen.append((a.clone(), b.clone()))
+        return {"stlpips_alex": float((a - b).abs().mean())}
+
+    row = score_image({"rgb": rgb}, gt, {"head": head, "clothing": clothing}, perceptual, ("head",), (1.0, 1.0, 1.0))
+    assert row["psnr_head"] == float("inf") or row["psnr_head"] > 60
+    assert row["l1_head"] == 0.0 and row["l1_clothing"] > 0 and row["stlpips_alex"] > 0
+    assert row["stlpips_alex_head"] == 0.0 and "stlpips_alex_clothing" not in row
+    a, b = seen[1]  # the region's images: white outside it, the images inside it
+    assert bool((a[~head] == 1.0).all()) and bool((a[head] == rgb[head]).all()) and bool((b[head] == gt[head]).all())
+    rgb[3, 4] = 1.0  # one wrong pixel in the head region
+    row = score_image({"rgb": rgb}, gt, {"head": head}, perceptual, ("head",))
+    assert row["l1_head"] == pytest.approx(0.5 / 30) and row["stlpips_alex_head"] == pytest.approx(0.5 * 3 / (144 * 3))
