@@ -45,6 +45,8 @@ class LossWeights:
         default_factory=lambda: {"body": 2.0, "face": 3.0, "hands": 12.0, "feet": 2.0, "eyes": 3.0, "mouth": 3.0}
     )
     """body : face : hands = 2 : 3 : 12 as in the paper (feet like the body, eyes/mouth like the face)."""
+    vertex_detail: float = 0.01
+    """Mean squared per-vertex detail of the offset and albedo fields (``vertex_detail`` fields only)."""
     huber_delta: float = 0.1
     """Where the Huber loss turns from quadratic to linear."""
 
@@ -115,6 +117,11 @@ def offset(offsets: torch.Tensor, regions: torch.Tensor, region_weights: dict) -
     for name, value in region_weights.items():
         w[REGION[name]] = value
     return (w[regions] * (offsets**2).sum(-1)).mean()
+
+
+def vertex_detail(details: list[torch.Tensor]) -> torch.Tensor:
+    """Mean over the given (V, C) per-vertex details of their mean squared value."""
+    return sum((d**2).sum(-1).mean() for d in details) / len(details)
 
 
 def mesh_edges(faces: torch.Tensor) -> torch.Tensor:

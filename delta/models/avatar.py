@@ -126,8 +126,9 @@ class HybridAvatar(nn.Module):
         self.register_buffer("canonical_T", cano.vertex_transforms_3x4[0].clone())
         self.register_buffer("canonical_vertices", cano.vertices[0].clone())
         tbox = _box(template, 0.05)
-        self.offset_field = VertexField(spec.offsets, tbox, "offset", spec.offset_scale)
-        self.albedo_field = VertexField(spec.albedo, tbox, "albedo", init=skin_color)
+        nv = body.num_vertices
+        self.offset_field = VertexField(spec.offsets, tbox, "offset", spec.offset_scale, num_vertices=nv)
+        self.albedo_field = VertexField(spec.albedo, tbox, "albedo", init=skin_color, num_vertices=nv)
         # the canonical fields' box holds the exterior's whole room (a decided max_dist may exceed the margin)
         nbox = _box(self.canonical_vertices[modelled], room_margin(spec.nerf_margin, spec.render.max_dist))
         self.nerf = None

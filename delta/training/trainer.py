@@ -59,6 +59,9 @@ def loss_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, skin_col
         "edge": L.edge(out.rest_vertices[0], out.rest_vertices[0] - offsets, model.edges),
         "offset": L.offset(offsets, model.body.regions, st.weights.offset_region_weights),
     }
+    details = [f.detail for f in (model.offset_field, model.albedo_field) if f.detail is not None]
+    if details:
+        terms["vertex_detail"] = L.vertex_detail(details)
     if model.nerf is not None:
         terms["exterior"] = L.exterior(r.nerf_mask, batch.exterior)
     if r.layer_masks is not None:

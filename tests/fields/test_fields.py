@@ -211,6 +211,41 @@ def test_albedo_field_starts_exactly_at_the_init_colour():
     torch.testing.assert_close(field(inside_points(30, 5)), colour.expand(30, 3), rtol=0, atol=1e-5)
 
 
+def test_per_vertex_detail_starts_at_the_field_and_reaches_single_vertices():
+    """A detail table adds to the raw output: zero at the start (the field alone), and one vertex's
+    colour can move without its neighbours (a grid cell cannot)."""
+    import dataclasses
+
+    torch.manual_seed(5)
+    spec = dataclasses.replace(SMALL_GRID, vertex_detail=True)
+    colour = torch.tensor([0.8, 0.6, 0.5])
+    plain = VertexField(SMALL_GRID, BOUNDS, "albedo", init=colour)
+    torch.manual_seed(5)
+    field = VertexField(spec, BOUNDS, "albedo", init=colour, num_vertices=30)
+    x = inside_points(30, 5)
+    torch.testing.assert_close(field(x), plain(x), rtol=0, atol=0)
+    target = field(x).detach().clone()
+    target[7] = torch.tensor([0.1, 0.9, 0.2])  # one vertex's own colour
+    opt = torch.optim.Adam([field.detail], lr=0.1)
+    for _ in range(300):
+        opt.zero_grad()
+        ((field(x) - target) ** 2).sum().backward()
+        opt.step()
+    torch.testing.assert_close(field(x), target, rtol=0, atol=1e-3)
+    assert float(field.detail[torch.arange(30) != 7].abs().max()) < 1e-3  # the others untouched
+    # offsets stay within their scale whatever the detail
+    off = VertexField(dataclasses.replace(SMALL_PE, vertex_detail=True), BOUNDS, "offset", 0.04, num_vertices=30)
+    with torch.no_grad():
+        off.detail.fill_(50.0)
+    assert bool((off(x).abs() <= 0.04).all()) and float(off(x).min()) > 0.039
+    with pytest.raises(ValueError, match="reads its 30 vertices"):
+        field(x[:10])
+    with pytest.raises(ValueError, match="vertex count"):
+        VertexField(spec, BOUNDS, "albedo")
+    with pytest.raises(ValueError, match="vertex_detail 'yes'"):
+        FieldSpec(vertex_detail="yes")
+
+
 def test_vertex_field_rejects_unknown_kind():
     with pytest.raises(ValueError):
         VertexField(SMALL_GRID, BOUNDS, "normals")
