@@ -193,12 +193,15 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
     # a rerun has nothing to do
     again = snakemake(work, "--configfile", ".test/config/ci.yaml", "--dry-run")
     assert "Nothing to be done" in again.stdout + again.stderr
-    # a setting only stage 2 reads reruns stage 2 (and what reads it), never stage 1
+    # settings only stage 2 reads rerun stage 2 (and what reads it), never stage 1 nor the scene analysis:
+    # its rate, and its length, which the scene would otherwise decide
     cfg["training"].setdefault("overrides", {}).setdefault("stage2", {})["lr_final"] = 0.5
+    cfg["training"]["overrides"]["stage2"]["iterations"] = 5
     (work / ".test/config/stage2.yaml").write_text(yaml.safe_dump(cfg))
     changed = snakemake(work, "--configfile", ".test/config/stage2.yaml", "--dry-run")
     jobs = re.findall(r"rule train:.*?wildcards: ([^\n]*)", changed.stdout, re.S)
     assert jobs and all(j.endswith("stage=2") for j in jobs), jobs
+    assert "rule analyze_scene:" not in changed.stdout
 
 
 def test_bad_config_stops_before_any_job(tmp_path):
