@@ -351,6 +351,7 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
                "convention": convention(df, st), "scores": summarize(df)}  # fmt: skip
     if args.gt_meshes:
         summary["train_body_err_mm"] = round(train_body_error_mm(trained, args.gt_meshes), 2)
+        summary["train_body_err_pa_mm"] = round(train_body_error_mm(trained, args.gt_meshes, align="similarity"), 2)
         surface = Path(args.export_dir or "") / "clothing_nerf_space.ply"
         if args.export_dir and surface.exists():
             frames = sorted({int(f) for f in df["frame"]})

@@ -71,8 +71,9 @@ def subject_row(dataset: str, subject: str, summary: dict, export: dict | None, 
             tag = "_refined" if name == "refined" else ""
             for k, v in scores.items():
                 row[f"{split}_{k}{tag}"] = math.nan if v is None else v
-    if "train_body_err_mm" in summary:
-        row["train_body_err_mm"] = summary["train_body_err_mm"]
+    for key in ("train_body_err_mm", "train_body_err_pa_mm"):
+        if key in summary:
+            row[key] = summary[key]
     row |= {k: v for k, v in summary.get("geometry", {}).items() if isinstance(v, (int, float))}
     row["eval_s"] = summary.get("seconds")
     if export:  # mesh sizes and line-up IoUs; the export's own settings and per-frame lists stay in its json

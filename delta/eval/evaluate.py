@@ -190,11 +190,13 @@ def body_errors(mesh, ref: np.ndarray, keep: np.ndarray, camera) -> dict:
     a view says nothing of them), all under the one centroid alignment of the modelled vertices."""
     v = mesh.vertices.detach().cpu().numpy()
     if ref.shape != v.shape:
-        return {"body_err_mm": np.nan, "body_err_visible_mm": np.nan, "body_err_hidden_mm": np.nan}
+        return {"body_err_mm": np.nan, "body_err_visible_mm": np.nan, "body_err_hidden_mm": np.nan,
+                "body_err_pa_mm": np.nan}  # fmt: skip
     err = 1000 * vertex_errors(v[keep], ref[keep])
     seen = visible_vertices(mesh.vertices, mesh.faces, camera).numpy()[keep]
     part = lambda m: float(err[m].mean()) if m.any() else np.nan  # noqa: E731
-    return {"body_err_mm": float(err.mean()), "body_err_visible_mm": part(seen), "body_err_hidden_mm": part(~seen)}
+    return {"body_err_mm": float(err.mean()), "body_err_visible_mm": part(seen), "body_err_hidden_mm": part(~seen),
+            "body_err_pa_mm": 1000 * vertex_error(v[keep], ref[keep], align="similarity")}  # fmt: skip
 
 
 def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: str | Path | None = None,
@@ -294,9 +296,9 @@ def write_csv(df: pd.DataFrame, path: str | Path) -> None:
         df.to_csv(tmp, index=False)
 
 
-def train_body_error_mm(trained: Trained, gt_meshes: str | Path, every: int = 10) -> float:
-    """Body vertex error (mm, centroid-aligned) over every ``every``-th training frame: the body
-    under the clothing as training left it (the modelled vertices: an ``upper`` capture has no legs)."""
+def train_body_error_mm(trained: Trained, gt_meshes: str | Path, every: int = 10, align: str = "centroid") -> float:
+    """Body vertex error (mm, ``align``ed as :func:`vertex_errors`) over every ``every``-th training frame:
+    the body under the clothing as training left it (the modelled vertices: an ``upper`` capture has no legs)."""
     model, data = trained.model, trained.data
     frames = data.train[::every]
     gt = gt_body_vertices(gt_meshes, data.frame_ids[frames])
@@ -309,7 +311,7 @@ def train_body_error_mm(trained: Trained, gt_meshes: str | Path, every: int = 10
             ref = gt[int(data.frame_ids[f])]
             if ref.shape != v.shape:
                 return float("nan")
-            errs.append(vertex_error(v[keep], ref[keep]))
+            errs.append(vertex_error(v[keep], ref[keep], align))
     return 1000 * float(np.mean(errs))
 
 

@@ -139,17 +139,36 @@ def point_to_surface(pred: trimesh.Trimesh, ref: trimesh.Trimesh, count: int = 2
 def vertex_errors(pred: np.ndarray, ref: np.ndarray, align: str = "centroid") -> np.ndarray:
     """(V,) per-vertex distance (metres) of two (V, 3) meshes with one topology.
 
-    ``align``: "none", or "centroid" (translate the prediction's centroid onto the reference's:
+    ``align``: "none"; "centroid" (translate the prediction's centroid onto the reference's:
     an orthographic camera does not observe depth, and a pinhole camera's depth is only as good
-    as the fitted scale). A subset's mean is then taken under the whole body's alignment.
+    as the fitted scale); or "similarity" (the rotation, scale and translation that bring the
+    prediction closest to the reference in the least-squares sense, Umeyama's: the field's
+    Procrustes-aligned error, which leaves out the size a monocular capture cannot observe). A
+    subset's mean is then taken under the whole body's alignment.
     """
     if pred.shape != ref.shape:
         raise ValueError(f"vertex_error: shapes {pred.shape} and {ref.shape} differ (different topologies)")
     if align == "centroid":
         pred = pred - pred.mean(0) + ref.mean(0)
+    elif align == "similarity":
+        pred = similarity_aligned(pred, ref)
     elif align != "none":
-        raise ValueError(f"align: {align!r} (expected 'none' or 'centroid')")
+        raise ValueError(f"align: {align!r} (expected 'none', 'centroid' or 'similarity')")
     return np.linalg.norm(pred - ref, axis=1)
+
+
+def similarity_aligned(pred: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """``pred`` (N, 3) under the rotation, scale and translation that minimise its squared distance to
+    ``ref`` (Umeyama 1991; a reflection is never taken)."""
+    p, r = pred.astype(np.float64), ref.astype(np.float64)
+    mp, mr = p.mean(0), r.mean(0)
+    pc, rc = p - mp, r - mr
+    u, sv, vt = np.linalg.svd(rc.T @ pc / len(p))
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt)) or 1.0])
+    rot = u @ d @ vt
+    var = (pc**2).sum() / len(p)
+    scale = float(np.trace(np.diag(sv) @ d) / var) if var > 0 else 1.0
+    return scale * pc @ rot.T + mr
 
 
 def vertex_error(pred: np.ndarray, ref: np.ndarray, align: str = "centroid") -> float:

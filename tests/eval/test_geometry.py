@@ -57,6 +57,28 @@ def test_vertex_error_alignment():
         vertex_error(v[:10], v)
 
 
+def test_similarity_alignment_leaves_out_size_and_orientation_only():
+    """Umeyama: a scaled, turned and moved copy aligns exactly; a shape error survives it, and the
+    aligned copy is closer (least squares) than the centroid-aligned one, never farther."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(1)
+    v = rng.normal(size=(200, 3))
+    rot = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix()
+    copy = 1.17 * v @ rot.T + np.array([0.4, 1.0, -2.0])
+    assert vertex_error(copy, v, "similarity") == pytest.approx(0.0, abs=1e-10)
+    assert vertex_error(copy, v, "centroid") > 0.1
+    bent = copy.copy()
+    bent[:50] += rng.normal(scale=0.05, size=(50, 3))  # a part of the shape is wrong
+    rms = lambda a: float(np.sqrt((vertex_errors(bent, v, a) ** 2).mean()))  # noqa: E731
+    assert 0.005 < rms("similarity") < rms("centroid")
+    # a mirror image is not a rotation: no reflection is taken
+    mirror = v * np.array([-1.0, 1.0, 1.0])
+    assert vertex_error(mirror, v, "similarity") > 0.1
+    with pytest.raises(ValueError, match="similarity"):
+        vertex_error(v, v, "affine")
+
+
 def _sphere():
     s = trimesh.creation.icosphere(subdivisions=3)
     return torch.tensor(s.vertices, dtype=torch.float64), torch.tensor(s.faces, dtype=torch.int64)
@@ -121,6 +143,8 @@ def test_body_error_apart_over_what_the_view_sees():
     assert out["body_err_visible_mm"] == pytest.approx(err[front].mean(), abs=0.3)  # the rim may go either way
     assert out["body_err_hidden_mm"] == pytest.approx(err[~front].mean(), abs=0.3)
     assert err[front].mean() > err[~front].mean() + 2  # the split matters
+    assert out["body_err_pa_mm"] == pytest.approx(1000 * vertex_error(pred, ref, "similarity"))
+    assert out["body_err_pa_mm"] < out["body_err_mm"]
     # an upper-body capture: only the modelled vertices count
     upper = ref[:, 1] > 0
     part = body_errors(SimpleNamespace(vertices=torch.tensor(pred), faces=f), ref, upper, cam)
