@@ -15,7 +15,9 @@ and the scene analysis's decisions), then a ``summary`` row: the mean, the sprea
 worst subject of each PSNR column, and how many subjects lie within 2 dB of the best. Run from the
 repository root::
 
-    PYTHONPATH=$PWD python3 benchmarks/generalization.py --reuse-builds                # ~20 min a subject on 2 cores
+    PYTHONPATH=$PWD python3 benchmarks/generalization.py --reuse-builds                # ~20-30 min a subject on 2 cores
+
+A kept ``--work`` folder resumes: run again with it (and fewer subjects, say) and only what is missing runs.
     PYTHONPATH=$PWD python3 benchmarks/generalization.py --reuse-builds --tiny --count 2 \\
         --csv /tmp/generalization_tiny.csv                                               # the script's own check
 """

@@ -16,10 +16,14 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def workflow_copy(work: Path) -> None:
-    """The files a user's clone has that the workflow reads."""
+    """The files a user's clone has that the workflow reads (over those of an earlier copy: a run in a kept
+    folder resumes where it stopped)."""
     for name in ("Snakefile", "rules", "workflow", "config"):
         src = REPO / name
-        (shutil.copytree if src.is_dir() else shutil.copy)(src, work / name)
+        if src.is_dir():
+            shutil.copytree(src, work / name, dirs_exist_ok=True)
+        else:
+            shutil.copy(src, work / name)
 
 
 def run_snakemake(work: Path, *args: str, cores: int = 2) -> float:
