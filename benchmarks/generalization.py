@@ -121,12 +121,9 @@ def main() -> None:
     a = ap.parse_args()
     drawn = family(a.count, a.seed)
     shipped = yaml.safe_load((REPO / "config/config.yaml").read_text())["datasets"]["synthetic"]["subjects"]
-    unknown = [n for n in a.shipped if n not in shipped]
-    if unknown:
-        sys.exit(f"--shipped: no such shipped synthetic subjects: {unknown}")
-    unknown += [n for n in a.only or [] if n not in drawn]
-    if unknown:
-        sys.exit(f"--only: not in the family of {a.count}: {unknown}")
+    for flag, names, known in (("--shipped", a.shipped, shipped), ("--only", a.only or [], drawn)):
+        if unknown := [n for n in names if n not in known]:
+            sys.exit(f"{flag}: {unknown} not among {sorted(known)}")
     subjects = {n: s for n, s in drawn.items() if a.only is None or n in a.only} | {n: shipped[n] for n in a.shipped}
     work = a.work or Path(tempfile.mkdtemp(prefix="delta-generalization-"))
     work.mkdir(parents=True, exist_ok=True)

@@ -334,7 +334,7 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
         convention,
         evaluate,
         summarize,
-        train_body_error_mm,
+        train_body_errors_mm,
         write_csv,
     )
     from delta.io import save_json
@@ -350,8 +350,7 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
                             "supersample": st.supersample},
                "convention": convention(df, st), "scores": summarize(df)}  # fmt: skip
     if args.gt_meshes:
-        summary["train_body_err_mm"] = round(train_body_error_mm(trained, args.gt_meshes), 2)
-        summary["train_body_err_pa_mm"] = round(train_body_error_mm(trained, args.gt_meshes, align="similarity"), 2)
+        summary |= {k: round(v, 2) for k, v in train_body_errors_mm(trained, args.gt_meshes).items()}
         surface = Path(args.export_dir or "") / "clothing_nerf_space.ply"
         if args.export_dir and surface.exists():
             frames = sorted({int(f) for f in df["frame"]})

@@ -296,23 +296,26 @@ def write_csv(df: pd.DataFrame, path: str | Path) -> None:
         df.to_csv(tmp, index=False)
 
 
-def train_body_error_mm(trained: Trained, gt_meshes: str | Path, every: int = 10, align: str = "centroid") -> float:
-    """Body vertex error (mm, ``align``ed as :func:`vertex_errors`) over every ``every``-th training frame:
-    the body under the clothing as training left it (the modelled vertices: an ``upper`` capture has no legs)."""
+def train_body_errors_mm(trained: Trained, gt_meshes: str | Path, every: int = 10) -> dict[str, float]:
+    """Body vertex error (mm) over every ``every``-th training frame, centroid-aligned
+    (``train_body_err_mm``) and Procrustes-aligned (``train_body_err_pa_mm``; :func:`vertex_errors`): the
+    body under the clothing as training left it (the modelled vertices: an ``upper`` capture has no legs)."""
     model, data = trained.model, trained.data
     frames = data.train[::every]
     gt = gt_body_vertices(gt_meshes, data.frame_ids[frames])
     keep = model.modelled.cpu().numpy()
-    errs = []
+    errs = {"centroid": [], "similarity": []}
     with torch.no_grad():
         offsets = model.offsets()
         for f in frames:
             v = model.pose_body(int(f), offsets).vertices[0].cpu().numpy()
             ref = gt[int(data.frame_ids[f])]
             if ref.shape != v.shape:
-                return float("nan")
-            errs.append(vertex_error(v[keep], ref[keep], align))
-    return 1000 * float(np.mean(errs))
+                return {"train_body_err_mm": float("nan"), "train_body_err_pa_mm": float("nan")}
+            for align, out in errs.items():
+                out.append(vertex_error(v[keep], ref[keep], align))
+    return {"train_body_err_mm": 1000 * float(np.mean(errs["centroid"])),
+            "train_body_err_pa_mm": 1000 * float(np.mean(errs["similarity"]))}  # fmt: skip
 
 
 def gt_exterior(meshes_h5: str | Path, frame_id: int) -> trimesh.Trimesh | None:

@@ -13,16 +13,21 @@ from pathlib import Path
 
 from delta import DeltaError
 
-#: The keys the analysis decides (dotted paths of the training settings). ``stage2.iterations`` is
-#: decided as a multiple of the resolved one (the scene's ``stage2.length_factor``).
+#: The keys the analysis decides (dotted paths of the training settings).
 DECIDED = ("exterior", "capture", "render.max_dist", "render.samples", "stage2.iterations")
+#: Keys decided as a multiple of the resolved setting: the key -> the scene's factor for it.
+SCALED = {"stage2.iterations": "stage2.length_factor"}
+#: Keys decided only where the resolved settings leave them ``auto``.
+AUTO = ("exterior", "capture")
+#: Each stage's own keys, which the other stage does not read.
+STAGE_PREFIX = {1: "stage1.", 2: "stage2."}
 
 
 def user_decided(user_set: list[str], stage: int | None = None) -> list[str]:
     """The config's own keys (``user_set``, dotted) that overrule a scene decision, sorted; with a
     ``stage``, only those that stage reads (another stage's key must not rerun it)."""
-    other = {1: "stage2.", 2: "stage1."}.get(stage, "\0")
-    return sorted(k for k in set(user_set) if k in DECIDED and not k.startswith(other))
+    others = tuple(p for s, p in STAGE_PREFIX.items() if stage is not None and s != stage)
+    return sorted(k for k in set(user_set) if k in DECIDED and not k.startswith(others))
 
 
 def _get(d: dict, dotted: str):
@@ -33,24 +38,27 @@ def _get(d: dict, dotted: str):
     return d
 
 
+def _decided(decisions: dict, resolved: dict, key: str):
+    """The scene's value for ``key`` (None: not decided): as written, or the resolved setting times the
+    scene's factor (:data:`SCALED`)."""
+    if key not in SCALED:
+        return _get(decisions, key)
+    factor, base = _get(decisions, SCALED[key]), _get(resolved, key)
+    return None if factor is None or base is None else math.ceil(base * float(factor) - 1e-9)
+
+
 def scene_settings(scene_path: str | Path, resolved: dict, user_set: list[str]) -> dict:
     """The training settings the scene decides, as an override: every decision of ``scene.json`` whose
-    key the user did not set (``user_set``: dotted keys of the config's overrides); ``exterior`` and
-    ``capture`` only where ``resolved`` leaves them ``auto``; stage 2's steps as ``resolved``'s times the
-    scene's ``stage2.length_factor``."""
+    key the user did not set (``user_set``: dotted keys of the config's overrides); :data:`AUTO` keys only
+    where ``resolved`` leaves them ``auto``; :data:`SCALED` keys as ``resolved``'s times the scene's factor."""
     try:
         decisions = json.loads(Path(scene_path).read_text())["decisions"]
     except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
         raise DeltaError(f"{scene_path}: not a scene analysis ({e}); rerun the analyze_scene rule") from None
     out: dict = {}
     for key in DECIDED:
-        value = _get(decisions, key)
-        if key == "stage2.iterations":
-            factor, steps = _get(decisions, "stage2.length_factor"), _get(resolved, key)
-            value = None if factor is None or steps is None else math.ceil(steps * float(factor) - 1e-9)
-        if value is None or key in user_set:
-            continue
-        if key in ("exterior", "capture") and resolved.get(key) != "auto":
+        value = _decided(decisions, resolved, key)
+        if value is None or key in user_set or (key in AUTO and resolved.get(key) != "auto"):
             continue
         *parents, leaf = key.split(".")
         node = out

@@ -17,7 +17,7 @@ from delta.eval.evaluate import (
     pick_frames,
     score_image,
     summarize,
-    train_body_error_mm,
+    train_body_errors_mm,
 )
 from delta.eval.heldout import refine_frame
 from delta.models.image import View, render_image
@@ -55,7 +55,9 @@ def test_rows_scores_and_convention(trained, tmp_path):
     assert df["psnr"].between(5, 60).all() and df["ssim"].between(0, 1).all() and (df["l1"] > 0).all()
     # a few steps from the GT init: the body stays within centimetres of the GT body
     assert df["body_err_mm"].between(0, 30).all()
-    assert train_body_error_mm(tr, f"{t['capture']}/gt/meshes.h5") < 30
+    errors = train_body_errors_mm(tr, f"{t['capture']}/gt/meshes.h5")
+    assert errors["train_body_err_mm"] < 30
+    assert errors["train_body_err_pa_mm"] <= errors["train_body_err_mm"] + 1e-6
     # the mesh silhouette lines up with the person (at 32², arms and hair edges cost much of the IoU)
     assert (df["mesh_iou"] > 0.4).all()
     # the lowest-PSNR frame of each split after refinement, as a side-by-side of whole frames
