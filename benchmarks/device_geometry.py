@@ -27,7 +27,7 @@ from delta.geometry.nearest import POINT_LEAF, PointIndex
 from delta.geometry.raymesh import embree_available, ray_mesh_hits
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table import save_table  # noqa: E402
+from table import device_name, save_table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -118,7 +118,7 @@ def main() -> None:
         cases.append(("face candidates k=16 (4096 px)", f"torch leaf {leaf}",
                       lambda n=leaf: PointIndex(centroids, "torch", n).query(pixels, 16)))  # fmt: skip
         cases.append(("ray hits (4096)", f"torch leaf {leaf}", lambda n=leaf: _hits_with_leaf(v, f, origins, dirs, n)))
-    name = torch.cuda.get_device_name() if dev.type == "cuda" else f"cpu ({a.threads} threads)"
+    name = device_name(dev, a.threads)
     rows = []
     for component, method, fn in cases:
         sec = timed(fn, dev, a.repeats)

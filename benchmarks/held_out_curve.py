@@ -13,7 +13,17 @@ run's); scoring is not counted.
         --subject upper --run-losses results/synthetic/upper/stage1/losses.csv \\
         --steps 25,50,100,200,400,800 --out /tmp/held_out_upper --csv benchmarks/held_out_curve.csv --append
 
-Each row: subject, step, the trainer's seconds at it, the smoothed training-ray PSNR, and the
+``--override`` merges settings over the run's to take another variant's curve from the same start
+(``--label`` names it); the GPU rows of tight at the capture's 512² (held_out_curve_gpu.csv):
+
+    python benchmarks/held_out_curve.py --settings results/synthetic/tight/stage1/settings.json \
+        --record results/synthetic/tight/frames.h5 --body resources/body/anny_sub1.npz \
+        --init results/synthetic/tight/init/params.npz --subject tight --perceptual "" --device cuda --threads 8 \
+        --override '{"resolution": 512, "nerf": {"levels": 6, "max_res": 192}, "albedo": {"levels": 6, "max_res": 192},
+                     "render": {"samples": 32}, "stage1": {"iterations": 1200, "rays": 8192}}' \
+        --label "512, grids 192, 32 samples, 8192 rays" --steps 300,600,1200 --out /tmp/hoc --csv benchmarks/held_out_curve_gpu.csv --append
+
+Each row: subject, variant, device, step, the trainer's seconds at it, the smoothed training-ray PSNR, and the
 held-out PSNR / SSIM / ST-LPIPS / NeRF IoU of the snapshot.
 """
 
@@ -37,7 +47,7 @@ from delta.training.run import build_avatar, load_init, load_trained, pick_devic
 from delta.training.trainer import train_stage
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table import save_table  # noqa: E402
+from table import device_name, save_table  # noqa: E402
 
 
 def main() -> None:
@@ -57,10 +67,13 @@ def main() -> None:
     p.add_argument("--append", action="store_true")
     p.add_argument("--device", default="cpu")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--override", default="{}", help="JSON settings merged over the run's (another variant)")
+    p.add_argument("--label", default="", help="the variant's name in the CSV (default: the preset's)")
     args = p.parse_args()
 
     saved = json.loads(Path(args.settings).read_text())
-    st = resolve(saved["preset"], saved["settings"])
+    override = json.loads(args.override)
+    st = resolve(saved["preset"], saved["settings"], override)
     steps = sorted({int(s) for s in args.steps.split(",")})
     if steps[-1] > st.stage1.iterations:
         raise SystemExit(f"--steps: {steps[-1]} is past the run's {st.stage1.iterations} iterations")
@@ -76,18 +89,22 @@ def main() -> None:
     for step in steps:
         losses = train_stage(1, model, data, st, out, max_steps=step).losses
         snapshot = out / f"step_{step:06d}.pt"
-        save_model(snapshot, model, 1, saved["preset"], st, step)
+        save_model(snapshot, model, 1, saved["preset"], st, step)  # the merged settings travel with it
         scores = summarize(evaluate(load_trained(snapshot, args.record, args.body, args.device), args.record, scoring,
                                     args.gt_meshes, args.subject))["test_view"]["unrefined"]  # fmt: skip
         row = {
             "subject": args.subject,
             "preset": saved["preset"],
+            "variant": args.label or saved["preset"],
+            "device": device_name(dev, args.threads),
             "step": step,
             "seconds": float(losses["seconds"].iloc[-1]),
             "train_psnr": float(smooth(losses["psnr"].to_numpy(), PSNR_WINDOW)[-1]),
             **{f"held_out_{k}": scores.get(k, float("nan")) for k in ("psnr", "ssim", "stlpips_alex", "nerf_iou")},
         }
-        if run is not None:  # the finished run's clock at this step, and how closely the rerun follows it
+        if (
+            run is not None and not override
+        ):  # the finished run's clock at this step, and how closely the rerun follows it
             ran = run.head(step)
             row["run_seconds"] = float(ran["seconds"].iloc[-1])
             row["max_loss_rel_diff_to_run"] = float(((losses["loss"] - ran["loss"]).abs() / ran["loss"]).max())

@@ -26,7 +26,7 @@ import pandas as pd
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table import save_table  # noqa: E402
+from table import device_name, save_table  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -142,7 +142,7 @@ def main() -> None:
     table.insert(2, "early_cull", model.spec.render.early_cull)
     table["nerf_samples_per_step"] = round(samples)
     table["threads"] = a.threads
-    table["device"] = torch.cuda.get_device_name() if a.device == "cuda" else f"cpu ({a.threads} threads)"
+    table["device"] = device_name(a.device, a.threads)
     print(save_table(table.round(4), a.out, a.append).to_string(index=False))
 
 

@@ -1,10 +1,11 @@
-"""Writing a benchmark's rows: one CSV, optionally after the rows already in it."""
+"""Writing a benchmark's rows: one CSV, optionally after the rows already in it, naming the device."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import pandas as pd
+import torch
 
 
 def save_table(table: pd.DataFrame, path: str | Path, append: bool = False) -> pd.DataFrame:
@@ -15,3 +16,9 @@ def save_table(table: pd.DataFrame, path: str | Path, append: bool = False) -> p
         table = pd.concat([pd.read_csv(path), table], ignore_index=True)
     table.to_csv(path, index=False)
     return table
+
+
+def device_name(device: torch.device | str, threads: int) -> str:
+    """The device a row was measured on, as the CSVs name it: the GPU's model, or the CPU's threads."""
+    device = torch.device(device)
+    return torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu ({threads} threads)"
