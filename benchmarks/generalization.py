@@ -17,7 +17,8 @@ repository root::
 
     PYTHONPATH=$PWD python3 benchmarks/generalization.py --reuse-builds                # ~20-30 min a subject on 2 cores
 
-A kept ``--work`` folder resumes: run again with it (and fewer subjects, say) and only what is missing runs.
+``--training '{"resolution": 512}'`` runs every subject with those training overrides (a variant; the
+rows name it in ``training``). A kept ``--work`` folder resumes: run again with it (and fewer subjects, say) and only what is missing runs.
     PYTHONPATH=$PWD python3 benchmarks/generalization.py --reuse-builds --tiny --count 2 \\
         --csv /tmp/generalization_tiny.csv                                               # the script's own check
 """
@@ -83,13 +84,15 @@ def describe(spec: dict) -> str:
     return f"{clothes}, hair {spec['hair']}, {spec['camera']}"
 
 
-def prepare_workflow(work: Path, subjects: dict[str, dict], tiny: bool, reuse: bool) -> list[str]:
+def prepare_workflow(work: Path, subjects: dict[str, dict], tiny: bool, reuse: bool, training: dict) -> list[str]:
     workflow_copy(work)
     main = yaml.safe_load((work / "config/config.yaml").read_text())
     main["datasets"] = {"synthetic": {"subjects": {n: (s | TINY if tiny else s) for n, s in subjects.items()}}}
     main.setdefault("training", {})["subjects"] = {}  # a new subject has no settings of its own
     main.setdefault("fitting", {}).pop("subjects", None)
     main.pop("applications", None)  # they name the shipped subjects; scored here: the avatars themselves
+    if training:  # one variant for every subject, as a user's training.overrides
+        main["training"]["overrides"] = training
     if tiny:
         main["training"]["overrides"] = TINY_TRAINING
         main["preprocess"]["resolution"] = 64
@@ -118,6 +121,9 @@ def main() -> None:
     ap.add_argument("--reuse-builds", action="store_true", help="reuse this clone's Anny cache and MediaPipe models")
     ap.add_argument("--work", type=Path, help="folder to run in (default: a temporary one, removed afterwards)")
     ap.add_argument("--csv", type=Path, default=REPO / "benchmarks" / "generalization.csv")
+    ap.add_argument(
+        "--training", type=json.loads, default={}, help="JSON training.overrides for every subject (a variant)"
+    )
     a = ap.parse_args()
     drawn = family(a.count, a.seed)
     shipped = yaml.safe_load((REPO / "config/config.yaml").read_text())["datasets"]["synthetic"]["subjects"]
@@ -127,14 +133,15 @@ def main() -> None:
     subjects = {n: s for n, s in drawn.items() if a.only is None or n in a.only} | {n: shipped[n] for n in a.shipped}
     work = a.work or Path(tempfile.mkdtemp(prefix="delta-generalization-"))
     work.mkdir(parents=True, exist_ok=True)
-    prepare_workflow(work, subjects, a.tiny, a.reuse_builds)
+    prepare_workflow(work, subjects, a.tiny, a.reuse_builds, a.training)
     print(f"{len(subjects)} subjects:", json.dumps({n: describe(s) for n, s in subjects.items()}, indent=1), flush=True)
     wall = run_snakemake(work, "results/synthetic/metrics.csv", cores=a.cores)
     table = pd.read_csv(work / "results/synthetic/metrics.csv").set_index("subject")
     rows = []
     for name, spec in subjects.items():
         row = {"subject": name, "description": describe(spec) + (" (shipped)" if name in a.shipped else ""),
-               "seed": spec["seed"], "camera": spec["camera"], "hair": spec.get("hair", "none"), "tiny": a.tiny}  # fmt: skip
+               "seed": spec["seed"], "camera": spec["camera"], "hair": spec.get("hair", "none"), "tiny": a.tiny,
+               "training": json.dumps(a.training) if a.training else "default"}  # fmt: skip
         row |= {k: table.loc[name, k] for k in SCORES if k in table.columns}
         scene = json.loads((work / "results/synthetic" / name / "scene.json").read_text())["decisions"]
         row |= {"scene_max_dist": scene["render"]["max_dist"], "scene_samples": scene["render"]["samples"],
