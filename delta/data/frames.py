@@ -18,17 +18,48 @@ from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.data.record import FrameRecord
 
 
+class ByteFrames:
+    """Per-pixel values in [0, 1] held as bytes (round(255 v)) and read as floats: a quarter of the
+    memory of float frames, so that a capture's frames fit at its own resolution (400 frames of 512²
+    with their masks: 0.7 GB instead of 2.9). Indexing returns float32; a whole read is ``[:]``."""
+
+    def __init__(self, values: torch.Tensor):
+        if values.dtype != torch.uint8:
+            raise TypeError(f"ByteFrames holds uint8 values, got {values.dtype}")
+        self.bytes = values
+
+    @staticmethod
+    def quantise(values: np.ndarray) -> np.ndarray:
+        """float values in [0, 1] as the bytes that hold them."""
+        return np.rint(np.clip(values, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+    def __getitem__(self, index) -> torch.Tensor:
+        return self.bytes[index].float() / 255.0
+
+    def __len__(self) -> int:
+        return len(self.bytes)
+
+    @property
+    def shape(self) -> torch.Size:
+        return self.bytes.shape
+
+    def total(self, index) -> float:
+        """The sum of the values selected by ``index``, without reading them as floats."""
+        return float(self.bytes[index].sum(dtype=torch.float64)) / 255.0
+
+
 @dataclasses.dataclass
 class FrameData:
-    """All frames of a subject at the training resolution (N frames, H = W = n)."""
+    """All frames of a subject at the training resolution (N frames, H = W = n), held as bytes: index
+    a field to read it as floats (``data.images[f]``)."""
 
-    images: torch.Tensor
+    images: ByteFrames
     """(N, n, n, 3) targets in [0, 1], composited on the background."""
-    person: torch.Tensor
+    person: ByteFrames
     """(N, n, n) person alpha in [0, 1]."""
-    exterior: torch.Tensor
+    exterior: ByteFrames
     """(N, n, n) clothing or hair in [0, 1]."""
-    interior: torch.Tensor
+    interior: ByteFrames
     """(N, n, n) visible body (person minus exterior)."""
     boxes: torch.Tensor
     """(N, 4) int64 pixel box (i0, i1, j0, j1) around the person plus a margin."""
@@ -41,7 +72,7 @@ class FrameData:
     """The record's camera rescaled to n (pinhole) or the record's per-frame orthographic camera."""
     skin_color: torch.Tensor
     """(3,) average colour of the visible body over the training frames."""
-    hair: torch.Tensor | None = None
+    hair: ByteFrames | None = None
     """(N, n, n) hair in [0, 1] (part of ``exterior``), loaded for an exterior of separate layers."""
 
     @property
@@ -73,37 +104,43 @@ def rescale_camera(camera, source: int, n: int):
 
 def load_frames(record_path, resolution: int, background=(1.0, 1.0, 1.0), box_margin: float = 0.1,
                 hair: bool = False) -> FrameData:  # fmt: skip
-    """Read and resize a frame record (N × resolution² × 7 floats stay in memory; ``hair``: the hair
-    mask too, zeros where the record has none)."""
+    """Read and resize a frame record, frame by frame into bytes (N × resolution² × 7 bytes stay in
+    memory; ``hair``: the hair mask too, zeros where the record has none)."""
     bg = np.asarray(background, dtype=np.float32)
     with FrameRecord(record_path) as rec:
         n_frames, src = len(rec), rec.size
-        has = {m: m in rec.h5 for m in ("clothing", "hair")}
-        if not (has["clothing"] or has["hair"]):
+        has = [m for m in ("clothing", "hair") if m in rec.h5]
+        if not has:
             raise DeltaError(f"{record_path}: no 'clothing' or 'hair' mask; the parse step must run first")
-        imgs, person, ext, hairs = [], [], [], []
+        split, frame_ids = rec.h5["split"][:], rec.h5["frame_ids"][:]
+        train = np.flatnonzero(split == 0)
+        if len(train) == 0:
+            raise DeltaError(f"{record_path}: no training frames (split 0)")
+        shape = (n_frames, resolution, resolution)
+        fields = {k: np.empty(shape + ((3,) if k == "images" else ()), np.uint8)
+                  for k in ("images", "person", "exterior", "interior") + (("hair",) if hair else ())}  # fmt: skip
+        boxes, skin_sum, skin_weight = [], np.zeros(3), 0.0
         for i in range(n_frames):
             a = _resize(rec.h5["person"][i].astype(np.float32) / 255.0, resolution)
             img = _resize(rec.h5["images"][i].astype(np.float32) / 255.0, resolution)
-            e = sum(_resize(rec.h5[m][i].astype(np.float32), resolution) for m in has if has[m])
-            imgs.append(img * a[..., None] + bg * (1 - a[..., None]))
-            person.append(a)
-            ext.append(np.minimum(np.minimum(e, 1.0), a))
+            img = img * a[..., None] + bg * (1 - a[..., None])
+            e = np.minimum(np.minimum(sum(_resize(rec.h5[m][i].astype(np.float32), resolution) for m in has), 1.0), a)
+            inside = np.clip(a - e, 0.0, 1.0)
+            for key, v in (("images", img), ("person", a), ("exterior", e), ("interior", inside)):
+                fields[key][i] = ByteFrames.quantise(v)
             if hair:
-                h = _resize(rec.h5["hair"][i].astype(np.float32), resolution) if has["hair"] else np.zeros_like(a)
-                hairs.append(np.minimum(np.minimum(h, 1.0), a))
-        split, frame_ids = rec.h5["split"][:], rec.h5["frame_ids"][:]
+                h = _resize(rec.h5["hair"][i].astype(np.float32), resolution) if "hair" in has else np.zeros_like(a)
+                fields["hair"][i] = ByteFrames.quantise(np.minimum(np.minimum(h, 1.0), a))
+            if split[i] == 0:
+                w = fields["interior"][i].astype(np.float64) / 255.0
+                skin_sum += (fields["images"][i].astype(np.float64) / 255.0 * w[..., None]).reshape(-1, 3).sum(0)
+                skin_weight += w.sum()
+            boxes.append(_box(fields["person"][i] > 127, box_margin))
         camera = rescale_camera(rec.camera(), src, resolution)
-    images, person_t, ext_t = (torch.from_numpy(np.stack(x)) for x in (imgs, person, ext))
-    interior = (person_t - ext_t).clamp(0, 1)
-    train = np.flatnonzero(split == 0)
-    if len(train) == 0:
-        raise DeltaError(f"{record_path}: no training frames (split 0)")
-    w = interior[train].reshape(-1)
-    skin = (images[train].reshape(-1, 3) * w[:, None]).sum(0) / w.sum().clamp_min(1e-6)
-    boxes = torch.tensor([_box(p > 0.5, box_margin) for p in person], dtype=torch.int64)
-    hair_t = torch.from_numpy(np.stack(hairs)) if hair else None
-    return FrameData(images, person_t, ext_t, interior, boxes, train, split, frame_ids, camera, skin, hair_t)
+    held = {k: ByteFrames(torch.from_numpy(v)) for k, v in fields.items()}
+    skin = torch.from_numpy(skin_sum / max(skin_weight, 1e-6)).float()
+    return FrameData(held["images"], held["person"], held["exterior"], held["interior"],
+                     torch.tensor(boxes, dtype=torch.int64), train, split, frame_ids, camera, skin, held.get("hair"))  # fmt: skip
 
 
 @dataclasses.dataclass

@@ -46,7 +46,7 @@ def wants_exterior(st: TrainSettings, data: FrameData) -> bool:
     """Model only what the scene requires: a NeRF only where clothing or hair is seen."""
     if st.exterior != "auto":
         return st.exterior == "yes"
-    frac = float(data.exterior[data.train].sum() / data.person[data.train].sum().clamp_min(1.0))
+    frac = data.exterior.total(data.train) / max(data.person.total(data.train), 1.0)
     log.info("exterior pixels: %.1f%% of the person%s", 100 * frac,
              "" if frac >= MIN_EXTERIOR_FRACTION else " -> no NeRF is built")  # fmt: skip
     return frac >= MIN_EXTERIOR_FRACTION
@@ -59,9 +59,9 @@ def exterior_layers(st: TrainSettings, data: FrameData) -> tuple[str, ...]:
         return ()
     if data.hair is None:
         raise DeltaError("training.layers: split needs the frames' hair mask (load_frames(..., hair=True))")
-    person = data.person[data.train].sum().clamp_min(1.0)
-    hair = float(data.hair[data.train].sum() / person)
-    clothing = float((data.exterior - data.hair).clamp_min(0)[data.train].sum() / person)
+    person = max(data.person.total(data.train), 1.0)
+    hair = data.hair.total(data.train) / person
+    clothing = (data.exterior.total(data.train) - data.hair.total(data.train)) / person  # hair <= exterior
     both = min(hair, clothing) >= MIN_EXTERIOR_FRACTION
     log.info("exterior layers: clothing %.1f%%, hair %.1f%% of the person -> %s", 100 * clothing, 100 * hair,
              "one NeRF each" if both else "one NeRF (not both seen)")  # fmt: skip
