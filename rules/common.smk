@@ -16,7 +16,7 @@ from delta.config import tracks_face as _tracks_face
 from delta.config import validate_workflow_config
 from delta.config import variant_training as _variant_training
 from delta.data.sources import PROVIDES
-from delta.scene.settings import user_decided
+from delta.scene.settings import FRAME_BUDGET, user_decided
 from delta.synthetic.spec import dressed_raw, parse_subject, reshaped_raw, truth_name
 from delta.training.presets import resolve as resolve_training, stage_view
 
@@ -479,16 +479,19 @@ def train_inputs(wildcards):
 
 
 def train_mem_mb(wildcards, attempt):
-    """~1.5 GB at 128² (fast); grows with the training image area and the rays a step."""
+    """~1.5 GB besides the frames, which the scene analysis sizes to at most FRAME_BUDGET bytes (the
+    capture's own size; a config's resolution, as bytes, below it); grows with the rays a step.
+    """
     st = TRAINING[wildcards.subject]
-    return _grow(1500 + 0.02 * st.resolution**2 + 0.5 * st.stage1.rays, attempt)
+    return _grow(1500 + FRAME_BUDGET / 2**20 + 0.5 * st.stage1.rays, attempt)
 
 
 def train_runtime(wildcards, attempt):
-    """Minutes: ~0.6 s a step at the fast preset on 2 cores, times 3."""
+    """Minutes: ~0.6 s a step at the fast preset on 2 cores, times 3 (a step's cost grows with its rays
+    and samples, not with the frames' size)."""
     st = TRAINING[wildcards.subject]
     cfg = st.stage1 if wildcards.stage == "1" else st.stage2
-    scale = (st.resolution / 128) * cfg.rays / 1024 * st.avatar.render.samples / 24
+    scale = cfg.rays / 1024 * st.avatar.render.samples / 24
     return int(10 + attempt * 3 * cfg.iterations * 0.6 * scale / 60)
 
 

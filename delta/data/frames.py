@@ -18,6 +18,10 @@ from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.data.record import FrameRecord
 
 
+#: Bytes a training pixel holds (colour, person, exterior, interior, and hair where layers are split).
+BYTES_PER_PIXEL = 8
+
+
 class ByteFrames:
     """Per-pixel values in [0, 1] held as bytes (round(255 v)) and read as floats: a quarter of the
     memory of float frames, so that a capture's frames fit at its own resolution (400 frames of 512²

@@ -10,6 +10,9 @@ From the frame record (person, clothing and hair masks) and the init fit, before
   silhouette reaches beyond the fitted body per body region (:mod:`delta.scene.reach`), with a margin;
   never less than the preset's own;
 - ``render.samples``: the samples a ray needs to cross that room at the preset's sample spacing;
+- ``resolution``: the training frames' size, the capture's crop (a step's cost does not depend on it,
+  the figures are scored at the capture's size, and tight's held-out views were 1.2 dB sharper trained
+  at 512² than at 128²), unless the frames would not fit :data:`FRAME_BUDGET` bytes;
 - ``stage2.length_factor``: stage 2's length as a multiple of the configured one, the room over the
   preset's: stage 2 learns the exterior's motion about the body (F_e), and a garment hanging farther
   from the body sways farther (on the loose dress, 300 -> 600 stage-2 steps lifted held-out views
@@ -34,7 +37,7 @@ from delta import DeltaError
 from delta.body.lbs import lbs
 from delta.body.model import REGION_NAMES, load_body_model
 from delta.cameras.models import metres_per_pixel
-from delta.data.frames import load_frames
+from delta.data.frames import BYTES_PER_PIXEL, load_frames
 from delta.data.record import FrameRecord
 from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import save_json
@@ -42,6 +45,7 @@ from delta.models.image import pixel_grid
 from delta.models.init import load_init
 from delta.scene.framing import MAX_LOWER_IN_VIEW, frame_camera, lower_body_in_view
 from delta.scene.reach import Beyond, beyond_body, region_reach
+from delta.scene.settings import FRAME_BUDGET
 
 log = logging.getLogger(__name__)
 
@@ -101,6 +105,13 @@ def stage2_factor(room: float, preset_room: float) -> float:
     return round(min(max(room / preset_room, 1.0), MAX_STAGE2_FACTOR), 3)
 
 
+def training_resolution(crop: int, frames: int, budget: int = FRAME_BUDGET) -> int:
+    """The training frames' size: the capture's crop (``crop`` pixels a side), or, where ``frames`` of it
+    would hold more than ``budget`` bytes, the largest multiple of 16 that fits (at least 16)."""
+    fits = math.isqrt(budget // (BYTES_PER_PIXEL * max(frames, 1)))
+    return crop if crop <= fits else max(16, fits // 16 * 16)
+
+
 def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, preset_room: float,
             preset_samples: int, size: int = SIZE, frames: int = FRAMES) -> dict:  # fmt: skip
     """The scene of one subject: ``{"decisions": {...}, "evidence": {...}}``."""
@@ -124,7 +135,11 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
     exterior = "yes" if sum(shares.values()) >= MIN_EXTERIOR_FRACTION else "no"
     lower = lower_body_in_view(body, init.betas, init.poses, init.transl, init.camera, picked, size)
     capture = "upper" if lower is not None and lower <= MAX_LOWER_IN_VIEW else "full"
-    decisions = {"exterior": exterior, "capture": capture, "render": {"max_dist": room, "samples": samples}}
+    with FrameRecord(record) as rec:
+        crop, n_frames = rec.size, len(rec)
+    resolution = training_resolution(crop, n_frames)
+    decisions = {"exterior": exterior, "capture": capture, "resolution": resolution,
+                 "render": {"max_dist": room, "samples": samples}}  # fmt: skip
     if exterior == "yes":
         decisions["stage2"] = {"length_factor": stage2_factor(room, preset_room)}
     evidence = {
@@ -137,6 +152,9 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
                   "beyond_pixels": int(sum(len(b.metres) for b in beyond)),
                   "why": f"the silhouette reaches {100 * reach:.1f} cm beyond the fitted body; room "
                          f"{reach:.3f} x {1 + MARGIN:g} + {PAD:g} m, at least the preset's {preset_room:g} m"},
+        "resolution": {"crop": crop, "frames": n_frames, "budget_mb": round(FRAME_BUDGET / 2**20),
+                       "why": f"the capture's {crop}² crop" + ("" if resolution == crop else
+                              f" would not fit {FRAME_BUDGET / 2**30:g} GB for {n_frames} frames: {resolution}²")},
         "samples": {"preset": preset_samples, "preset_max_dist": preset_room,
                     "why": f"{preset_samples} samples per {preset_room:g} m of room, at most {MAX_SAMPLE_FACTOR}x"},
     }  # fmt: skip

@@ -14,7 +14,10 @@ from pathlib import Path
 from delta import DeltaError
 
 #: The keys the analysis decides (dotted paths of the training settings).
-DECIDED = ("exterior", "capture", "render.max_dist", "render.samples", "stage2.iterations")
+DECIDED = ("exterior", "capture", "resolution", "render.max_dist", "render.samples", "stage2.iterations")
+#: The most memory the training frames may hold (bytes) where the scene decides their size: 400 frames
+#: fit up to 579² pixels. The workflow sizes a training job's memory by it.
+FRAME_BUDGET = 1 << 30
 #: Keys decided as a multiple of the resolved setting: the key -> the scene's factor for it.
 SCALED = {"stage2.iterations": "stage2.length_factor"}
 #: Keys decided only where the resolved settings leave them ``auto``.

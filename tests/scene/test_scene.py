@@ -7,8 +7,9 @@ import h5py
 import numpy as np
 import pytest
 
-from delta.scene.analysis import analyze, room_and_samples, stage2_factor
-from delta.scene.settings import scene_settings, user_decided
+from delta.data.frames import BYTES_PER_PIXEL
+from delta.scene.analysis import analyze, room_and_samples, stage2_factor, training_resolution
+from delta.scene.settings import FRAME_BUDGET, scene_settings, user_decided
 from delta.scene.reach import beyond_body, region_reach
 
 
@@ -59,17 +60,29 @@ def test_stage_two_grows_with_the_room_from_the_configured_length(tmp_path):
     assert scene_settings(path, {"stage2": {"iterations": 300}}, ["stage2.iterations"]) == {}  # the user's wins
 
 
+@pytest.mark.parametrize("crop, frames", [(512, 130), (512, 400), (540, 400), (1080, 400), (2048, 4000), (64, 1)])
+def test_the_training_resolution_is_the_capture_unless_its_frames_overflow_the_budget(crop, frames):
+    n = training_resolution(crop, frames)
+    fits = lambda m: m * m * BYTES_PER_PIXEL * frames <= FRAME_BUDGET  # noqa: E731
+    if fits(crop):
+        assert n == crop
+    else:  # the largest multiple of 16 that fits
+        assert n % 16 == 0 and fits(n) and not fits(n + 16) and n < crop
+    assert training_resolution(512, 400) == 512 and training_resolution(1080, 400) == 576
+    assert training_resolution(512, 10**9) == 16  # never below 16 pixels
+
+
 def test_decisions_apply_only_where_the_config_is_silent(tmp_path):
     path = tmp_path / "scene.json"
-    path.write_text(json.dumps({"decisions": {"exterior": "no", "capture": "upper",
+    path.write_text(json.dumps({"decisions": {"exterior": "no", "capture": "upper", "resolution": 512,
                                               "render": {"max_dist": 0.3, "samples": 40}}}))  # fmt: skip
-    auto = {"exterior": "auto", "capture": "auto"}
-    assert scene_settings(path, auto, []) == {"exterior": "no", "capture": "upper",
+    auto = {"exterior": "auto", "capture": "auto", "resolution": 128}
+    assert scene_settings(path, auto, []) == {"exterior": "no", "capture": "upper", "resolution": 512,
                                               "render": {"max_dist": 0.3, "samples": 40}}  # fmt: skip
-    assert scene_settings(path, auto, ["render.samples", "capture"]) == {"exterior": "no", "render": {"max_dist": 0.3}}
+    assert scene_settings(path, auto, ["render.samples", "capture", "resolution"]) == {
+        "exterior": "no", "render": {"max_dist": 0.3}}  # fmt: skip
     assert scene_settings(path, {"exterior": "yes", "capture": "full"}, []) == {
-        "render": {"max_dist": 0.3, "samples": 40}
-    }
+        "resolution": 512, "render": {"max_dist": 0.3, "samples": 40}}  # fmt: skip
     path.write_text("{}")
     with pytest.raises(Exception, match="not a scene analysis"):
         scene_settings(path, auto, [])
@@ -89,6 +102,8 @@ def test_a_dress_reaches_farther_than_trousers_and_a_wider_silhouette_reaches_fa
     assert factors == [stage2_factor(r, 0.1) for r in rooms] and factors[1] >= factors[0]
     assert tight["decisions"]["exterior"] == dress["decisions"]["exterior"] == "yes"
     assert tight["decisions"]["capture"] == "full"
+    with h5py.File(t["record"], "r") as h5:  # trained at the capture's crop, which fits the budget
+        assert tight["decisions"]["resolution"] == h5["images"].shape[1] == 64
     # the same capture with every person mask grown by 3 pixels (about 9 cm at this size) reaches farther
     wide = tmp_path / "wide.h5"
     shutil.copy(t["record"], wide)
@@ -135,6 +150,7 @@ def test_training_takes_the_scene_and_says_so(tiny_training, tmp_path, caplog):
 def test_only_the_keys_the_scene_decides_are_passed_to_training():
     set_by_config = ["stage2.lr_final", "render.samples", "render.sil_sigma", "exterior", "stage1.iterations"]
     assert user_decided(set_by_config) == ["exterior", "render.samples"]
+    assert user_decided(set_by_config + ["resolution"], 2) == ["exterior", "render.samples", "resolution"]
     assert user_decided([]) == []
     # a stage's job carries only the keys it reads: stage 2's length must not rerun stage 1
     assert user_decided(set_by_config + ["stage2.iterations"], 1) == ["exterior", "render.samples"]
