@@ -12,8 +12,8 @@ From the frame record (person, clothing and hair masks) and the init fit, before
 - ``render.samples``: the samples a ray needs to cross that room at the preset's sample spacing;
 - ``resolution``: the training frames' size, the capture's crop (a step's cost does not depend on it,
   the figures are scored at the capture's size, and trained at 512² rather than 128² the held-out views
-  of tight and loose kept their PSNR within 0.5 dB and gained perceptual detail: ST-LPIPS 0.029 against
-  0.049 and 0.051 against 0.074), unless the frames would not fit :data:`FRAME_BUDGET` bytes;
+  of tight, loose and upper gained perceptual detail, ST-LPIPS 13-41 % lower, their PSNR moving -0.8 to
+  +0.6 dB), unless the frames would not fit :data:`FRAME_BUDGET` bytes;
 - ``stage2.length_factor``: stage 2's length as a multiple of the configured one, the room over the
   preset's: stage 2 learns the exterior's motion about the body (F_e), and a garment hanging farther
   from the body sways farther (on the loose dress, 300 -> 600 stage-2 steps lifted held-out views
