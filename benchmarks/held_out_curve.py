@@ -89,7 +89,7 @@ def main() -> None:
     for step in steps:
         losses = train_stage(1, model, data, st, out, max_steps=step).losses
         snapshot = out / f"step_{step:06d}.pt"
-        save_model(snapshot, model, 1, saved["preset"], st, step)  # the merged settings travel with it
+        save_model(snapshot, model, 1, saved["preset"], st, step)
         scores = summarize(evaluate(load_trained(snapshot, args.record, args.body, args.device), args.record, scoring,
                                     args.gt_meshes, args.subject))["test_view"]["unrefined"]  # fmt: skip
         row = {
@@ -102,9 +102,8 @@ def main() -> None:
             "train_psnr": float(smooth(losses["psnr"].to_numpy(), PSNR_WINDOW)[-1]),
             **{f"held_out_{k}": scores.get(k, float("nan")) for k in ("psnr", "ssim", "stlpips_alex", "nerf_iou")},
         }
-        if (
-            run is not None and not override
-        ):  # the finished run's clock at this step, and how closely the rerun follows it
+        # the finished run's clock at this step, and how closely the rerun follows it (the same settings only)
+        if run is not None and not override:
             ran = run.head(step)
             row["run_seconds"] = float(ran["seconds"].iloc[-1])
             row["max_loss_rel_diff_to_run"] = float(((losses["loss"] - ran["loss"]).abs() / ran["loss"]).max())

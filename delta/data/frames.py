@@ -40,9 +40,6 @@ class ByteFrames:
     def __getitem__(self, index) -> torch.Tensor:
         return self.bytes[index].float() / 255.0
 
-    def __len__(self) -> int:
-        return len(self.bytes)
-
     @property
     def shape(self) -> torch.Size:
         return self.bytes.shape
