@@ -98,6 +98,7 @@ def main() -> None:
             "variant": args.label or saved["preset"],
             "device": device_name(dev, args.threads),
             "step": step,
+            "trained_steps": int(losses["step"].iloc[-1]),  # fewer than step where a plateau ended the stage
             "seconds": float(losses["seconds"].iloc[-1]),
             "train_psnr": float(smooth(losses["psnr"].to_numpy(), PSNR_WINDOW)[-1]),
             **{f"held_out_{k}": scores.get(k, float("nan")) for k in ("psnr", "ssim", "stlpips_alex", "nerf_iou")},
