@@ -21,7 +21,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from delta.geometry import clusters
+from delta.geometry import clusters, pencil
 
 FACE_LEAF = clusters.LEAF
 """Faces per leaf of the torch search's hierarchy."""
@@ -124,9 +124,10 @@ def _test_leaves(tree, o, d, tri, tol, best, face, ray, leaf) -> None:
 
 @torch.no_grad()
 def _search_torch(vertices, faces, origins, dirs) -> torch.Tensor:
-    """(R,) first-hit face (-1: none) by walking a box hierarchy of the faces (:mod:`delta.geometry.clusters`)
-    and deciding each candidate pair by the direct Möller–Trumbore (:func:`_confirm`), in float64 where
-    the device has it. Tensor work on the inputs' device."""
+    """(R,) first-hit face (-1: none), each candidate pair decided by the direct Möller–Trumbore
+    (:func:`_confirm`) in float64 where the device has it. Rays that leave one point (a camera's) take
+    their candidates from faces binned in their image (:mod:`delta.geometry.pencil`); others walk a box
+    hierarchy of the faces (:mod:`delta.geometry.clusters`). Tensor work on the inputs' device."""
     work = torch.float64 if vertices.device.type != "mps" else torch.float32
     o, d = origins.detach().to(work), dirs.detach().to(work)
     R, F = o.shape[0], faces.shape[0]
@@ -134,12 +135,17 @@ def _search_torch(vertices, faces, origins, dirs) -> torch.Tensor:
     if R == 0 or F == 0:
         return face
     tri = vertices.detach().to(work)[faces]
-    tree = _HIERARCHIES.get(vertices, faces, lambda: clusters.build(tri.amin(1), tri.amax(1), leaf=FACE_LEAF))
     tol = 64 * torch.finfo(work).eps
+    best = torch.full((R,), torch.inf, dtype=work, device=o.device)
+    bins = pencil.bin_faces(tri, o[0], d) if pencil.shared_origin(o) else None
+    if bins is not None:  # a camera's rays: each ray's candidates from its cell, no walk
+        for ray, f in bins.pairs(_CHUNK_PAIRS):
+            _keep_nearest(best, face, ray, _confirm(o[ray], d[ray], tri[f], tol), f)
+        return face
+    tree = _HIERARCHIES.get(vertices, faces, lambda: clusters.build(tri.amin(1), tri.amax(1), leaf=FACE_LEAF))
     # boxes grown by far more than the slab test's rounding, so no true hit is dropped before _confirm
     scale = tri.abs().amax() + o.abs().amax() + (tri.amax((0, 1)) - tri.amin((0, 1))).amax()
     pad = float(torch.finfo(work).eps ** 0.5 * scale)
-    best = torch.full((R,), torch.inf, dtype=work, device=o.device)
     for s in range(0, R, _CHUNK_RAYS):
         ray, leaf, enter = clusters.ray_leaf_pairs(tree, o[s : s + _CHUNK_RAYS], d[s : s + _CHUNK_RAYS], pad)
         ray = ray + s

@@ -1,0 +1,127 @@
+"""Candidate faces of rays that leave one point (a camera's centre), binned in the rays' own image.
+
+Rays from one point are a central projection. A triangle wholly in front of the point projects to the
+triangle of its projected corners, so a ray can meet only the faces whose projected boxes hold the ray's
+own projection. The faces' boxes are binned on a grid laid over the rays' projections, and each ray's
+candidates are its cell's faces: a short, fixed sequence of tensor operations (a sort, a count and two
+``repeat_interleave``), where walking a box hierarchy takes rounds of small operations. On a GPU, where
+a training step's camera rays are launch-bound, that is the difference (``benchmarks/step_profile.py
+--trace``). Faces with a corner at or behind the point are candidates of every ray.
+
+The caller decides each candidate pair exactly (:func:`delta.geometry.raymesh._confirm`); the binning
+only has to be conservative, and the boxes are grown by far more than the projection's rounding.
+
+Shapes: R rays, F faces, G cells a side, M candidate (ray, face) pairs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Iterator
+
+import torch
+
+MIN_COS = 0.1
+"""Rays more than acos(0.1) (84°) from their mean direction are not binned (None: the caller walks its
+hierarchy); a projection plane cannot hold a wider pencil."""
+FACES_PER_CELL = 8
+"""The grid has about F / this many cells (G a side, at most :data:`MAX_SIDE`)."""
+MAX_SIDE = 256
+MAX_BINNED = 1 << 24
+"""(face, cell) entries above this (faces far larger than a cell): not binned."""
+
+
+def shared_origin(origins: torch.Tensor) -> bool:
+    """Whether every ray (R, 3) leaves the same point (exactly: a camera's rays share its centre)."""
+    return origins.shape[0] > 0 and bool((origins == origins[0]).all())
+
+
+@dataclasses.dataclass
+class Bins:
+    """Faces binned on a grid over the rays' projections."""
+
+    ray_cell: torch.Tensor
+    """(R,) int64 the cell of each ray."""
+    cell_start: torch.Tensor
+    """(G*G,) int64 each cell's first entry in ``cell_faces``."""
+    cell_count: torch.Tensor
+    """(G*G,) int64 faces binned in each cell."""
+    cell_faces: torch.Tensor
+    """(E,) int64 face indices, grouped by cell, ascending within a cell."""
+    everywhere: torch.Tensor
+    """(S,) int64 faces with a corner at or behind the point: candidates of every ray."""
+
+    def pairs(self, chunk: int) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+        """(ray, face) candidate pairs, (M,) each, in batches of whole rays of about ``chunk`` pairs."""
+        R = self.ray_cell.shape[0]
+        count = self.cell_count[self.ray_cell] + self.everywhere.shape[0]  # (R,)
+        end = torch.cumsum(count, 0)
+        total = int(end[-1]) if R else 0
+        cuts = torch.searchsorted(end, torch.arange(chunk, max(total, chunk), chunk, device=end.device), right=True)
+        bounds = [0, *sorted(set(cuts.tolist()) - {0, R}), R]
+        for lo, hi in zip(bounds[:-1], bounds[1:]):
+            yield self._pairs(lo, hi, count[lo:hi])
+
+    def _pairs(self, lo: int, hi: int, count: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        dev = count.device
+        rays = torch.arange(lo, hi, device=dev)
+        binned = self.cell_count[self.ray_cell[lo:hi]]
+        ray = rays.repeat_interleave(binned)
+        first = torch.cumsum(binned, 0) - binned  # each ray's first pair
+        rank = torch.arange(ray.shape[0], device=dev) - first.repeat_interleave(binned)
+        face = self.cell_faces[self.cell_start[self.ray_cell[ray]] + rank]
+        S = self.everywhere.shape[0]
+        if S:
+            ray = torch.cat([ray, rays.repeat_interleave(S)])
+            face = torch.cat([face, self.everywhere.repeat(hi - lo)])
+        return ray, face
+
+
+@torch.no_grad()
+def bin_faces(tri: torch.Tensor, origin: torch.Tensor, dirs: torch.Tensor) -> Bins | None:
+    """The faces ``tri`` (F, 3, 3) binned for rays ``origin`` (3,) + t ``dirs`` (R, 3), R >= 1; None when
+    the rays spread wider than :data:`MIN_COS` allows or the faces are too large for the grid."""
+    dev, dtype = tri.device, tri.dtype
+    dn = torch.nn.functional.normalize(dirs.to(dtype), dim=1)
+    axis = dn.mean(0)
+    if not bool(axis.norm() > 0):
+        return None
+    axis = axis / axis.norm()
+    cos = dn @ axis
+    if not bool((cos > MIN_COS).all()):
+        return None
+    helper = torch.zeros(3, dtype=dtype, device=dev)
+    helper[int(axis.abs().argmin())] = 1.0
+    e1 = torch.nn.functional.normalize(torch.linalg.cross(axis, helper), dim=0)
+    basis = torch.stack([e1, torch.linalg.cross(axis, e1), axis])  # rows: the projection plane's axes, depth
+    ray_uv = (dn @ basis[:2].T) / cos[:, None]  # (R, 2)
+    rel = (tri - origin.to(dtype)) @ basis.T  # (F, 3, 3) corners in the pencil's frame
+    depth = rel[..., 2]
+    front = (depth > 0).all(1)
+    everywhere = ((depth > 0).any(1) & ~front).nonzero().squeeze(1)  # straddling the point's plane
+    ids = front.nonzero().squeeze(1)
+    uv = rel[ids, :, :2] / depth[ids, :, None]  # (Ff, 3, 2)
+    pad = 1e-9 * (1 + uv.abs().amax((1, 2)))  # (Ff,): far more than the projection's rounding
+    f_lo, f_hi = uv.amin(1) - pad[:, None], uv.amax(1) + pad[:, None]
+    lo, hi = ray_uv.amin(0), ray_uv.amax(0)
+    side = int(min(MAX_SIDE, max(1, round((max(len(ids), 1) / FACES_PER_CELL) ** 0.5))))
+    cell = ((hi - lo) / side).clamp_min(1e-12 * (1 + float(lo.abs().amax())))
+    overlaps = ((f_hi >= lo) & (f_lo <= hi)).all(1)
+    ids, f_lo, f_hi = ids[overlaps], f_lo[overlaps], f_hi[overlaps]
+    c0 = ((f_lo - lo) / cell).floor().clamp(0, side - 1).long()  # (Fo, 2) first and last cell per axis
+    c1 = ((f_hi - lo) / cell).floor().clamp(0, side - 1).long()
+    n = c1 - c0 + 1
+    per_face = n[:, 0] * n[:, 1]
+    total = int(per_face.sum())
+    if total > MAX_BINNED:
+        return None
+    which = torch.arange(len(ids), device=dev).repeat_interleave(per_face)
+    k = torch.arange(total, device=dev) - (torch.cumsum(per_face, 0) - per_face).repeat_interleave(per_face)
+    cu = c0[which, 0] + k // n[which, 1]
+    cv = c0[which, 1] + k % n[which, 1]
+    order = torch.argsort(cu * side + cv, stable=True)  # by cell; within a cell by face index
+    cells = (cu * side + cv)[order]
+    count = torch.bincount(cells, minlength=side * side)
+    ray_cell = ((ray_uv - lo) / cell).floor().clamp(0, side - 1).long()
+    return Bins(ray_cell=ray_cell[:, 0] * side + ray_cell[:, 1], cell_start=torch.cumsum(count, 0) - count,
+                cell_count=count, cell_faces=ids[which[order]], everywhere=everywhere)  # fmt: skip
