@@ -45,49 +45,48 @@ def _sync(device: torch.device) -> None:
 
 
 @contextlib.contextmanager
-def timed(owners: list[tuple[object, str, str]], totals: dict, device: torch.device = torch.device("cpu")):
-    """Wrap ``owner.name`` for every (owner, name, label): each call adds its wall time to totals[label]
-    (on a GPU the device is synchronised before and after, so a part's queued kernels count as its own)."""
-    saved = []
-    for owner, name, label in owners:
-        fn = getattr(owner, name)
+def patched(owners: list[tuple[object, str, str]], wrap):
+    """Replace ``owner.name`` by ``wrap(fn, label)`` for every (owner, name, label) while inside."""
+    saved = [(owner, name, getattr(owner, name)) for owner, name, _ in owners]
+    for (owner, name, label), (_, _, fn) in zip(owners, saved):
+        setattr(owner, name, wrap(fn, label))
+    try:
+        yield
+    finally:
+        for owner, name, fn in saved:
+            setattr(owner, name, fn)
 
-        def wrapper(*args, _fn=fn, _label=label, **kw):
+
+def timed(owners: list[tuple[object, str, str]], totals: dict, device: torch.device = torch.device("cpu")):
+    """Each call of a wrapped part adds its wall time to totals[label] (on a GPU the device is
+    synchronised before and after, so a part's queued kernels count as its own)."""
+
+    def wrap(fn, label):
+        def wrapper(*args, **kw):
             _sync(device)
             t = time.perf_counter()
             try:
-                return _fn(*args, **kw)
+                return fn(*args, **kw)
             finally:
                 _sync(device)
-                totals[_label] += time.perf_counter() - t
+                totals[label] += time.perf_counter() - t
 
-        saved.append((owner, name, fn))
-        setattr(owner, name, wrapper)
-    try:
-        yield
-    finally:
-        for owner, name, fn in saved:
-            setattr(owner, name, fn)
+        return wrapper
+
+    return patched(owners, wrap)
 
 
-@contextlib.contextmanager
 def labelled(owners: list[tuple[object, str, str]]):
-    """Wrap ``owner.name`` in a torch.profiler ``record_function`` named by its label."""
-    saved = []
-    for owner, name, label in owners:
-        fn = getattr(owner, name)
+    """Each wrapped part runs in a torch.profiler ``record_function`` named by its label."""
 
-        def wrapper(*args, _fn=fn, _label=label, **kw):
-            with torch.profiler.record_function(_label):
-                return _fn(*args, **kw)
+    def wrap(fn, label):
+        def wrapper(*args, **kw):
+            with torch.profiler.record_function(label):
+                return fn(*args, **kw)
 
-        saved.append((owner, name, fn))
-        setattr(owner, name, wrapper)
-    try:
-        yield
-    finally:
-        for owner, name, fn in saved:
-            setattr(owner, name, fn)
+        return wrapper
+
+    return patched(owners, wrap)
 
 
 def components(model) -> list[tuple[object, str, str]]:

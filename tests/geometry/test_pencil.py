@@ -12,18 +12,14 @@ import trimesh
 
 from delta.geometry import pencil, raymesh
 from delta.geometry.raymesh import embree_available, moller_trumbore, ray_mesh_hits
+from tests.geometry.test_raymesh import _bubbles as bubbles
 
 D = torch.float64
 
 
 def _bubbles(seed: int = 0):
     """Six overlapping spheres of 1280 faces each."""
-    g = torch.Generator().manual_seed(seed)
-    ball = trimesh.creation.icosphere(subdivisions=3)
-    parts = [(torch.tensor(ball.vertices, dtype=D) * (0.3 + 0.4 * torch.rand(1, generator=g, dtype=D))
-              + 0.6 * torch.randn(1, 3, generator=g, dtype=D)) for _ in range(6)]  # fmt: skip
-    faces = torch.cat([torch.tensor(ball.faces) + i * len(ball.vertices) for i in range(6)])
-    return torch.cat(parts), faces
+    return bubbles(seed, subdivisions=3)
 
 
 def _camera_rays(v, origin, n, seed=1, spread=0.05):

@@ -231,10 +231,11 @@ def test_the_embree_scene_is_reused_only_for_the_same_unmodified_mesh():
         )
 
 
-def _bubbles(seed: int = 0):
-    """Six overlapping spheres of 5120 faces each (a hierarchy of three levels; rays cross many surfaces)."""
+def _bubbles(seed: int = 0, subdivisions: int = 4):
+    """Six overlapping spheres of 5120 faces each (subdivisions 4: a hierarchy of three levels; rays cross
+    many surfaces)."""
     g = torch.Generator().manual_seed(seed)
-    ball = trimesh.creation.icosphere(subdivisions=4)
+    ball = trimesh.creation.icosphere(subdivisions=subdivisions)
     parts = [(torch.tensor(ball.vertices, dtype=D) * (0.3 + 0.4 * torch.rand(1, generator=g, dtype=D))
               + 0.6 * torch.randn(1, 3, generator=g, dtype=D)) for _ in range(6)]  # fmt: skip
     faces = torch.cat([torch.tensor(ball.faces) + i * len(ball.vertices) for i in range(6)])
