@@ -6,7 +6,7 @@ own projection. The faces' boxes are binned on a grid laid over the rays' projec
 candidates are its cell's faces: a short, fixed sequence of tensor operations (a sort, a count and two
 ``repeat_interleave``), where walking a box hierarchy takes rounds of small operations. On a GPU, where
 a training step's camera rays are launch-bound, that is the difference (``benchmarks/step_profile.py
---trace``). Faces with a corner at or behind the point are candidates of every ray.
+--trace``). Faces with a corner at, behind or all but at the point are candidates of every ray.
 
 The caller decides each candidate pair exactly (:func:`delta.geometry.raymesh._confirm`); the binning
 only has to be conservative, and the boxes are grown by far more than the projection's rounding.
@@ -49,7 +49,7 @@ class Bins:
     cell_faces: torch.Tensor
     """(E,) int64 face indices, grouped by cell, ascending within a cell."""
     everywhere: torch.Tensor
-    """(S,) int64 faces with a corner at or behind the point: candidates of every ray."""
+    """(S,) int64 faces with a corner at, behind or all but at the point: candidates of every ray."""
 
     def pairs(self, chunk: int) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
         """(ray, face) candidate pairs, (M,) each, in batches of whole rays of about ``chunk`` pairs."""
@@ -97,11 +97,12 @@ def bin_faces(tri: torch.Tensor, origin: torch.Tensor, dirs: torch.Tensor) -> Bi
     ray_uv = (dn @ basis[:2].T) / cos[:, None]  # (R, 2)
     rel = (tri - origin.to(dtype)) @ basis.T  # (F, 3, 3) corners in the pencil's frame
     depth = rel[..., 2]
-    front = (depth > 0).all(1)
+    near = torch.finfo(dtype).eps ** 0.5 * rel.abs().amax()  # nearer corners would project out of range
+    front = (depth > near).all(1)
     everywhere = ((depth > 0).any(1) & ~front).nonzero().squeeze(1)  # straddling the point's plane
     ids = front.nonzero().squeeze(1)
     uv = rel[ids, :, :2] / depth[ids, :, None]  # (Ff, 3, 2)
-    pad = 1e-9 * (1 + uv.abs().amax((1, 2)))  # (Ff,): far more than the projection's rounding
+    pad = torch.finfo(dtype).eps ** 0.5 * (1 + uv.abs().amax((1, 2)))  # (Ff,): far more than its rounding
     f_lo, f_hi = uv.amin(1) - pad[:, None], uv.amax(1) + pad[:, None]
     lo, hi = ray_uv.amin(0), ray_uv.amax(0)
     side = int(min(MAX_SIDE, max(1, round((max(len(ids), 1) / FACES_PER_CELL) ** 0.5))))

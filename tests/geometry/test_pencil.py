@@ -144,3 +144,25 @@ def test_grazing_camera_rays_match_exact_arithmetic(height):
         checked += 1
         assert bool(hits.hit[i]) == (margin < 0), (i, margin)
     assert checked > 0.8 * n
+
+
+def test_a_face_touching_the_camera_centre_is_a_candidate_of_every_ray():
+    """Corners at the centre or a hair's breadth in front of it would project out of range: such faces
+    are tested against every ray (seen from their own corner they are edge-on), and the answers are the
+    brute-force ones."""
+    origin = torch.tensor([0.1, -0.2, 2.0], dtype=D)
+    v = torch.tensor([
+        [-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0],  # a far quad the rays look at
+        [0.1, -0.2, 2.0], [0.3, 0.1, 1.0], [-0.2, 0.2, 1.0],  # a corner at the centre
+        [0.1, -0.2, 2.0 - 1e-30], [0.0, -0.3, 1.5], [0.4, -0.4, 1.5],  # a corner 1e-30 in front of it
+    ], dtype=D)  # fmt: skip
+    f = torch.tensor([[0, 1, 2], [0, 2, 3], [4, 5, 6], [7, 8, 9]])
+    g = torch.Generator().manual_seed(13)
+    target = torch.cat([torch.rand(400, 2, generator=g, dtype=D) * 2.4 - 1.2, torch.zeros(400, 1, dtype=D)], 1)
+    o, d = origin.expand(400, 3).clone(), target - origin
+    bins = pencil.bin_faces(v[f], o[0], d)
+    assert bins is not None and sorted(bins.everywhere.tolist()) == [2, 3]
+    got = ray_mesh_hits(v, f, o, d, backend="torch")
+    want = _brute(v, f, o, d)
+    assert torch.equal(got.hit, torch.isfinite(want)) and 0.5 * len(o) < int(got.hit.sum()) < len(o)
+    torch.testing.assert_close(got.t[got.hit], want[got.hit], rtol=1e-12, atol=0)
