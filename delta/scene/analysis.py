@@ -9,7 +9,9 @@ From the frame record (person, clothing and hair masks) and the init fit, before
 - ``render.max_dist``: the room the exterior gets around the body, from how far the person's
   silhouette reaches beyond the fitted body per body region (:mod:`delta.scene.reach`), with a margin;
   never less than the preset's own;
-- ``render.samples``: the samples a ray needs to cross that room at the preset's sample spacing;
+- ``render.samples``: the samples a ray needs to cross that room at the preset's sample spacing, and
+  at least one per :data:`SAMPLE_PIXELS` of a training pixel's footprint at the body (a pixel of 512²
+  frames is 3.9 mm on a full body, 1.6 mm on a head and shoulders);
 - ``resolution``: the training frames' size, the capture's crop (a step's cost does not depend on it,
   the figures are scored at the capture's size, and trained at 512² rather than 128² the held-out views
   of tight, loose and upper gained perceptual detail, ST-LPIPS 13-41 % lower, their PSNR moving -0.8 to
@@ -60,6 +62,11 @@ PERCENTILE, MIN_REGION_SHARE = 98.0, 0.02
 MARGIN, PAD, MAX_ROOM = 0.25, 0.02, 0.6
 #: At most this many times the preset's samples a ray.
 MAX_SAMPLE_FACTOR = 4
+#: A ray's samples lie at most this many training pixels' footprint apart (at the body's depth). Trained
+#: at the capture's 512² (``benchmarks/samples_at_capture.csv``, stage 1, 2 cores): tight (3.9-mm pixels)
+#: 27.66 dB with fast's 16 samples (6.3 mm apart), 28.34 with 24 and 28.49 with 32, in the same time;
+#: upper (1.6-mm pixels) 21.53 with 16, 22.53 with 32 (+13 % time) and 22.78 with 64 (+55 %).
+SAMPLE_PIXELS = 1.0
 #: At most this many times the preset's stage-2 steps.
 MAX_STAGE2_FACTOR = 3
 #: Below this share of exterior pixels (of the person, over the analysed frames) there is no NeRF.
@@ -92,11 +99,15 @@ def exterior_shares(record: str | Path, frames: list[int]) -> dict[str, float]:
                 for m in ("clothing", "hair") if m in rec.h5}  # fmt: skip
 
 
-def room_and_samples(reach: float, preset_room: float, preset_samples: int) -> tuple[float, int]:
+def room_and_samples(reach: float, preset_room: float, preset_samples: int,
+                     footprint: float = 0.0) -> tuple[float, int]:  # fmt: skip
     """The exterior's room (m) for a measured reach, never below the preset's, and the samples a ray
-    needs at the preset's spacing (preset samples per preset room)."""
+    needs to cross it: at the preset's spacing (preset samples per preset room), and no sparser than
+    :data:`SAMPLE_PIXELS` training pixels' footprint (``footprint`` m a pixel at the body; 0: not known)."""
     room = min(max(reach * (1 + MARGIN) + PAD, preset_room), MAX_ROOM)
     samples = math.ceil(preset_samples * room / preset_room - 1e-9)
+    if footprint > 0:
+        samples = max(samples, math.ceil(room / (SAMPLE_PIXELS * footprint) - 1e-9))
     return round(room, 3), int(min(max(samples, preset_samples), MAX_SAMPLE_FACTOR * preset_samples))
 
 
@@ -126,19 +137,23 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
     train = np.asarray(data.train)
     picked = [int(f) for f in train[np.linspace(0, len(train) - 1, min(frames, len(train))).round().astype(int)]]
     beyond: list[Beyond] = []
+    body_mpp = []  # metres a pixel of the analysis' size at the body, per frame that shows it
     for f in picked:
         sil, regions, mpp = body_view(body, init, f, size)
         beyond.append(beyond_body(sil, regions, data.person[f].numpy() > 0.5, mpp))
+        if sil.any():
+            body_mpp.append(float(np.median(mpp[sil])))
     per_region = region_reach(beyond, dict(enumerate(REGION_NAMES)), PERCENTILE, MIN_REGION_SHARE)
     reach = max((r["reach_m"] for r in per_region.values()), default=0.0)
-    room, samples = room_and_samples(reach, preset_room, preset_samples)
+    with FrameRecord(record) as rec:
+        crop, n_frames = rec.size, len(rec)
+    resolution = training_resolution(crop, n_frames)
+    footprint = float(np.median(body_mpp)) * size / resolution if body_mpp else 0.0
+    room, samples = room_and_samples(reach, preset_room, preset_samples, footprint)
     shares = exterior_shares(record, picked)
     exterior = "yes" if sum(shares.values()) >= MIN_EXTERIOR_FRACTION else "no"
     lower = lower_body_in_view(body, init.betas, init.poses, init.transl, init.camera, picked, size)
     capture = "upper" if lower is not None and lower <= MAX_LOWER_IN_VIEW else "full"
-    with FrameRecord(record) as rec:
-        crop, n_frames = rec.size, len(rec)
-    resolution = training_resolution(crop, n_frames)
     decisions = {"exterior": exterior, "capture": capture, "resolution": resolution,
                  "render": {"max_dist": room, "samples": samples}}  # fmt: skip
     if exterior == "yes":
@@ -157,7 +172,10 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
                        "why": f"the capture's {crop}² crop" + ("" if resolution == crop else
                               f" would not fit {FRAME_BUDGET / 2**30:g} GB for {n_frames} frames: {resolution}²")},
         "samples": {"preset": preset_samples, "preset_max_dist": preset_room,
-                    "why": f"{preset_samples} samples per {preset_room:g} m of room, at most {MAX_SAMPLE_FACTOR}x"},
+                    "pixel_footprint_mm": round(1000 * footprint, 2), "max_pixels_apart": SAMPLE_PIXELS,
+                    "why": f"{preset_samples} samples per {preset_room:g} m of room, and samples at most "
+                           f"{SAMPLE_PIXELS:g} of the {resolution}² training pixels apart ({1000 * footprint:.1f} mm "
+                           f"at the body), at most {MAX_SAMPLE_FACTOR}x the preset's"},
     }  # fmt: skip
     if "stage2" in decisions:
         evidence["stage2"] = {"room_over_preset": round(room / preset_room, 3), "max_factor": MAX_STAGE2_FACTOR,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from delta.data.frames import BYTES_PER_PIXEL
-from delta.scene.analysis import analyze, room_and_samples, stage2_factor, training_resolution
+from delta.scene.analysis import SAMPLE_PIXELS, analyze, room_and_samples, stage2_factor, training_resolution
 from delta.scene.settings import FRAME_BUDGET, scene_settings, user_decided
 from delta.scene.reach import beyond_body, region_reach
 
@@ -47,6 +47,27 @@ def test_room_and_samples_follow_the_reach_from_the_presets_floor():
     assert room_and_samples(0.0, 0.1, 16) == (0.1, 16)  # nothing beyond the body: the preset's own
     assert room_and_samples(0.2, 0.1, 16) == (0.27, 44)  # 0.2 x 1.25 + 0.02 m at the preset's spacing
     assert room_and_samples(5.0, 0.1, 16) == (0.6, 64)  # capped room, at most 4x the samples
+    # a full body's 3.85-mm pixels at 512²: 26 samples across the preset's room at one a pixel
+    assert room_and_samples(0.0, 0.1, 16, 0.00385 / SAMPLE_PIXELS) == (0.1, 26)
+
+
+@pytest.mark.parametrize("footprint, room", [
+    (0.02, 0.1),  # 128² pixels of a full body (2 cm): the preset's spacing is finer already
+    (0.00385, 0.1),  # 512² of a full body
+    (0.0016, 0.1),  # 512² of a head and shoulders
+    (0.0016, 0.27),  # and a dress's room: at most 4x the preset's
+    (0.00385, 0.27),
+])  # fmt: skip
+def test_samples_are_no_sparser_than_the_training_pixels(footprint, room):
+    reach = (room - 0.02) / 1.25
+    got_room, samples = room_and_samples(reach, 0.1, 16, footprint)
+    assert got_room == pytest.approx(room)
+    spacing = max(room / samples, room / 64)  # as dense as SAMPLE_PIXELS pixels, unless capped at 4x 16
+    assert spacing <= SAMPLE_PIXELS * footprint * (1 + 1e-9) or samples == 64
+    assert samples >= max(16, 16 * room / 0.1 - 1e-9)  # never sparser than the preset's spacing
+    assert samples - 1 < max(16 * room / 0.1, room / (SAMPLE_PIXELS * footprint)) or samples == 16  # the fewest
+    assert room_and_samples(reach, 0.1, 16, footprint / 2)[1] >= samples  # a finer capture: never fewer
+    assert room_and_samples(reach, 0.1, 16, 0.0)[1] == room_and_samples(reach, 0.1, 16)[1]  # footprint unknown
 
 
 def test_stage_two_grows_with_the_room_from_the_configured_length(tmp_path):
@@ -104,6 +125,12 @@ def test_a_dress_reaches_farther_than_trousers_and_a_wider_silhouette_reaches_fa
     assert tight["decisions"]["capture"] == "full"
     with h5py.File(t["record"], "r") as h5:  # trained at the capture's crop, which fits the budget
         assert tight["decisions"]["resolution"] == h5["images"].shape[1] == 64
+    # a training pixel's footprint does not depend on the size the analysis looks at, and sets the samples
+    foot = tight["evidence"]["samples"]["pixel_footprint_mm"]
+    half = analyze(t["record"], t["init"], t["body"], 0.1, 16, size=32, frames=6)["evidence"]["samples"]
+    assert half["pixel_footprint_mm"] == pytest.approx(foot, rel=0.05)
+    assert 10 < foot < 60  # a 1.5-m body across most of 64 pixels
+    assert tight["decisions"]["render"]["samples"] == room_and_samples(r_tight, 0.1, 16, foot / 1000)[1]
     # the same capture with every person mask grown by 3 pixels (about 9 cm at this size) reaches farther
     wide = tmp_path / "wide.h5"
     shutil.copy(t["record"], wide)
