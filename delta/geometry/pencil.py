@@ -60,10 +60,10 @@ class Bins:
         cuts = torch.searchsorted(end, torch.arange(chunk, max(total, chunk), chunk, device=end.device), right=True)
         bounds = [0, *sorted(set(cuts.tolist()) - {0, R}), R]
         for lo, hi in zip(bounds[:-1], bounds[1:]):
-            yield self._pairs(lo, hi, count[lo:hi])
+            yield self._pairs(lo, hi)
 
-    def _pairs(self, lo: int, hi: int, count: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        dev = count.device
+    def _pairs(self, lo: int, hi: int) -> tuple[torch.Tensor, torch.Tensor]:
+        dev = self.ray_cell.device
         rays = torch.arange(lo, hi, device=dev)
         binned = self.cell_count[self.ray_cell[lo:hi]]
         ray = rays.repeat_interleave(binned)
@@ -120,8 +120,8 @@ def bin_faces(tri: torch.Tensor, origin: torch.Tensor, dirs: torch.Tensor) -> Bi
     k = torch.arange(total, device=dev) - (torch.cumsum(per_face, 0) - per_face).repeat_interleave(per_face)
     cu = c0[which, 0] + k // n[which, 1]
     cv = c0[which, 1] + k % n[which, 1]
-    order = torch.argsort(cu * side + cv, stable=True)  # by cell; within a cell by face index
-    cells = (cu * side + cv)[order]
+    cells = cu * side + cv
+    order = torch.argsort(cells, stable=True)  # by cell; within a cell by face index
     count = torch.bincount(cells, minlength=side * side)
     ray_cell = ((ray_uv - lo) / cell).floor().clamp(0, side - 1).long()
     return Bins(ray_cell=ray_cell[:, 0] * side + ray_cell[:, 1], cell_start=torch.cumsum(count, 0) - count,
