@@ -18,6 +18,10 @@ from delta.models.avatar import HybridAvatar
 from delta.models.image import render_image
 
 
+PROBE_RAYS = 4096
+"""The fewest rays the residual of a refinement is measured on (two renders without gradients)."""
+
+
 @dataclasses.dataclass
 class FrameScore:
     frame: int
@@ -63,7 +67,7 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
     g = torch.Generator().manual_seed(seed)
     losses: list[float] = []
     converged = False
-    probe = sample_rays(data, frame, rays, torch.Generator().manual_seed(seed + 1))
+    probe = sample_rays(data, frame, max(rays, PROBE_RAYS), torch.Generator().manual_seed(seed + 1))
     with torch.no_grad():
         start = _loss(model, frame, probe, seed + 2)
     try:
