@@ -24,6 +24,15 @@ nearest of them on another surface starts a second blend over the subset's verti
 the point's *other* candidate. The renderer evaluates the NeRF at both and keeps the denser (a point
 belongs to the part whose clothing is there), as forward skinning keeps the densest of its roots.
 
+Round trip (a frame prepared with ``canonical_near``): the blend of a point's nearest posed vertices
+sends it back by *their* part's map, also where that part is not what lies at the canonical point. Beside
+the torso of a body whose arms are crossed, a point in empty space goes back by the torso's maps to
+where the canonical arm hangs, and the sleeve's density appears there in the pose (the "ghost"
+fragments of backward skinning). Forward skinning has no such points: a canonical point is carried by
+the part it is nearest to. So a canonical point is kept only if the map of its nearest canonical vertex
+carries it back to within ``ROUND_TRIP_SLACK`` + ``ROUND_TRIP_RATIO`` × (its distance to the body) of
+the posed point; the rest are empty (no NeRF query).
+
 Contract (InstantAvatar-style, with no hidden state): ``prepare(...) -> SkinningFrame``
 once per frame, then ``deform(frame, points)``.
 """
@@ -64,6 +73,11 @@ class SkinningFrame:
     touching: Optional[torch.Tensor] = None
     """(V,) bool: vertices near another surface in this pose; only samples whose nearest vertex is one are
     probed (the sparse fields are None in a pose where no surfaces touch)."""
+    canonical_near: Optional[distance_grid.DistanceGrid] = None
+    """Distance grid over the vertices' canonical positions with each voxel's nearest vertex: the round
+    trip's test (None: off)."""
+    to_posed: Optional[torch.Tensor] = None
+    """(V, 3, 4) detached maps canonical -> posed space (with ``canonical_near``)."""
 
 
 #: a neighbour is on the nearest vertex's surface when their canonical distance is at most this many
@@ -75,6 +89,13 @@ CONTACT_SLACK = 0.02
 CONTACT_K = 16
 #: sparse neighbours of a sparse vertex looked at for contact in a pose
 TOUCH_K = 32
+#: a canonical point is the posed point's when the map of its nearest canonical vertex carries it back
+#: within ROUND_TRIP_SLACK (m) + ROUND_TRIP_RATIO x the point's distance to the body: the nearest
+#: vertex's map differs from a blend of neighbours on one part by millimetres near the surface, by
+#: a share of the distance farther out (a hem between two legs that swing apart); another part's map
+#: (an arm crossed in front of the chest) lands tens of centimetres away
+ROUND_TRIP_SLACK = 0.03
+ROUND_TRIP_RATIO = 0.5
 
 
 @dataclasses.dataclass
@@ -118,7 +139,7 @@ def compose(P: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
 
 def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tensor, canonical_T: torch.Tensor,
             weights: torch.Tensor, near_cell: float = 0.0, near_pad: float = 0.0,
-            contact_cell: float = 0.0) -> SkinningFrame:  # fmt: skip
+            contact_cell: float = 0.0, canonical_near: Optional[distance_grid.DistanceGrid] = None) -> SkinningFrame:  # fmt: skip
     """Per-vertex maps posed -> canonical.
 
     Args:
@@ -127,6 +148,8 @@ def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tens
         weights: (V, J) skinning weights.
         near_cell, near_pad: also build a distance grid of this cell size with this room (0: none).
         contact_cell: tell surfaces in contact apart, probing one vertex per voxel of this size (0: off).
+        canonical_near: the round trip's grid over the vertices' canonical positions (``canonical_grid``;
+            None: no round trip). The canonical positions do not depend on the frame: build it once.
     """
     inv = affine_inverse(posed_T)
     eye = torch.eye(3, dtype=inv.dtype, device=inv.device).expand_as(inv[..., :3])
@@ -135,6 +158,9 @@ def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tens
     pts = posed.detach()
     near = distance_grid.build(pts, near_cell, near_pad, nearest=True) if near_cell > 0 else None
     frame = SkinningFrame(posed=posed, to_canonical=to_canonical, weights=weights, index=PointIndex(pts), near=near)
+    if canonical_near is not None:
+        frame.canonical_near = canonical_near
+        frame.to_posed = affine_inverse(to_canonical.detach())
     if contact_cell > 0:
         tc = to_canonical.detach()
         frame.canonical = canonical = (tc[..., :3] @ pts[..., None]).squeeze(-1) + tc[..., 3]
@@ -144,6 +170,34 @@ def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tens
         if bool(touching.any()):  # else nothing to tell apart: the frame deforms as without contact
             frame.sparse, frame.sparse_index, frame.touching = sparse, sparse_index, touching
     return frame
+
+
+@torch.no_grad()
+def canonical_grid(canonical: torch.Tensor, cell: float, pad: float) -> distance_grid.DistanceGrid:
+    """The round trip's grid: each voxel's nearest vertex among the canonical positions (V, 3), with ``pad``
+    metres of room (a canonical point beyond it has no nearest vertex and fails the round trip)."""
+    return distance_grid.build(canonical, cell, pad, nearest=True)
+
+
+@torch.no_grad()
+def round_trip(frame: SkinningFrame, points: torch.Tensor, canonical: torch.Tensor) -> torch.Tensor:
+    """(N,) distance from posed points (N, 3) to where the map of their canonical points' (N, 3) nearest
+    canonical vertex carries those back (+inf where the canonical point is off the grid)."""
+    _, who = distance_grid.lookup_nearest(frame.canonical_near, canonical)
+    who = who.to(points.device)
+    M = frame.to_posed[who.clamp_min(0)]
+    back = (M[..., :3] @ canonical.detach()[..., None]).squeeze(-1) + M[..., 3]
+    err = (back - points.detach()).norm(dim=-1)
+    return torch.where(who >= 0, err, torch.full_like(err, math.inf))
+
+
+def round_trip_holds(frame: SkinningFrame, points: torch.Tensor, canonical: torch.Tensor,
+                     distance: torch.Tensor) -> torch.Tensor:  # fmt: skip
+    """(N,) bool: the canonical points are the posed points' (the module's note; all True without a grid)."""
+    if frame.canonical_near is None:
+        return torch.ones(len(points), dtype=torch.bool, device=points.device)
+    tol = ROUND_TRIP_SLACK + ROUND_TRIP_RATIO * distance.detach()
+    return round_trip(frame, points, canonical) <= tol
 
 
 @torch.no_grad()
@@ -240,7 +294,8 @@ def deform(frame: SkinningFrame, points: torch.Tensor, k: int = 6, sigma: float 
     if frame.sparse_index is not None:
         keep = same_surface(frame, idx, dist.detach(), idx[:, 0], dist[:, 0].detach())
     canonical, posed_ref = _blend(frame, points, idx, blend_weights(frame, idx, dist, sigma, keep=keep))
-    out = Deformed(canonical, dist[:, 0] < max_dist, posed_ref, dist[:, 0])
+    valid = (dist[:, 0] < max_dist) & round_trip_holds(frame, points, canonical, dist[:, 0])
+    out = Deformed(canonical, valid, posed_ref, dist[:, 0])
     if frame.sparse_index is not None:
         out.other = _other_surface(frame, points, idx[:, 0], dist[:, 0].detach(), sigma, max_dist)
     return out
@@ -267,7 +322,8 @@ def _other_surface(frame: SkinningFrame, points, nearest, nearest_dist, sigma: f
     ref, ref_dist = i2[pick, first], d2.detach()[pick, first]
     alpha = blend_weights(frame, i2, d2, sigma, ref=ref, keep=same_surface(frame, i2, d2.detach(), ref, ref_dist))
     c2, p2 = _blend(frame, points[rows], i2, alpha)
-    return Other(rows, c2, ref_dist < max_dist, p2)
+    valid = (ref_dist < max_dist) & round_trip_holds(frame, points[rows], c2, ref_dist)
+    return Other(rows, c2, valid, p2)
 
 
 @torch.no_grad()

@@ -230,9 +230,22 @@ class HybridAvatar(nn.Module):
                 cell,
                 rs.max_dist + 2 * rs.probe_cell,
                 rs.contact_cell,
+                self._round_trip_grid() if rs.round_trip and cell > 0 else None,
             )
         mesh = PosedMesh(verts, self.body.faces, self.albedo(), uv, skinning)
         return mesh, offsets, out
+
+    def _round_trip_grid(self):
+        """The kNN vertices' canonical positions on a grid (frame-independent: built once per device)."""
+        ids, rs = self.knn_ids, self.spec.render
+        key = (str(ids.device), len(ids), rs.probe_cell, rs.max_dist)
+        cached = getattr(self, "_round_trip_cache", None)
+        if cached is None or cached[0] != key:
+            T, v = self.canonical_T[ids], self.body.v_template[ids].to(self.canonical_T.dtype)
+            canonical = (T[..., :3] @ v[..., None]).squeeze(-1) + T[..., 3]
+            grid = deformer.canonical_grid(canonical, rs.probe_cell, rs.max_dist + 2 * rs.probe_cell)
+            self._round_trip_cache = cached = (key, grid)
+        return cached[1]
 
     def time_code(self, frame: int) -> Optional[torch.Tensor]:
         """F_e's time input for a frame (zeros outside the training sequence); None without one."""

@@ -67,6 +67,10 @@ class RenderSettings:
     """Tell body surfaces in contact apart (a hand on the hip): a sample also looks for another surface
     than its nearest vertex's among one vertex per voxel of this side (m) of the canonical space; its
     map from there is a second candidate and the denser one renders (``deformers/knn.py``; 0: off)."""
+    round_trip: bool = True
+    """Keep a sample only where its canonical point's nearest canonical vertex maps it back to the sample
+    (``deformers/knn.py``): no clothing or hair density carried into empty space beside another part
+    (a sleeve's ghost beside the torso when the arms are crossed). Needs ``max_dist`` ≤ 1 m (a grid)."""
     knn_vertices: str = "base"
     """Backward skinning over the ``base`` mesh's vertices (before upsampling; 4× fewer) or ``all``."""
     perturb: bool = True
