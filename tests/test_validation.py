@@ -210,3 +210,14 @@ def test_the_shipped_configs_are_valid_as_the_workflow_merges_them():
 def test_every_preset_passes_its_own_ranges():
     for preset in ("fast", "balanced", "paper"):
         resolve(preset)
+
+
+@pytest.mark.parametrize("override,key", [
+    ({"render": {"round_trip": 3}}, "render.round_trip: 3"),
+    ({"render": {"perturb": "no"}}, "render.perturb: 'no'"),
+    ({"render": {"occupancy": {"enabled": 1}}}, "render.occupancy.enabled: 1"),
+])  # fmt: skip
+def test_a_switch_that_is_not_true_or_false_is_named(override, key):
+    with pytest.raises(DeltaError, match=f"training.{key} is not true or false"):
+        resolve("fast", override)
+    assert resolve("fast", {"render": {"round_trip": False}}).avatar.render.round_trip is False

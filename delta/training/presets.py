@@ -290,6 +290,19 @@ def _names(cls) -> set[str]:
     return {f.name for f in dataclasses.fields(cls)}
 
 
+def check_switches(d: dict) -> None:
+    """Every on/off setting (a ``bool`` field of the render, stage and occupancy settings) is true or false:
+    ``round_trip: 3`` or ``"no"`` is named, not read as on."""
+    classes = {"render": RenderSettings, "render.occupancy": OccupancySettings, "stage1": StageSettings,
+               "stage2": StageSettings}  # fmt: skip
+    for key, value in _flat(d).items():
+        section, _, name = key.rpartition(".")
+        cls = classes.get(section)
+        field = next((f for f in dataclasses.fields(cls) if f.name == name), None) if cls else None
+        if field is not None and field.type in ("bool", bool) and not isinstance(value, bool):
+            raise DeltaError(f"training.{key}: {value!r} is not true or false")
+
+
 def _check_keys(d: dict) -> None:
     """Every key of the merged settings is one the settings read; an unknown one is named with its section
     and the keys allowed there."""
@@ -329,6 +342,7 @@ def _resolve(preset: str, *overrides: dict) -> TrainSettings:
             raise DeltaError(f"training settings: expected a mapping of keys, got {o!r}")
         d = deep_merge(d, o or {})
     check_numbers(d)
+    check_switches(d)
     _check_keys(d)
     stages = {s: deep_merge(_STAGE_DEFAULTS, d[s]) for s in ("stage1", "stage2")}
     try:
