@@ -70,6 +70,8 @@ class EvalSettings:
     """Rays a refinement step draws from the test frame."""
     refine_lr: float = _f(default=5e-4, metadata={"exclusive_minimum": 0, "maximum": 1})
     """Learning rate of the test-time refinement."""
+    refine_lr_end: Optional[float] = _f(default=None, metadata={"exclusive_minimum": 0, "maximum": 1})
+    """The refinement's rate at its last step, reached geometrically from ``refine_lr`` (not set: constant)."""
     refine_tol: float = _f(default=0.0, metadata={"minimum": 0, "maximum": 1})
     """Stop a frame's refinement once its windowed loss falls by less than this fraction (0: always
     ``refine_steps``). The steps taken and the loss before and after are in each refined row."""
@@ -223,7 +225,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
             fit = None
             if refined:
                 fit = refine_frame(model, data, f, st.refine_steps, rays=st.refine_rays, lr=st.refine_lr, seed=f,
-                                   tol=st.refine_tol)  # fmt: skip
+                                   tol=st.refine_tol, lr_end=st.refine_lr_end)  # fmt: skip
             with torch.no_grad():
                 mesh, offsets, out = model.posed_mesh(f)
             img = render_image(model, f, supersample=st.supersample, view=view, soft_silhouette=False)

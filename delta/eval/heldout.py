@@ -47,11 +47,13 @@ class Refinement:
 
 
 def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, rays: int = 4096,
-                 lr: float = 5e-4, seed: int = 0, tol: float = 0.0, window: int = 5) -> Refinement:  # fmt: skip
+                 lr: float = 5e-4, seed: int = 0, tol: float = 0.0, window: int = 5,
+                 lr_end: float | None = None) -> Refinement:  # fmt: skip
     """Fit one frame's pose, translation and camera with everything else frozen.
 
     At most ``steps`` steps; with ``tol`` > 0 it stops once the mean loss of the last ``window`` steps
-    is less than ``tol`` (a fraction) below the mean of the ``window`` before. The loss is the pixel
+    is less than ``tol`` (a fraction) below the mean of the ``window`` before. ``lr_end``: the rate falls
+    geometrically from ``lr`` to it over the ``steps`` (None: constant). The loss is the pixel
     loss plus 0.1 × the silhouette loss on ``rays`` rays a step, drawn afresh each step. One draw's loss
     is noisier than a step's gain, so the loss before and after (the residual) is taken on one fixed
     probe draw of ``rays`` rays, rendered with the same sample jitter both times.
@@ -64,6 +66,7 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
     for p in model.parameters():
         p.requires_grad_(any(p is q for q in params))
     opt = torch.optim.Adam(params, lr=lr)
+    rates = refine_rates(lr, lr_end, steps)
     g = torch.Generator().manual_seed(seed)
     losses: list[float] = []
     converged = False
@@ -71,7 +74,9 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
     with torch.no_grad():
         start = _loss(model, frame, probe, seed + 2)
     try:
-        for _ in range(steps):
+        for rate in rates:
+            for group in opt.param_groups:
+                group["lr"] = rate
             loss = _loss(model, frame, sample_rays(data, frame, rays, g), g)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -93,6 +98,14 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
     with torch.no_grad():
         end = _loss(model, frame, probe, seed + 2)
     return Refinement(len(losses), float(start), float(end), converged)
+
+
+def refine_rates(lr: float, lr_end: float | None, steps: int) -> list[float]:
+    """Each step's rate: ``lr`` throughout, or from ``lr`` at the first step to ``lr_end`` at the last, a
+    constant ratio a step (large steps while the pose is far, small ones to settle)."""
+    if lr_end is None or steps < 2:
+        return [lr] * steps
+    return [lr * (lr_end / lr) ** (i / (steps - 1)) for i in range(steps)]
 
 
 def _loss(model: HybridAvatar, frame: int, batch, jitter: torch.Generator | int) -> torch.Tensor:

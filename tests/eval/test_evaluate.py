@@ -19,7 +19,7 @@ from delta.eval.evaluate import (
     summarize,
     train_body_errors_mm,
 )
-from delta.eval.heldout import refine_frame
+from delta.eval.heldout import refine_frame, refine_rates
 from delta.models.image import View, render_image
 from delta.training.run import load_trained
 
@@ -254,3 +254,12 @@ def test_the_head_region_is_scored_on_its_own_pixels_alone():
     rgb[3, 4] = 1.0  # one wrong pixel in the head region
     row = score_image({"rgb": rgb}, gt, {"head": head}, perceptual, ("head",))
     assert row["l1_head"] == pytest.approx(0.5 / 30) and row["stlpips_alex_head"] == pytest.approx(0.5 * 3 / (144 * 3))
+
+
+def test_a_decaying_refinement_rate_runs_from_its_start_to_its_end_by_a_constant_ratio():
+    rates = refine_rates(2e-3, 1e-4, 150)
+    assert len(rates) == 150 and rates[0] == 2e-3 and math.isclose(rates[-1], 1e-4, rel_tol=1e-12)
+    ratios = np.array(rates[1:]) / np.array(rates[:-1])
+    np.testing.assert_allclose(ratios, (1e-4 / 2e-3) ** (1 / 149), rtol=1e-12)
+    assert refine_rates(5e-4, None, 30) == [5e-4] * 30  # not set: constant
+    assert refine_rates(5e-4, 1e-5, 1) == [5e-4] and refine_rates(5e-4, 1e-5, 0) == []

@@ -1,0 +1,77 @@
+"""How long and how fast the test-time refinement of held-out frames should run (``evaluation.refine_*``).
+
+Held-out frames were never trained on: their pose, translation and camera are the init fit's, and the
+evaluation refines them with the model frozen before scoring (``delta/eval/heldout.py``). Held-out views
+come from the capture's own sequence, whose fit the training already corrected; held-out poses are fitted
+free, further from the truth. This scores one trained model under several (steps, learning rate) pairs
+by the workflow's own evaluation (whole frames at the capture's size, refined rows), each from the same
+start. Rows: one per (setting, split) with the mean PSNR, SSIM, ST-LPIPS, NeRF-mask IoU, the refinement's
+probe loss before and after, and the evaluation's process seconds.
+
+    PYTHONPATH=$PWD python3 benchmarks/refinement.py --model results/synthetic/gen2/stage2/model.pt \\
+        --record results/synthetic/gen2/frames.h5 --body resources/body/anny_sub1.npz --subject gen2 \\
+        --settings 30:5e-4 150:2e-3 150:2e-3:1e-4 --csv benchmarks/refinement.csv
+
+A setting is STEPS:LR, or STEPS:LR:LR_END for a rate falling geometrically to LR_END by the last step.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import torch
+
+from delta.eval.evaluate import EvalSettings, evaluate
+from delta.training.run import load_trained
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table import save_table  # noqa: E402
+
+SCORES = ("psnr", "ssim", "stlpips_alex", "nerf_iou", "body_err_mm", "refine_steps", "refine_loss_start",
+          "refine_loss_end")  # fmt: skip
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", required=True)
+    ap.add_argument("--record", required=True)
+    ap.add_argument("--body", required=True)
+    ap.add_argument("--subject", required=True)
+    ap.add_argument(
+        "--settings", nargs="+", required=True, help="STEPS:LR or STEPS:LR:LR_END, e.g. 30:5e-4 150:2e-3:1e-4"
+    )
+    ap.add_argument("--splits", nargs="+", default=["test_view", "test_pose"])
+    ap.add_argument("--max-frames", type=int, default=5)
+    ap.add_argument("--supersample", type=int, default=2)
+    ap.add_argument("--perceptual-dir", default="resources/models/stlpips")
+    ap.add_argument("--csv", required=True)
+    ap.add_argument("--append", action="store_true")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(2)
+    rows = []
+    for setting in a.settings:
+        steps, lr, *end = setting.split(":")
+        lr_end = float(end[0]) if end else None
+        for split in a.splits:  # one split a pass: each pass's seconds are that split's
+            st = EvalSettings(splits=(split,), max_frames=a.max_frames, refine_steps=int(steps), refine_lr=float(lr),
+                              refine_lr_end=lr_end, report_unrefined=False, supersample=a.supersample, worst=0,
+                              perceptual_dir=a.perceptual_dir)  # fmt: skip
+            trained = load_trained(a.model, a.record, a.body)  # fresh: refinement moves the frames' poses
+            t0 = time.process_time()
+            df = evaluate(trained, a.record, st, subject=a.subject)
+            row = {"subject": a.subject, "refine_steps_budget": int(steps), "refine_lr": float(lr),
+                   "refine_lr_end": lr_end if lr_end is not None else float(lr), "split": split,
+                   "frames": len(df), **{c: float(df[c].mean()) for c in SCORES if c in df},
+                   "eval_cpu_s": round(time.process_time() - t0, 1), "model": a.model, "host": platform.node()}  # fmt: skip
+            rows.append(row)
+            print(pd.DataFrame(rows).drop(columns=["model", "host"]).to_string(), flush=True)
+    save_table(pd.DataFrame(rows), a.csv, a.append)
+
+
+if __name__ == "__main__":
+    main()
