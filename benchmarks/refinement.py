@@ -30,25 +30,17 @@ from delta.eval.evaluate import EvalSettings, evaluate
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table import save_table  # noqa: E402
+from table import save_table, trained_model_arguments  # noqa: E402
 
 SCORES = ("psnr", "ssim", "stlpips_alex", "nerf_iou", "body_err_mm", "refine_steps", "refine_loss_start",
           "refine_loss_end")  # fmt: skip
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--model", required=True)
-    ap.add_argument("--record", required=True)
-    ap.add_argument("--body", required=True)
-    ap.add_argument("--subject", required=True)
+    ap = trained_model_arguments(argparse.ArgumentParser(description=__doc__.split("\n\n")[0]))
     ap.add_argument(
         "--settings", nargs="+", required=True, help="STEPS:LR or STEPS:LR:LR_END, e.g. 30:5e-4 150:2e-3:1e-4"
     )
-    ap.add_argument("--splits", nargs="+", default=["test_view", "test_pose"])
-    ap.add_argument("--max-frames", type=int, default=5)
-    ap.add_argument("--supersample", type=int, default=2)
-    ap.add_argument("--perceptual-dir", default="resources/models/stlpips")
     ap.add_argument("--csv", required=True)
     ap.add_argument("--append", action="store_true")
     a = ap.parse_args(argv)

@@ -28,7 +28,7 @@ from delta.eval.evaluate import EvalSettings, evaluate
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table import save_table  # noqa: E402
+from table import save_table, trained_model_arguments  # noqa: E402
 
 SCORES = ("psnr", "ssim", "stlpips_alex", "nerf_iou", "nerf_off_person", "psnr_clothing", "body_err_mm")
 
@@ -39,16 +39,8 @@ def with_round_trip(model, on: bool) -> None:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--model", required=True)
-    ap.add_argument("--record", required=True)
-    ap.add_argument("--body", required=True)
-    ap.add_argument("--subject", required=True)
-    ap.add_argument("--splits", nargs="+", default=["test_view", "test_pose"])
-    ap.add_argument("--max-frames", type=int, default=5)
+    ap = trained_model_arguments(argparse.ArgumentParser(description=__doc__.split("\n\n")[0]))
     ap.add_argument("--refine-steps", type=int, default=30)
-    ap.add_argument("--supersample", type=int, default=2)
-    ap.add_argument("--perceptual-dir", default="resources/models")
     ap.add_argument("--frames-csv", help="also write every scored frame's row here")
     ap.add_argument("--csv", required=True)
     ap.add_argument("--append", action="store_true")

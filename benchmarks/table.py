@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 import pandas as pd
@@ -22,3 +23,17 @@ def device_name(device: torch.device | str, threads: int) -> str:
     """The device a row was measured on, as the CSVs name it: the GPU's model, or the CPU's threads."""
     device = torch.device(device)
     return torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu ({threads} threads)"
+
+
+def trained_model_arguments(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of a benchmark that scores one trained avatar by the workflow's evaluation: the model,
+    its record and body, the subject's name, the splits and frames scored, rays a pixel, ST-LPIPS's folder."""
+    ap.add_argument("--model", required=True)
+    ap.add_argument("--record", required=True)
+    ap.add_argument("--body", required=True)
+    ap.add_argument("--subject", required=True)
+    ap.add_argument("--splits", nargs="+", default=["test_view", "test_pose"])
+    ap.add_argument("--max-frames", type=int, default=5)
+    ap.add_argument("--supersample", type=int, default=2)
+    ap.add_argument("--perceptual-dir", default="resources/models/stlpips")
+    return ap
