@@ -236,9 +236,11 @@ class HybridAvatar(nn.Module):
         return mesh, offsets, out
 
     def _round_trip_grid(self):
-        """The kNN vertices' canonical positions on a grid (frame-independent: built once per device)."""
+        """The kNN vertices' canonical positions on a grid (frame-independent: built once per body and device)."""
         ids, rs = self.knn_ids, self.spec.render
-        key = (str(ids.device), len(ids), rs.probe_cell, rs.max_dist)
+        # a body or transforms replaced (another device, another body) are other tensors: another grid
+        key = (str(ids.device), len(ids), rs.probe_cell, rs.max_dist, self.canonical_T.data_ptr(),
+               self.body.v_template.data_ptr())  # fmt: skip
         cached = getattr(self, "_round_trip_cache", None)
         if cached is None or cached[0] != key:
             T, v = self.canonical_T[ids], self.body.v_template[ids].to(self.canonical_T.dtype)
