@@ -286,6 +286,12 @@ def check_numbers(d: dict) -> None:
             raise DeltaError(f"training.{key}: {value} (expected {bounds})")
 
 
+#: the sections of the settings that are a dataclass's fields
+_SECTIONS = {"stage1": StageSettings, "stage2": StageSettings, "render": RenderSettings, "weights": LossWeights,
+             "render.occupancy": OccupancySettings,
+             **{f: FieldSpec for f in ("nerf", "offsets", "albedo", "deformation")}}  # fmt: skip
+
+
 def _names(cls) -> set[str]:
     return {f.name for f in dataclasses.fields(cls)}
 
@@ -293,11 +299,9 @@ def _names(cls) -> set[str]:
 def check_switches(d: dict) -> None:
     """Every on/off setting (a ``bool`` field of the render, stage and occupancy settings) is true or false:
     ``round_trip: 3`` or ``"no"`` is named, not read as on."""
-    classes = {"render": RenderSettings, "render.occupancy": OccupancySettings, "stage1": StageSettings,
-               "stage2": StageSettings}  # fmt: skip
     for key, value in _flat(d).items():
         section, _, name = key.rpartition(".")
-        cls = classes.get(section)
+        cls = _SECTIONS.get(section)
         field = next((f for f in dataclasses.fields(cls) if f.name == name), None) if cls else None
         if field is not None and field.type in ("bool", bool) and not isinstance(value, bool):
             raise DeltaError(f"training.{key}: {value!r} is not true or false")
@@ -306,10 +310,8 @@ def check_switches(d: dict) -> None:
 def _check_keys(d: dict) -> None:
     """Every key of the merged settings is one the settings read; an unknown one is named with its section
     and the keys allowed there."""
-    sections = {"": set(_COMMON) | {k for p in PRESETS.values() for k in p}, "stage1": _names(StageSettings),
-                "stage2": _names(StageSettings), "render": _names(RenderSettings), "weights": _names(LossWeights),
-                "render.occupancy": _names(OccupancySettings), "dynamics": {"time_freqs", "dropout", "pose_knots"},
-                **{f: _names(FieldSpec) for f in ("nerf", "offsets", "albedo", "deformation")}}  # fmt: skip
+    sections = {"": set(_COMMON) | {k for p in PRESETS.values() for k in p},
+                "dynamics": {"time_freqs", "dropout", "pose_knots"}, **{k: _names(c) for k, c in _SECTIONS.items()}}  # fmt: skip
     for section, allowed in sections.items():
         node = d
         for part in filter(None, section.split(".")):
