@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 import torch
 
 from delta.deformers.knn import canonical_grid, deform, prepare, round_trip
@@ -28,10 +29,10 @@ CROSSED = rigid(np.eye(3), (-0.3, 0, 0.3))  # the arm's centre in front of the c
 def parts(canonical_parts, transforms, trip=True, cell=0.01, pad=0.25):
     """Skinning frame of rigid parts (canonical = the canonical vertices), with the round trip's grid."""
     verts = torch.cat(canonical_parts)
-    part = torch.cat([torch.full((len(v),), i) for i, v in enumerate(canonical_parts)])
+    part = torch.cat([torch.full((len(v),), i, device=verts.device) for i, v in enumerate(canonical_parts)])
     G = torch.stack(transforms)[part]
     posed = (G[..., :3] @ verts[..., None]).squeeze(-1) + G[..., 3]
-    eye = torch.eye(3, 4, dtype=D).expand(len(verts), 3, 4)
+    eye = torch.eye(3, 4, dtype=D, device=verts.device).expand(len(verts), 3, 4)
     weights = torch.nn.functional.one_hot(part, len(canonical_parts)).to(D)
     grid = canonical_grid(verts, cell, pad) if trip else None
     return prepare(posed, G, torch.zeros_like(verts), eye, weights, canonical_near=grid)
@@ -127,3 +128,21 @@ def test_the_avatars_grid_holds_every_frames_canonical_vertices():
         assert err.max().item() < 0.03  # a vertex's own canonical point comes back (to a neighbour's map)
     model.spec = dataclasses.replace(model.spec, render=dataclasses.replace(model.spec.render, round_trip=False))
     assert model.posed_mesh(0)[0].skinning.canonical_near is None
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_the_round_trip_on_cuda_keeps_what_the_cpu_keeps():
+    """The same frame built on CUDA (grid, maps, points there) keeps and carries the same points."""
+    gen = torch.Generator().manual_seed(2)
+    pts = torch.rand(4000, 3, generator=gen, dtype=D) * 0.9 - torch.tensor([0.45, 0.45, 0.2], dtype=D)
+    out = {}
+    for dev in ("cpu", "cuda"):
+        to = [t.to(dev) for t in (TORSO, ARM)]
+        frame = parts(to, [STILL.to(dev), CROSSED.to(dev)])
+        assert frame.canonical_near is not None
+        d = deform(frame, pts.to(dev), max_dist=0.2)
+        assert d.canonical.device.type == dev
+        out[dev] = d.valid.cpu(), d.canonical.cpu()
+    assert torch.equal(out["cpu"][0], out["cuda"][0]) and bool(out["cpu"][0].any()) and not bool(out["cpu"][0].all())
+    keep = out["cpu"][0]
+    torch.testing.assert_close(out["cuda"][1][keep], out["cpu"][1][keep], rtol=0, atol=1e-9)
