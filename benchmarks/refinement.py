@@ -12,7 +12,10 @@ probe loss before and after, and the evaluation's process seconds.
         --record results/synthetic/gen2/frames.h5 --body resources/body/anny_sub1.npz --subject gen2 \\
         --settings 30:5e-4 150:2e-3 150:2e-3:1e-4 --csv benchmarks/refinement.csv
 
-A setting is STEPS:LR, or STEPS:LR:LR_END for a rate falling geometrically to LR_END by the last step.
+A setting is STEPS:LR, or STEPS:LR:LR_END for a rate falling geometrically to LR_END by the last step;
+a suffix @CHECK keeps the pose of the lowest probe loss measured every CHECK steps (``refine_check``), e.g.
+150:2e-3:1e-4@10. With ``--device cuda`` the scores are the same evaluation's on a GPU (the refinement's
+losses match the CPU's to float rounding) and the seconds are wall-clock there.
 """
 
 from __future__ import annotations
@@ -30,36 +33,41 @@ from delta.eval.evaluate import EvalSettings, evaluate
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table import save_table, trained_model_arguments  # noqa: E402
+from table import device_name, save_table, trained_model_arguments  # noqa: E402
 
-SCORES = ("psnr", "ssim", "stlpips_alex", "nerf_iou", "body_err_mm", "refine_steps", "refine_loss_start",
-          "refine_loss_end")  # fmt: skip
+SCORES = ("psnr", "ssim", "stlpips_alex", "nerf_iou", "body_err_mm", "body_err_visible_mm", "refine_steps",
+          "refine_loss_start", "refine_loss_end", "refine_kept_step")  # fmt: skip
 
 
 def main(argv=None) -> None:
     ap = trained_model_arguments(argparse.ArgumentParser(description=__doc__.split("\n\n")[0]))
     ap.add_argument(
-        "--settings", nargs="+", required=True, help="STEPS:LR or STEPS:LR:LR_END, e.g. 30:5e-4 150:2e-3:1e-4"
+        "--settings", nargs="+", required=True, help="STEPS:LR[:LR_END][@CHECK], e.g. 30:5e-4 150:2e-3:1e-4@10"
     )
+    ap.add_argument("--gt-meshes", default=None, help="the subject's gt/meshes.h5: body error columns too")
     ap.add_argument("--csv", required=True)
     ap.add_argument("--append", action="store_true")
     a = ap.parse_args(argv)
     torch.set_num_threads(2)
     rows = []
     for setting in a.settings:
-        steps, lr, *end = setting.split(":")
+        schedule, _, check = setting.partition("@")
+        steps, lr, *end = schedule.split(":")
         lr_end = float(end[0]) if end else None
         for split in a.splits:  # one split a pass: each pass's seconds are that split's
             st = EvalSettings(splits=(split,), max_frames=a.max_frames, refine_steps=int(steps), refine_lr=float(lr),
-                              refine_lr_end=lr_end, report_unrefined=False, supersample=a.supersample, worst=0,
-                              perceptual_dir=a.perceptual_dir)  # fmt: skip
-            trained = load_trained(a.model, a.record, a.body)  # fresh: refinement moves the frames' poses
-            t0 = time.process_time()
-            df = evaluate(trained, a.record, st, subject=a.subject)
+                              refine_lr_end=lr_end, refine_check=int(check or 0), report_unrefined=False,
+                              supersample=a.supersample, worst=0, perceptual_dir=a.perceptual_dir)  # fmt: skip
+            # fresh: refinement moves the frames' poses
+            trained = load_trained(a.model, a.record, a.body, device=a.device)
+            t0, w0 = time.process_time(), time.perf_counter()
+            df = evaluate(trained, a.record, st, subject=a.subject, gt_meshes=a.gt_meshes)
             row = {"subject": a.subject, "refine_steps_budget": int(steps), "refine_lr": float(lr),
-                   "refine_lr_end": lr_end if lr_end is not None else float(lr), "split": split,
+                   "refine_lr_end": lr_end if lr_end is not None else float(lr), "refine_check": int(check or 0),
+                   "split": split,
                    "frames": len(df), **{c: float(df[c].mean()) for c in SCORES if c in df},
-                   "eval_cpu_s": round(time.process_time() - t0, 1), "model": a.model, "host": platform.node()}  # fmt: skip
+                   "eval_cpu_s": round(time.process_time() - t0, 1), "eval_wall_s": round(time.perf_counter() - w0, 1),
+                   "device": device_name(a.device, torch.get_num_threads()), "model": a.model, "host": platform.node()}  # fmt: skip
             rows.append(row)
             print(pd.DataFrame(rows).drop(columns=["model", "host"]).to_string(), flush=True)
     save_table(pd.DataFrame(rows), a.csv, a.append)

@@ -50,7 +50,7 @@ def main(argv=None) -> None:
                       supersample=a.supersample, worst=0, perceptual_dir=a.perceptual_dir)  # fmt: skip
     rows, frames = [], []
     for on in (False, True):
-        trained = load_trained(a.model, a.record, a.body)  # fresh: refinement moves the test frames' poses
+        trained = load_trained(a.model, a.record, a.body, device=a.device)  # fresh: refinement moves poses
         with_round_trip(trained.model, on)
         t0 = time.process_time()
         df = evaluate(trained, a.record, st, subject=a.subject)

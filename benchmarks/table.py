@@ -36,4 +36,5 @@ def trained_model_arguments(ap: argparse.ArgumentParser) -> argparse.ArgumentPar
     ap.add_argument("--max-frames", type=int, default=5)
     ap.add_argument("--supersample", type=int, default=2)
     ap.add_argument("--perceptual-dir", default="resources/models/stlpips")
+    ap.add_argument("--device", default="cpu", help="cpu or cuda: where the avatar is loaded and scored")
     return ap

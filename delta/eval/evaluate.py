@@ -75,6 +75,9 @@ class EvalSettings:
     refine_tol: float = _f(default=0.0, metadata={"minimum": 0, "maximum": 1})
     """Stop a frame's refinement once its windowed loss falls by less than this fraction (0: always
     ``refine_steps``). The steps taken and the loss before and after are in each refined row."""
+    refine_check: int = _f(default=0, metadata={"minimum": 0})
+    """Every this many steps (and after the last) the refinement measures its probe loss and keeps the pose of
+    the lowest, the given pose included (0: the last step's pose, unchecked)."""
     supersample: int = _f(default=2, metadata={"minimum": 1, "maximum": 8})
     """Rays a pixel along each axis, averaged: the frames are area-downsampled photographs whose
     edge pixels mix person and background; one centre ray a pixel cannot (tight subject, four
@@ -225,7 +228,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
             fit = None
             if refined:
                 fit = refine_frame(model, data, f, st.refine_steps, rays=st.refine_rays, lr=st.refine_lr, seed=f,
-                                   tol=st.refine_tol, lr_end=st.refine_lr_end)  # fmt: skip
+                                   tol=st.refine_tol, lr_end=st.refine_lr_end, check=st.refine_check)  # fmt: skip
             with torch.no_grad():
                 mesh, offsets, out = model.posed_mesh(f)
             img = render_image(model, f, supersample=st.supersample, view=view, soft_silhouette=False)
@@ -241,7 +244,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
                    "supersample": st.supersample}  # fmt: skip
             if fit:  # the refinement's residual: its loss on one fixed probe draw of rays before and after
                 row |= {"refine_loss_start": fit.loss_start, "refine_loss_end": fit.loss_end,
-                        "refine_converged": fit.converged}  # fmt: skip
+                        "refine_converged": fit.converged, "refine_kept_step": fit.kept}  # fmt: skip
             row |= score_image(img, full.images[k], masks, perceptual, ("head",), trained.settings.background)
             row["nerf_iou"] = (
                 M.iou(img["nerf_mask"] > 0.5, full.exterior[k] > 0.5) if model.nerf is not None else np.nan

@@ -41,14 +41,16 @@ class Refinement:
     loss_start: float
     """The loss on a fixed probe draw of rays before the first step (the pose as given)."""
     loss_end: float
-    """The loss on the same rays after the last step (the residual)."""
+    """The loss on the same rays after the last step, or of the pose kept (the residual)."""
     converged: bool
     """The loss flattened (``tol`` > 0) before the step budget ran out."""
+    kept: int = -1
+    """The step whose pose was kept (``check`` > 0: the probe's best, 0 = the pose as given); -1: the last."""
 
 
 def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, rays: int = 4096,
                  lr: float = 5e-4, seed: int = 0, tol: float = 0.0, window: int = 5,
-                 lr_end: float | None = None) -> Refinement:  # fmt: skip
+                 lr_end: float | None = None, check: int = 0) -> Refinement:  # fmt: skip
     """Fit one frame's pose, translation and camera with everything else frozen.
 
     At most ``steps`` steps; with ``tol`` > 0 it stops once the mean loss of the last ``window`` steps
@@ -57,6 +59,9 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
     loss plus 0.1 × the silhouette loss on ``rays`` rays a step, drawn afresh each step. One draw's loss
     is noisier than a step's gain, so the loss before and after (the residual) is taken on one fixed
     probe draw of at least ``PROBE_RAYS`` rays, rendered with the same sample jitter both times.
+    With ``check`` > 0 the probe is also rendered every ``check`` steps and after the last, and the frame
+    keeps the pose of the lowest probe loss, the pose as given included: a refinement then never leaves a
+    frame worse on its probe than it found it (large early steps can throw a close pose off).
 
     lr 5e-4 with 4096 rays a step (the training's pose rate): on four held-out views of the tight
     subject 30 steps raised PSNR from 25.5 to 26.3 dB, while 2e-3 with 1024 rays lowered it to 24.9.
@@ -73,8 +78,9 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
     probe = sample_rays(data, frame, max(rays, PROBE_RAYS), torch.Generator().manual_seed(seed + 1))
     with torch.no_grad():
         start = _loss(model, frame, probe, seed + 2)
+    best = (float(start), 0, [p.detach()[frame].clone() for p in params])
     try:
-        for rate in rates:
+        for step, rate in enumerate(rates, 1):
             for group in opt.param_groups:
                 group["lr"] = rate
             loss = _loss(model, frame, sample_rays(data, frame, rays, g), g)
@@ -91,13 +97,28 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
                 last, before = _mean(losses[-window:]), _mean(losses[-2 * window : -window])
                 if last > (1 - tol) * before:
                     converged = True
-                    break
+            if check and (step % check == 0 or step == len(rates) or converged):
+                best = _better(model, frame, probe, seed + 2, params, step, best)
+            if converged:
+                break
     finally:
         for p, flag in frozen.items():
             p.requires_grad_(flag)
+    if check:
+        with torch.no_grad():
+            for p, kept in zip(params, best[2]):
+                p[frame] = kept
+        return Refinement(len(losses), float(start), best[0], converged, best[1])
     with torch.no_grad():
         end = _loss(model, frame, probe, seed + 2)
     return Refinement(len(losses), float(start), float(end), converged)
+
+
+@torch.no_grad()
+def _better(model: HybridAvatar, frame: int, probe, seed: int, params, step: int, best: tuple) -> tuple:
+    """(probe loss, step, the frame's parameters): ``best``, or the pose now where its probe loss is lower."""
+    loss = float(_loss(model, frame, probe, seed))
+    return (loss, step, [p.detach()[frame].clone() for p in params]) if loss < best[0] else best
 
 
 def refine_rates(lr: float, lr_end: float | None, steps: int) -> list[float]:

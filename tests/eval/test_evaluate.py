@@ -263,3 +263,35 @@ def test_a_decaying_refinement_rate_runs_from_its_start_to_its_end_by_a_constant
     np.testing.assert_allclose(ratios, (1e-4 / 2e-3) ** (1 / 149), rtol=1e-12)
     assert refine_rates(5e-4, None, 30) == [5e-4] * 30  # not set: constant
     assert refine_rates(5e-4, 1e-5, 1) == [5e-4] and refine_rates(5e-4, 1e-5, 0) == []
+
+
+def test_a_checked_refinement_keeps_the_pose_of_its_lowest_probe_loss(trained):
+    """Steps far too large throw a frame's pose off; with ``check`` the frame keeps the best pose its probe
+    saw: the one it was given, bit for bit, when no step improved on it; else the step whose loss is reported."""
+    from delta.data.frames import sample_rays
+    from delta.eval.heldout import PROBE_RAYS, _loss
+
+    tr, _ = trained
+    model, data = tr.model, tr.data
+    f = int(np.flatnonzero(data.split == 1)[0])
+    given = [p.detach()[f].clone() for p in model.per_frame_parameters()]
+    wild = refine_frame(model, data, f, 12, rays=256, lr=0.3, seed=f)
+    assert wild.loss_end > 1.05 * wild.loss_start  # unchecked, the large steps leave it worse
+    with torch.no_grad():
+        for p, g in zip(model.per_frame_parameters(), given):
+            p[f] = g
+    kept = refine_frame(model, data, f, 12, rays=256, lr=0.3, seed=f, check=4)
+    assert kept.kept == 0 and kept.loss_end == kept.loss_start
+    for p, g in zip(model.per_frame_parameters(), given):
+        assert torch.equal(p.detach()[f], g)
+    # from a shifted pose, ordinary steps improve it: a later pose is kept, and the loss reported is its own
+    with torch.no_grad():
+        model.transl[f] += torch.tensor([0.03, 0.0, 0.0])
+    fit = refine_frame(model, data, f, 40, rays=256, lr=2e-3, seed=f, check=10)
+    assert fit.kept in (10, 20, 30, 40) and fit.loss_end < 0.98 * fit.loss_start
+    probe = sample_rays(data, f, PROBE_RAYS, torch.Generator().manual_seed(f + 1))
+    with torch.no_grad():
+        assert float(_loss(model, f, probe, f + 2)) == pytest.approx(fit.loss_end, rel=1e-6)
+    with torch.no_grad():  # the module's model back as it was given
+        for p, g in zip(model.per_frame_parameters(), given):
+            p[f] = g
