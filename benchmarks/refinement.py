@@ -33,7 +33,7 @@ from delta.eval.evaluate import EvalSettings, evaluate
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table import device_name, save_table, trained_model_arguments  # noqa: E402
+from table import device_name, trained_model_arguments  # noqa: E402
 
 SCORES = ("psnr", "ssim", "stlpips_alex", "nerf_iou", "body_err_mm", "body_err_visible_mm", "refine_steps",
           "refine_loss_start", "refine_loss_end", "refine_kept_step")  # fmt: skip
@@ -49,7 +49,7 @@ def main(argv=None) -> None:
     ap.add_argument("--append", action="store_true")
     a = ap.parse_args(argv)
     torch.set_num_threads(2)
-    rows = []
+    rows, before = [], pd.read_csv(a.csv) if a.append and Path(a.csv).is_file() else None
     for setting in a.settings:
         schedule, _, check = setting.partition("@")
         steps, lr, *end = schedule.split(":")
@@ -70,7 +70,8 @@ def main(argv=None) -> None:
                    "device": device_name(a.device, torch.get_num_threads()), "model": a.model, "host": platform.node()}  # fmt: skip
             rows.append(row)
             print(pd.DataFrame(rows).drop(columns=["model", "host"]).to_string(), flush=True)
-    save_table(pd.DataFrame(rows), a.csv, a.append)
+            # written after every row: a run cut short keeps what it measured
+            pd.concat([before, pd.DataFrame(rows)], ignore_index=True).to_csv(a.csv, index=False)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,93 @@
+"""How far the init fit's body is from the truth on each split of a synthetic capture, and along which axis.
+
+The held-out poses are fitted free (``static_weight`` holds only the capture's own turn), from keypoints and
+masks alone. This scores the workflow's fit (``results/{dataset}/{subject}/init/params.npz``) against the
+generator's body parameters on the same body model: per frame, the body's mean vertex error after centroid
+alignment, and the joint furthest from its true place (relative to the root) with the part of that error
+along the camera's viewing axis: a limb swung toward the camera and one swung away from it project alike.
+
+    PYTHONPATH=$PWD python3 benchmarks/init_fit_depth.py --params results/synthetic/tight/init/params.npz \\
+        --gt data/synthetic/tight/gt --body resources/body/anny_sub1.npz --subject tight \\
+        --csv benchmarks/init_fit_depth.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from delta.body.lbs import lbs
+from delta.body.model import load_body_model
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table import save_table  # noqa: E402
+
+LIMBS = ("upperarm01", "lowerarm01", "upperleg01", "lowerleg01", "foot", "head")
+"""Joints whose place the rows report (both sides): the ends of the limbs' first bones, and the head."""
+
+
+def posed(model, params, frames: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """(F, V, 3) vertices and (F, J, 3) joints of ``params`` (betas, poses, transl) at ``frames``."""
+    betas = torch.from_numpy(params["betas"]).double()[None].expand(len(frames), -1)
+    out = lbs(model, betas, torch.from_numpy(params["poses"][frames]).double(),
+              transl=torch.from_numpy(params["transl"][frames]).double())  # fmt: skip
+    return out.vertices, out.joints
+
+
+def viewing_axis(gt, frame: int) -> torch.Tensor:
+    """(3,) the camera's viewing axis in the world (a pinhole's third row of R; +z for the orthographic)."""
+    if str(gt["camera_model"]) == "pinhole":
+        return torch.from_numpy(gt["R"]).double()[2]
+    return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--params", required=True, help="the init fit's params.npz")
+    ap.add_argument("--gt", required=True, help="the capture's gt/ folder (params.npz, splits.json)")
+    ap.add_argument("--body", required=True)
+    ap.add_argument("--subject", required=True)
+    ap.add_argument("--csv", required=True)
+    ap.add_argument("--append", action="store_true")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(2)
+    model = load_body_model(a.body, dtype=torch.float64)
+    gt, fit = np.load(Path(a.gt) / "params.npz"), np.load(a.params)
+    if list(gt["joint_names"]) != list(fit["joint_names"]):
+        raise SystemExit(f"{a.params}: its joints are not the truth's ({Path(a.gt) / 'params.npz'})")
+    splits = json.loads((Path(a.gt) / "splits.json").read_text())
+    frames = np.arange(len(fit["poses"]))
+    gv, gj = posed(model, gt, frames)
+    fv, fj = posed(model, fit, frames)
+    centred = lambda v: v - v.mean(1, keepdim=True)  # noqa: E731
+    body = 1000 * (centred(fv) - centred(gv)).norm(dim=-1).mean(1)
+    joint_err = (fj - fj[:, :1]) - (gj - gj[:, :1])  # relative to the root
+    names = [str(n) for n in gt["joint_names"]]
+    limbs = [j for j, n in enumerate(names) if n.split(".")[0] in LIMBS]
+    split_of = {int(f): s for s, ids in splits.items() for f in ids}
+    rows = []
+    for f in frames:
+        err = joint_err[f, limbs].norm(dim=-1)
+        j = limbs[int(err.argmax())]
+        depth = float((joint_err[f, j] @ viewing_axis(gt, int(f))).abs())
+        rows.append({"subject": a.subject, "frame": int(f), "split": split_of.get(int(f), "?"),
+                     "body_err_mm": float(body[f]), "worst_joint": names[j],
+                     "worst_joint_err_mm": 1000 * float(joint_err[f, j].norm()), "worst_joint_depth_mm": 1000 * depth})  # fmt: skip
+    df = pd.DataFrame(rows)
+    summary = df.groupby("split").agg(frames=("frame", "size"), body_err_mm=("body_err_mm", "mean"),
+                                      body_err_median_mm=("body_err_mm", "median"), worst_joint_mm=("worst_joint_err_mm", "mean"),
+                                      depth_share=("worst_joint_depth_mm", "sum"))  # fmt: skip
+    summary["depth_share"] /= df.groupby("split")["worst_joint_err_mm"].sum()
+    print(summary.round(3).to_string())
+    print(df[df.split == "test_pose"].sort_values("body_err_mm").tail(8).round(1).to_string(index=False))
+    save_table(df, a.csv, a.append)
+
+
+if __name__ == "__main__":
+    main()
