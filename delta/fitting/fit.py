@@ -27,7 +27,8 @@ from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.data.person import CONF_THRESHOLD, MIN_KEYPOINTS
 from delta.fitting import silhouette as sil
 from delta.fitting import terms
-from delta.fitting.limits import joint_limits
+from delta.fitting.limits import forward_directions, joint_limits
+from delta.fitting.visibility import LIMB_ENDS, SEEN, hidden_seen
 from delta.fitting.start import FACE, TORSO, facing_orientation, init_ortho_scale, init_translation, interpolate
 from delta.progress import Progress
 
@@ -77,6 +78,13 @@ class FitConfig:
     as body (tight clothing); near 0 lets the body stay inside them (a dress, long hair)."""
     sil_cell: float = 0.03
     """Vertex-clustering cell (metres) of the coarse silhouette mesh."""
+    forward_start: float = 0.0
+    """With > 0, the body-pose stage also runs each frame from its arms, its legs and both swung this far
+    forward (radians, ``limits.forward_directions``; 0.4 measured). A frame keeps the pose from rest unless
+    that pose hides limb keypoints the detector saw behind the body (``visibility.hidden_seen``: a crossed
+    forearm fitted behind the torso) and another start hides fewer; then the fewest, the cheapest of those.
+    0 (the default): from rest only; on tight it cost the capture's frames more than it gained
+    (docs/fitting.md)."""
 
 
 def fit_config(*overrides: dict, where: str = "fitting") -> FitConfig:
@@ -231,7 +239,6 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     coarse = sil.coarse_mesh(model, cfg.sil_cell) if use_sil else None
     points = PosedPoints(model, kp_map, coarse.vertex_ids if use_sil else None)
     pose_weights = torch.ones(J, dtype=torch.float64) if pose_weights is None else pose_weights
-    lo, hi = joint_limits(model)
     kp_model = KeypointModel(model, kp_map)
     blind = unobserved_projectors(kp_model, model.num_shape, J) if cfg.unobserved_weight > 0 else None
     pinhole = isinstance(camera, PinholeCamera)
@@ -256,6 +263,14 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
         cam_params = [log_scale.requires_grad_(), trans.requires_grad_()]
     if start is None and cfg.iterations[0] > 0:
         _best_heading(kp_model, camera, pinhole, detected, betas, pose, transl, cam_params, cfg)
+    prior = PosePrior(cfg, pose_weights, list(knees), *joint_limits(model), blind)
+    starts = limb_starts(model, cfg.forward_start)
+    limbs_done = start is None and cfg.iterations[1] > 0 and len(starts) > 1
+    if limbs_done:
+        mesh = coarse if coarse is not None else sil.coarse_mesh(model, cfg.sil_cell)
+        ends = torch.tensor([n in LIMB_ENDS for n in kp_map.names])
+        _limbs_by_visibility(PosedPoints(model, kp_map, mesh.vertex_ids), torch.as_tensor(mesh.faces), camera,
+                             pinhole, detected, ends, betas, pose, transl, cam_params, cfg, prior, starts)  # fmt: skip
     for t in (betas, pose, transl):
         t.requires_grad_()
     image_size = (camera.width, camera.height)
@@ -268,12 +283,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
         kp3d, verts = points(betas, pose, transl)
         kp2d = _project(camera, pinhole, cam_params, kp3d)
         # stages 2 and 3 (stage 1 is _best_heading)
-        total = terms.keypoint_term(kp2d, detected, cfg.sigma_px).sum()
-        total = total + cfg.pose_weight * terms.pose_prior(pose[:, 1:], pose_weights[1:]).sum() * cfg.sigma_px
-        total = total + cfg.bend_weight * terms.bend_prior(pose, list(knees), 0, 1.0).sum()
-        total = total + cfg.limit_weight * terms.joint_limit_prior(pose, lo, hi).sum()
-        if blind is not None:
-            total = total + cfg.unobserved_weight * terms.subspace_prior(pose, blind).sum()
+        total = (terms.keypoint_term(kp2d, detected, cfg.sigma_px) + prior(pose)).sum()
         if stage > 1:
             total = total + cfg.shape_weight * terms.shape_prior(betas) * F * cfg.sigma_px
             smooth = terms.rotation_smoothness(pose[:, 0], links) + terms.smoothness(pose[:, 1:], links)
@@ -294,7 +304,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
         return total
 
     stages = list(enumerate(cfg.iterations))
-    todo = stages[2:] if start is not None else stages[1:]
+    todo = stages[2:] if start is not None or limbs_done else stages[1:]
     progress = Progress(f"fit ({pose.shape[0]} frames)", sum(steps for _, steps in todo))
     done = 0
     for stage, steps in todo:
@@ -366,6 +376,84 @@ def _best_heading(
         score = terms.keypoint_term(_project(camera, pinhole, cams, kp), rigid, cfg.sigma_px).reshape(F, H)
         best = torch.arange(F) * H + score.nan_to_num(float("inf")).argmin(1)
         pose[:, 0] = root.detach()[best]
+        transl.copy_(tr.detach()[best])
+        for c, many_c in zip(cam_params, cams):
+            c.data.copy_(many_c.detach()[best])
+
+
+@dataclasses.dataclass
+class PosePrior:
+    """The pose's per-frame priors (pose size, knee bend, joint limits, unobserved rotations): (F, J, 3) -> (F,)."""
+
+    cfg: FitConfig
+    pose_weights: torch.Tensor
+    knees: list[int]
+    lo: torch.Tensor
+    hi: torch.Tensor
+    blind: torch.Tensor | None
+
+    def __call__(self, pose: torch.Tensor) -> torch.Tensor:
+        cfg = self.cfg
+        total = cfg.pose_weight * terms.pose_prior(pose[:, 1:], self.pose_weights[1:]) * cfg.sigma_px
+        total = total + cfg.bend_weight * terms.bend_prior(pose, self.knees, 0, 1.0)
+        total = total + cfg.limit_weight * terms.joint_limit_prior(pose, self.lo, self.hi)
+        if self.blind is not None:
+            total = total + cfg.unobserved_weight * terms.subspace_prior(pose, self.blind)
+        return total
+
+
+def limb_starts(model: BodyModel, angle: float) -> torch.Tensor:
+    """(H, J, 3) pose offsets the body-pose stage starts from: rest first, then each combination of limb
+    groups swung ``angle`` forward (arms, legs, both for the body models with rules; rest alone at 0)."""
+    groups = list(forward_directions(model).values()) if angle > 0 else []
+    starts = [torch.zeros(model.num_joints, 3, dtype=torch.float64)]
+    for pick in range(1, 2 ** len(groups)):
+        starts.append(angle * sum(d for i, d in enumerate(groups) if pick >> i & 1))
+    return torch.stack(starts)
+
+
+def choose_start(hidden: torch.Tensor, cost: torch.Tensor) -> torch.Tensor:
+    """(F,) the start each frame keeps, from (F, H) counts of seen keypoints its fit hides and (F, H) costs:
+    start 0 (rest) where it hides none; else, of the starts that hide fewest, the cheapest (a non-finite
+    cost never wins)."""
+    fewest = hidden.amin(1, keepdim=True)
+    cheapest = torch.where(hidden == fewest, cost.nan_to_num(torch.inf), torch.inf).argmin(1)
+    return torch.where(hidden[:, 0] == 0, torch.zeros_like(cheapest), cheapest)
+
+
+def _limbs_by_visibility(points: PosedPoints, faces: torch.Tensor, camera, pinhole: bool, detected: torch.Tensor,
+                         ends: torch.Tensor, betas: torch.Tensor, pose: torch.Tensor, transl: torch.Tensor, cam_params: list[torch.Tensor],
+                         cfg: FitConfig, prior: PosePrior, starts: torch.Tensor) -> None:  # fmt: skip
+    """The body-pose stage, in place, from each of ``starts`` (H, J, 3; rest first) a frame at once (F x H
+    problems in one batch: the stage ties no frames together). A frame keeps the pose from rest unless it
+    hides seen limb keypoints (``ends`` (K,) bool) behind the body (``points``' extra vertices with ``faces``: the coarse mesh) and
+    another start hides fewer; among those with the fewest, the one whose keypoints and priors cost least.
+    A limb swung toward the camera or away from it fits the keypoints alike: their costs differ by the local
+    minima reached, not by the side, so cost alone does not choose."""
+    F, H = pose.shape[0], len(starts)
+    many = lambda t: t.repeat_interleave(H, 0).detach().clone().requires_grad_()  # noqa: E731
+    P = (pose.repeat_interleave(H, 0) + starts.repeat(F, 1, 1)).requires_grad_()
+    tr, cams = many(transl), [many(c) for c in cam_params]
+    det = detected.repeat_interleave(H, 0)
+    scale = distance_scale(camera, points(betas, pose, transl)[0]) if pinhole else 1.0
+    params = [tr] * pinhole + cams + [P]
+    opt = torch.optim.Adam(params, lr=cfg.lr * scale)
+
+    def cost() -> torch.Tensor:
+        kp2d = _project(camera, pinhole, cams, points(betas, P, tr)[0])
+        return terms.keypoint_term(kp2d, det, cfg.sigma_px) + prior(P)
+
+    for _ in range(cfg.iterations[1]):
+        opt.zero_grad()
+        cost().sum().backward()
+        for p in params:
+            torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+        opt.step()
+    with torch.no_grad():
+        kp3d, verts = points(betas, P, tr)
+        hidden = hidden_seen(verts, faces, kp3d, (det[..., 2] >= SEEN) & ends, camera).reshape(F, H)
+        best = torch.arange(F) * H + choose_start(hidden, cost().reshape(F, H))
+        pose.copy_(P.detach()[best])
         transl.copy_(tr.detach()[best])
         for c, many_c in zip(cam_params, cams):
             c.data.copy_(many_c.detach()[best])

@@ -47,6 +47,33 @@ _RULES = {
 }
 
 
+#: (group, name pattern, axis-angle direction) of the joints that swing a limb forward of the body.
+_FORWARD = {
+    "anny": [
+        ("arms", r"upperarm01\.[LR]$", (-1.0, 0.0, 0.0)),  # -x swings a hanging limb forward (+z)
+        ("legs", r"upperleg01\.[LR]$", (-1.0, 0.0, 0.0)),
+    ],  # fmt: skip
+    "smplx": [
+        ("arms", r"left_shoulder$", (0.0, -1.0, 0.0)),
+        ("arms", r"right_shoulder$", (0.0, 1.0, 0.0)),
+        ("legs", r"(left|right)_hip$", (-1.0, 0.0, 0.0)),
+    ],  # fmt: skip
+}
+
+
+def forward_directions(model: BodyModel) -> dict[str, torch.Tensor]:
+    """Per limb group ("arms", "legs"), (J, 3) unit axis-angle directions that swing its shoulders or hips
+    forward (zero for the other joints); empty for a body model without rules. The SMPL-X rules assume its
+    T-pose (arms along ±x)."""
+    out: dict[str, torch.Tensor] = {}
+    for group, pattern, direction in _FORWARD.get(model.name.split("_sub")[0], []):
+        d = out.setdefault(group, torch.zeros(model.num_joints, 3, dtype=torch.float64))
+        for j, name in enumerate(model.joint_names):
+            if j > 0 and re.search(pattern, name):
+                d[j] = torch.tensor(direction, dtype=torch.float64)
+    return out
+
+
 def joint_limits(model: BodyModel) -> tuple[torch.Tensor, torch.Tensor]:
     """(J, 3) lower and upper axis-angle limits of ``model``'s joints (the root is free)."""
     rules = _RULES.get(model.name.split("_sub")[0], [])
