@@ -268,9 +268,10 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     limbs_done = start is None and cfg.iterations[1] > 0 and len(starts) > 1
     if limbs_done:
         mesh = coarse if coarse is not None else sil.coarse_mesh(model, cfg.sil_cell)
+        seen_by = PosedPoints(model, kp_map, mesh.vertex_ids), torch.as_tensor(mesh.faces), camera
         ends = torch.tensor([n in LIMB_ENDS for n in kp_map.names])
-        _limbs_by_visibility(PosedPoints(model, kp_map, mesh.vertex_ids), torch.as_tensor(mesh.faces), camera,
-                             pinhole, detected, ends, betas, pose, transl, cam_params, cfg, prior, starts)  # fmt: skip
+        _limbs_by_visibility(points, seen_by, pinhole, detected, ends, betas, pose, transl, cam_params, cfg, prior,
+                             starts)  # fmt: skip
     for t in (betas, pose, transl):
         t.requires_grad_()
     image_size = (camera.width, camera.height)
@@ -421,13 +422,15 @@ def choose_start(hidden: torch.Tensor, cost: torch.Tensor) -> torch.Tensor:
     return torch.where(hidden[:, 0] == 0, torch.zeros_like(cheapest), cheapest)
 
 
-def _limbs_by_visibility(points: PosedPoints, faces: torch.Tensor, camera, pinhole: bool, detected: torch.Tensor,
-                         ends: torch.Tensor, betas: torch.Tensor, pose: torch.Tensor, transl: torch.Tensor, cam_params: list[torch.Tensor],
-                         cfg: FitConfig, prior: PosePrior, starts: torch.Tensor) -> None:  # fmt: skip
+def _limbs_by_visibility(points: PosedPoints, seen_by: tuple, pinhole: bool, detected: torch.Tensor,
+                         ends: torch.Tensor, betas: torch.Tensor, pose: torch.Tensor, transl: torch.Tensor,
+                         cam_params: list[torch.Tensor], cfg: FitConfig, prior: PosePrior,
+                         starts: torch.Tensor) -> None:  # fmt: skip
     """The body-pose stage, in place, from each of ``starts`` (H, J, 3; rest first) a frame at once (F x H
-    problems in one batch: the stage ties no frames together). A frame keeps the pose from rest unless it
-    hides seen limb keypoints (``ends`` (K,) bool) behind the body (``points``' extra vertices with ``faces``: the coarse mesh) and
-    another start hides fewer; among those with the fewest, the one whose keypoints and priors cost least.
+    problems in one batch: the stage ties no frames together; a rest start's steps are the plain stage's).
+    A frame keeps the pose from rest unless it hides seen limb keypoints (``ends`` (K,) bool) behind the body
+    (``seen_by``: posed points with the coarse mesh's vertices, its faces, the camera) and another start hides
+    fewer; among those with the fewest, the one whose keypoints and priors cost least.
     A limb swung toward the camera or away from it fits the keypoints alike: their costs differ by the local
     minima reached, not by the side, so cost alone does not choose."""
     F, H = pose.shape[0], len(starts)
@@ -435,6 +438,8 @@ def _limbs_by_visibility(points: PosedPoints, faces: torch.Tensor, camera, pinho
     P = (pose.repeat_interleave(H, 0) + starts.repeat(F, 1, 1)).requires_grad_()
     tr, cams = many(transl), [many(c) for c in cam_params]
     det = detected.repeat_interleave(H, 0)
+    mesh_points, faces, camera = seen_by
+    mesh_points, faces, camera = seen_by
     scale = distance_scale(camera, points(betas, pose, transl)[0]) if pinhole else 1.0
     params = [tr] * pinhole + cams + [P]
     opt = torch.optim.Adam(params, lr=cfg.lr * scale)
@@ -450,7 +455,7 @@ def _limbs_by_visibility(points: PosedPoints, faces: torch.Tensor, camera, pinho
             torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
         opt.step()
     with torch.no_grad():
-        kp3d, verts = points(betas, P, tr)
+        kp3d, verts = mesh_points(betas, P, tr)
         hidden = hidden_seen(verts, faces, kp3d, (det[..., 2] >= SEEN) & ends, camera).reshape(F, H)
         best = torch.arange(F) * H + choose_start(hidden, cost().reshape(F, H))
         pose.copy_(P.detach()[best])

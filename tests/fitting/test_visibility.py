@@ -72,3 +72,29 @@ def test_the_limb_starts_swing_the_elbows_and_knees_forward(body):
     torch.testing.assert_close(forward[3], forward[1] + forward[2])  # both: each limb as its own start
     # the swing is a rotation of 0.4 rad about the shoulder: the elbow moves by 2 sin(0.2) of its distance to it
     assert math.isclose(float(starts[arms].norm(dim=-1).max()), 0.4, rel_tol=1e-12)
+
+
+def _frontal_camera():
+    from delta.cameras.models import look_at
+
+    R, t = look_at(
+        torch.tensor([0.0, 0.0, 3.0], dtype=D), torch.zeros(3, dtype=D), torch.tensor([0.0, 1.0, 0.0], dtype=D)
+    )
+    K = torch.tensor([[700.0, 0, 256], [0, 700, 256], [0, 0, 1]], dtype=D)
+    return PinholeCamera(K, R, t, torch.zeros(5, dtype=D), 512, 512)
+
+
+def test_where_rest_hides_nothing_the_limb_starts_change_nothing(body):
+    """The starts run side by side in one batch: a frame whose rest fit hides no seen keypoint keeps it (the
+    fit with ``forward_start`` is the fit without, to the rounding of a larger batch's arithmetic)."""
+    from delta.fitting.fit import FitConfig, fit
+    from tests.fitting.test_fit import true_motion
+
+    model, kp_map = body
+    cam, pose = _frontal_camera(), true_motion(model, 3)
+    kp3d = KeypointModel(model, kp_map)(torch.zeros(model.num_shape, dtype=D), pose, torch.zeros(3, 3, dtype=D))
+    uv, _ = cam.project(kp3d)
+    detected = torch.cat([uv, torch.ones_like(uv[..., :1])], -1)
+    runs = [fit(model, kp_map, detected, cam, FitConfig(iterations=(40, 60, 10), forward_start=a)) for a in (0.0, 0.4)]
+    torch.testing.assert_close(runs[1].pose, runs[0].pose, rtol=0, atol=1e-9)
+    torch.testing.assert_close(runs[1].transl, runs[0].transl, rtol=0, atol=1e-9)
