@@ -78,7 +78,7 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
     probe = sample_rays(data, frame, max(rays, PROBE_RAYS), torch.Generator().manual_seed(seed + 1))
     with torch.no_grad():
         start = _loss(model, frame, probe, seed + 2)
-    best = (float(start), 0, [p.detach()[frame].clone() for p in params])
+    best = (float(start), 0, [p.detach()[frame].clone() for p in params]) if check else None
     try:
         for step, rate in enumerate(rates, 1):
             for group in opt.param_groups:

@@ -337,6 +337,20 @@ def distance_scale(camera, keypoints: torch.Tensor) -> float:
     return float((depth.median() / REFERENCE_DISTANCE).clamp(0.02, 1.0))
 
 
+def _copies(t: torch.Tensor, H: int) -> torch.Tensor:
+    """(F * H, ...) leaf copies of (F, ...) per-frame values, each frame's H copies together."""
+    return t.repeat_interleave(H, 0).detach().clone().requires_grad_()
+
+
+@torch.no_grad()
+def _keep(best: torch.Tensor, transl: torch.Tensor, cam_params: list[torch.Tensor], tr: torch.Tensor,
+          cams: list[torch.Tensor]) -> None:  # fmt: skip
+    """In place: each frame's translation and camera from the copy ``best`` (F,) indexes in ``tr`` and ``cams``."""
+    transl.copy_(tr.detach()[best])
+    for c, many_c in zip(cam_params, cams):
+        c.data.copy_(many_c.detach()[best])
+
+
 def _best_heading(
     kp_model: KeypointModel,
     camera,
@@ -358,8 +372,7 @@ def _best_heading(
     rot = batch_rodrigues(pose[:, 0])[:, None] @ turn[None]  # (F, H, 3, 3): turned about the body's own up axis
     root = rotation_matrix_to_axis_angle(rot.reshape(F * H, 3, 3)).requires_grad_()
     rest = torch.zeros(F * H, pose.shape[1] - 1, 3, dtype=torch.float64)
-    many = lambda t: t.repeat_interleave(H, 0).detach().clone().requires_grad_()  # noqa: E731
-    tr, cams = many(transl), [many(c) for c in cam_params]
+    tr, cams = _copies(transl, H), [_copies(c, H) for c in cam_params]
     det = detected.repeat_interleave(H, 0)
     torso = det * _torso_mask(det)
     params = [root] + [tr] * pinhole + cams
@@ -377,9 +390,7 @@ def _best_heading(
         score = terms.keypoint_term(_project(camera, pinhole, cams, kp), rigid, cfg.sigma_px).reshape(F, H)
         best = torch.arange(F) * H + score.nan_to_num(float("inf")).argmin(1)
         pose[:, 0] = root.detach()[best]
-        transl.copy_(tr.detach()[best])
-        for c, many_c in zip(cam_params, cams):
-            c.data.copy_(many_c.detach()[best])
+        _keep(best, transl, cam_params, tr, cams)
 
 
 @dataclasses.dataclass
@@ -434,9 +445,8 @@ def _limbs_by_visibility(points: PosedPoints, seen_by: tuple, pinhole: bool, det
     A limb swung toward the camera or away from it fits the keypoints alike: their costs differ by the local
     minima reached, not by the side, so cost alone does not choose."""
     F, H = pose.shape[0], len(starts)
-    many = lambda t: t.repeat_interleave(H, 0).detach().clone().requires_grad_()  # noqa: E731
     P = (pose.repeat_interleave(H, 0) + starts.repeat(F, 1, 1)).requires_grad_()
-    tr, cams = many(transl), [many(c) for c in cam_params]
+    tr, cams = _copies(transl, H), [_copies(c, H) for c in cam_params]
     det = detected.repeat_interleave(H, 0)
     mesh_points, faces, camera = seen_by
     mesh_points, faces, camera = seen_by
@@ -459,9 +469,7 @@ def _limbs_by_visibility(points: PosedPoints, seen_by: tuple, pinhole: bool, det
         hidden = hidden_seen(verts, faces, kp3d, (det[..., 2] >= SEEN) & ends, camera).reshape(F, H)
         best = torch.arange(F) * H + choose_start(hidden, cost().reshape(F, H))
         pose.copy_(P.detach()[best])
-        transl.copy_(tr.detach()[best])
-        for c, many_c in zip(cam_params, cams):
-            c.data.copy_(many_c.detach()[best])
+        _keep(best, transl, cam_params, tr, cams)
 
 
 def _result(points, betas, pose, transl, camera, cam_params, detected, few, empty) -> FitResult:
