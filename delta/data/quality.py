@@ -6,6 +6,9 @@ from its edge; the person's box brought down to a fixed size so that a far and a
 as the variance of the grey image's second difference in the direction where it is weakest: motion
 blurs along its own direction and leaves the others (a striped shirt moved along its stripes looks as
 sharp as ever). A frame far below the capture's median is blurred.
+
+A person runs off the image at an edge their mask crosses; a sliver of contact (the tip of a heel on
+the last row, a fingertip) cuts off nothing the avatar needs and does not count.
 """
 
 from __future__ import annotations
@@ -20,6 +23,8 @@ SHARPNESS_SIZE = 512
 #: band along the silhouette left out of the measure, as a share of the box's long side
 EDGE_MARGIN = 0.03
 EDGES = ("left", "top", "right", "bottom")
+#: a mask runs off an edge where its contact there spans at least this share of the person's long side
+CUT_CONTACT = 0.015
 
 
 _DIRECTIONS = tuple(
@@ -69,8 +74,13 @@ def blurred(scores: dict[int, float], ratio: float = BLUR_RATIO) -> list[int]:
     return sorted(i for i, s in scores.items() if np.isfinite(s) and s < floor)
 
 
-def cut_edges(mask: np.ndarray) -> tuple[str, ...]:
-    """The image edges the (H, W) person mask (0-255) touches: the person runs off the image there."""
+def cut_edges(mask: np.ndarray, contact: float = CUT_CONTACT) -> tuple[str, ...]:
+    """The image edges the (H, W) person mask (0-255) runs off: those it touches over at least ``contact``
+    of the long side of its box (at least one pixel)."""
     on = np.asarray(mask) > 127
-    touch = (on[:, 0].any(), on[0].any(), on[:, -1].any(), on[-1].any())
-    return tuple(e for e, t in zip(EDGES, touch) if t)
+    rows, cols = np.flatnonzero(on.any(1)), np.flatnonzero(on.any(0))
+    if not rows.size:
+        return ()
+    floor = max(1.0, contact * max(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1))
+    touch = (on[:, 0].sum(), on[0].sum(), on[:, -1].sum(), on[-1].sum())
+    return tuple(e for e, t in zip(EDGES, touch) if t >= floor)
