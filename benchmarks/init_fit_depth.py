@@ -53,6 +53,7 @@ def main(argv=None) -> None:
     ap.add_argument("--gt", required=True, help="the capture's gt/ folder (params.npz, splits.json)")
     ap.add_argument("--body", required=True)
     ap.add_argument("--subject", required=True)
+    ap.add_argument("--fit", default="from rest", help="what the rows' fit is, for the CSV's fit column")
     ap.add_argument("--csv", required=True)
     ap.add_argument("--append", action="store_true")
     a = ap.parse_args(argv)
@@ -76,7 +77,7 @@ def main(argv=None) -> None:
         err = joint_err[f, limbs].norm(dim=-1)
         j = limbs[int(err.argmax())]
         depth = float((joint_err[f, j] @ viewing_axis(gt, int(f))).abs())
-        rows.append({"subject": a.subject, "frame": int(f), "split": split_of.get(int(f), "?"),
+        rows.append({"subject": a.subject, "fit": a.fit, "frame": int(f), "split": split_of.get(int(f), "?"),
                      "body_err_mm": float(body[f]), "worst_joint": names[j],
                      "worst_joint_err_mm": 1000 * float(joint_err[f, j].norm()), "worst_joint_depth_mm": 1000 * depth})  # fmt: skip
     df = pd.DataFrame(rows)

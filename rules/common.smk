@@ -298,7 +298,10 @@ def step_files(wildcards):
         files["matting"] = PATHS["matting"].format(**wildcards)
     if needs_parsing(wildcards.dataset):
         files["parsing"] = PATHS["parsing"].format(**wildcards)
-    if "keypoints" not in used_provided(wildcards.dataset) or PRE["face_landmarks"]:
+    wanted = PRE["face_landmarks"] or (
+        PRE["keypoint_depth"] and subject_framing(wildcards) != "head"
+    )
+    if "keypoints" not in used_provided(wildcards.dataset) or wanted:
         files["keypoints"] = PATHS["keypoints"].format(**wildcards)
     return files
 

@@ -41,6 +41,10 @@ def test_the_dancer_is_prepared_and_fitted_standing_upright(tmp_path, mediapipe_
     assert summary["frames"] == 14 and summary["few_keypoints"] == [] and summary["implausible_mask"] == []
     assert summary["blurred"] == [] and summary["other_people"] == []
     assert summary["cut_by_edge"] == {"frames": [101], "edges": {"right": 1}}
+    import h5py
+
+    with h5py.File(record) as rec:  # the landmarker's relative depths of the keypoints, for the init fit
+        assert rec["keypoint_depth"].shape == (14, 18) and np.isfinite(rec["keypoint_depth"][:]).all()
     out = tmp_path / "init"
     assert main(["fit-init", "--record", str(record), "--body", anny_files["body"], "--out", str(out)]) == 0
     fit = json.loads((out / "summary.json").read_text())

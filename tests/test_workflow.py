@@ -95,6 +95,11 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
         assert summary["frames"] > 0 and "person" in summary["sources"]
     ps_sources = json.loads((work / "results/peoplesnapshot" / STANDIN / "frames.json").read_text())["sources"]
     assert ps_sources["person"] == "dataset:masks.hdf5"  # shipped: no matting ran
+    # shipped keypoints are the dataset's; their relative depths the body landmarker's, for the init fit
+    assert ps_sources["keypoints"] == "dataset:keypoints.hdf5"
+    assert ps_sources["keypoint_depth"] == "model:mediapipe:pose_landmark_full.onnx"
+    with h5py.File(work / "results/peoplesnapshot" / STANDIN / "frames.h5") as rec:
+        assert rec["keypoint_depth"].shape == (rec["keypoints"].shape[0], 18)
     assert ps_sources["clothing"] == "model:default:pose_landmark_full.onnx"  # not shipped: the default parser
     assert not (work / "logs/matte").exists()
     # the body-model initialisation ran on every subject
@@ -242,6 +247,7 @@ def test_model_steps_run_only_where_the_dataset_ships_nothing(tmp_path):
     cfg["datasets"] = {"synthetic": {"subjects": {"tight": tight}, "use_provided": ["keypoints"]}}
     cfg["preprocess"]["matting"] = {"model": "rvm", "path": "rvm.onnx"}
     cfg["preprocess"]["parsing"] = {"model": "u2net_cloth", "path": "cloth.onnx"}
+    cfg["preprocess"]["keypoint_depth"] = False  # the keypoints are shipped: no keypoint step either
     (work / "steps.yaml").write_text(yaml.safe_dump(cfg))
     res = snakemake(work, "results/synthetic/tight/frames.json", "--configfile", "steps.yaml")
     assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
@@ -249,6 +255,7 @@ def test_model_steps_run_only_where_the_dataset_ships_nothing(tmp_path):
     assert sources == {"person": "model:rvm:rvm.onnx", "clothing": "model:u2net_cloth:cloth.onnx",
                        "keypoints": "dataset:gt/frames.h5:keypoints"}  # fmt: skip
     assert (work / "logs/matte/synthetic_tight.log").is_file() and (work / "logs/parse/synthetic_tight.log").is_file()
+    assert not (work / "logs/keypoints").exists()
 
 
 @pytest.mark.parametrize(
@@ -331,7 +338,7 @@ def test_generic_video_runs_the_offline_default_steps(tmp_path, tiny_captures, m
     assert summary["sources"] == {"person": f"model:mediapipe:{pose}", "keypoints": f"model:mediapipe:{pose}",
                                   "clothing": f"model:default:{pose}", "skin": f"model:default:{pose}",
                                   "hair": f"model:default:{pose}", "face_landmarks": f"model:mediapipe:{pose}",
-                                  "camera": "default"}  # fmt: skip
+                                  "keypoint_depth": f"model:mediapipe:{pose}", "camera": "default"}  # fmt: skip
     assert summary["frames"] == 7
     with h5py.File(work / "results/clips/clip/frames.h5") as rec:
         assert rec["face_landmarks"].shape == (7, 468, 3) and rec["keypoints"].shape == (7, 18, 3)

@@ -39,12 +39,15 @@ class RecordWriter:
     """Append frames one at a time (streamed: a whole video never sits in memory)."""
 
     def __init__(self, h5: h5py.File, n: int, size: int, masks: tuple[str, ...], face: bool = False,
-                 face_points=None):  # fmt: skip
+                 face_points=None, depth: bool = False):  # fmt: skip
         kw = dict(compression="gzip", compression_opts=3, track_times=False)
         self.images = h5.create_dataset("images", (n, size, size, 3), np.uint8, chunks=(1, size, size, 3), **kw)
         self.masks = {m: h5.create_dataset(m, (n, size, size), np.uint8, chunks=(1, size, size), **kw) for m in masks}
         self.keypoints = h5.create_dataset("keypoints", (n, 18, 3), np.float32, track_times=False)
         self.face = h5.create_dataset("face_landmarks", (n, 468, 3), np.float32, track_times=False) if face else None
+        # the keypoints' relative depths (metres): a crop moves and scales the image, not them
+        self.depth = h5.create_dataset("keypoint_depth", (n, 18), np.float32, fillvalue=np.nan,
+                                       track_times=False) if depth else None  # fmt: skip
         self.face_points = None
         if face_points is not None:  # a FacePoints embedding
             self.face_points = h5.create_dataset("face_points", (n, face_points.num_points, 3), np.float32,
@@ -54,7 +57,8 @@ class RecordWriter:
             h5.create_dataset("face_point_bary", data=face_points.bary.numpy().astype(np.float32), track_times=False)
 
     def write(self, i: int, image: np.ndarray, masks: dict[str, np.ndarray], keypoints: np.ndarray | None,
-              face: np.ndarray | None = None, face_points: np.ndarray | None = None) -> None:  # fmt: skip
+              face: np.ndarray | None = None, face_points: np.ndarray | None = None,
+              depth: np.ndarray | None = None) -> None:  # fmt: skip
         self.images[i] = image
         for name, dset in self.masks.items():
             dset[i] = masks[name]
@@ -64,6 +68,8 @@ class RecordWriter:
             self.face[i] = face
         if face_points is not None and self.face_points is not None:
             self.face_points[i] = face_points
+        if depth is not None and self.depth is not None:
+            self.depth[i] = depth
 
 
 class FullFrameWriter:

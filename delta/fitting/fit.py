@@ -85,6 +85,20 @@ class FitConfig:
     forearm fitted behind the torso) and another start hides fewer; then the fewest, the cheapest of those.
     0 (the default): from rest only; on tight it cost the capture's frames more than it gained
     (docs/fitting.md)."""
+    depth_weight: float = 1.0
+    """The detector's relative depths (``terms.depth_term`` over ``DEPTH_BONES``), where the record has
+    them, against the keypoint term's bound: 1 weighs every bone wholly on the wrong side like every
+    keypoint wholly off. They choose the side a limb swings to, which the keypoints and the mask leave open."""
+    depth_sigma: float = 0.1
+    """Robust-penalty scale of a bone's depth on the wrong side (metres)."""
+    depth_margin: float = 0.1
+    """A bone's detected depth difference below this (metres) says no side."""
+
+
+#: OpenPose-18 bones whose extent along the viewing axis the depth term compares: the head, shoulders and hips
+#: from the neck, and the limbs
+DEPTH_BONES = ((1, 0), (1, 2), (2, 3), (3, 4), (1, 5), (5, 6), (6, 7), (1, 8), (8, 9), (9, 10), (1, 11), (11, 12),
+               (12, 13))  # fmt: skip
 
 
 def fit_config(*overrides: dict, where: str = "fitting") -> FitConfig:
@@ -212,7 +226,7 @@ PROGRESS_EVERY = 50
 def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, cfg: FitConfig = FitConfig(),
         pose_weights: torch.Tensor | None = None, knees: list[int] = (), masks: torch.Tensor | None = None,
         start: FitStart | None = None, exterior: torch.Tensor | None = None,
-        sequence: torch.Tensor | None = None) -> FitResult:  # fmt: skip
+        sequence: torch.Tensor | None = None, depth: torch.Tensor | None = None) -> FitResult:  # fmt: skip
     """Fit β, θ_f and the camera to (F, 18, 3) keypoint detections and optional (F, H, W) person masks.
 
     ``exterior`` (F, H, W), the part of the person masks that is clothing or hair, gets the
@@ -220,6 +234,9 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
 
     ``sequence`` (F,) labels the sequence each frame belongs to (consecutive frames of different
     labels are not tied by the temporal terms; ``cfg.static_weight`` holds label 0's pose); None: one sequence.
+
+    ``depth`` (F, 18) holds a detector's relative depths of the first 18 keypoints (metres; non-finite:
+    none), compared bone by bone with ``cfg.depth_weight``.
 
     ``camera`` is a PinholeCamera (static; the body moves) or an OrthographicCamera whose per-frame
     scale and translation are fitted (its own values are the start when ``start`` is given).
@@ -279,12 +296,21 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     seq = None if sequence is None else torch.as_tensor(sequence)
     links = None if seq is None else seq[1:] == seq[:-1]
     held = None if seq is None else seq == 0
+    use_depth = depth is not None and cfg.depth_weight > 0
+    if use_depth:
+        depth = depth.to(torch.float64)
+        depth = torch.cat([depth, depth.new_full((F, detected.shape[1] - depth.shape[1]), torch.nan)], 1)
+        bones = torch.tensor(DEPTH_BONES)
 
     def loss(stage: int) -> torch.Tensor:
         kp3d, verts = points(betas, pose, transl)
         kp2d = _project(camera, pinhole, cam_params, kp3d)
         # stages 2 and 3 (stage 1 is _best_heading)
         total = (terms.keypoint_term(kp2d, detected, cfg.sigma_px) + prior(pose)).sum()
+        if use_depth:
+            along = camera.project(kp3d)[1]  # depth along the viewing axis (an orthographic camera's too)
+            total = total + cfg.depth_weight * cfg.sigma_px**2 * terms.depth_term(
+                along, depth, detected[..., 2], bones, cfg.depth_sigma, cfg.depth_margin).sum()  # fmt: skip
         if stage > 1:
             total = total + cfg.shape_weight * terms.shape_prior(betas) * F * cfg.sigma_px
             smooth = terms.rotation_smoothness(pose[:, 0], links) + terms.smoothness(pose[:, 1:], links)

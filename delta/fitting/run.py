@@ -176,8 +176,9 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
         # a novel-pose sequence (split 2) is not the training sequence's continuation
         sequence = torch.from_numpy((rec.h5["split"][:] == 2).astype(np.int64))
         fit_map, fit_detected = with_face_points(kp_map, detected, points, face_seen)
+        depth = torch.from_numpy(rec.h5["keypoint_depth"][:]) if "keypoint_depth" in rec.h5 else None
         res = fit(model, fit_map, fit_detected, camera, cfg, knees=knees, masks=masks, start=start,
-                  exterior=exterior, sequence=sequence)  # fmt: skip
+                  exterior=exterior, sequence=sequence, depth=depth)  # fmt: skip
         check_result(rec.path, res, frame_ids)
         face, face_arrays = track_face(model, res, points, face_seen), {}
         if face is not None:

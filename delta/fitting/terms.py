@@ -33,6 +33,37 @@ def keypoint_term(projected: torch.Tensor, detected: torch.Tensor, sigma: float 
     return cost / conf.sum(-1).clamp_min(1e-6)
 
 
+def depth_term(depth: torch.Tensor, detected: torch.Tensor, weight: torch.Tensor, bones: torch.Tensor,
+               sigma: float = 0.1, margin: float = 0.1) -> torch.Tensor:  # fmt: skip
+    """Robust cost of bones that run the other way along the viewing axis than a detector says.
+
+    A limb swung toward the camera and one swung away project alike; a detector's relative depths tell
+    the two apart, while the keypoints and the bone's length already fix how far it runs in depth. So
+    the term takes from the detector only the side: per bone (a, b) whose detected depth difference
+    d̂_b - d̂_a exceeds ``margin`` in size, the model's d_b - d_a on the other side of zero costs its
+    Geman-McClure penalty; on the detector's side, any extent is free. The detector's depth origin
+    and scale drop out.
+
+    Args:
+        depth: (F, K) model keypoints' camera depths.
+        detected: (F, K) detected relative depths (non-finite: none).
+        weight: (F, K) the keypoints' confidences.
+        bones: (B, 2) keypoint index pairs.
+    Returns:
+        (F,) per-frame cost in [0, 1): the penalties over ``sigma``², weighted by the lesser confidence of
+        each bone's ends, over the weights of the bones the detector gives a depth (0 for frames without).
+    """
+    a, b = bones[:, 0], bones[:, 1]
+    seen = torch.isfinite(detected)
+    w = torch.minimum(weight[:, a], weight[:, b]) * (seen[:, a] & seen[:, b])
+    wanted = torch.where(seen, detected, 0.0)
+    side = wanted[:, b] - wanted[:, a]
+    sure = side.abs() > margin
+    wrong = torch.relu(-torch.sign(side) * (depth[:, b] - depth[:, a])) * sure
+    cost = (w * gmof(wrong[..., None], sigma)).sum(-1) / sigma**2
+    return cost / w.sum(-1).clamp_min(1e-6)
+
+
 def shape_prior(betas: torch.Tensor) -> torch.Tensor:
     """|β|² (the shape spaces here are scaled so that β ~ N(0, I))."""
     return betas.square().sum(-1)

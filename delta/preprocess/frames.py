@@ -268,7 +268,8 @@ def _prepare(source: Source, out_path, size: int, margin: float, full_size: tupl
         h5.create_dataset("frame_ids", data=np.array([i for i, _ in frames], dtype=np.int64), track_times=False)
         h5.create_dataset("split", data=np.array([s for _, s in frames], dtype=np.uint8), track_times=False)
         writer = RecordWriter(h5, len(frames), size, masks, face="face_landmarks" in source.provided,
-                              face_points=source.face_points if "face_points" in source.provided else None)  # fmt: skip
+                              face_points=source.face_points if "face_points" in source.provided else None,
+                              depth="keypoint_depth" in source.provided)  # fmt: skip
         full = FullFrameWriter(h5, len(frames), *full_size, masks)
         rows: dict[int, list[int]] = {}  # a frame in two splits (a one-frame capture) fills both rows
         for r, (i, _) in enumerate(frames):
@@ -296,9 +297,10 @@ def _prepare(source: Source, out_path, size: int, margin: float, full_size: tupl
                     points[name] = p
             rgb_u = und.image(rgb)
             cropped, whole_frame = crop(rgb_u, box, cv2.INTER_AREA), whole(rgb_u, full_size, cv2.INTER_AREA)
+            depth = source.provided["keypoint_depth"](i) if "keypoint_depth" in source.provided else None
             for r in rows[i]:
                 writer.write(r, cropped, out_masks, points.get("keypoints"), points.get("face_landmarks"),
-                             points.get("face_points"))  # fmt: skip
+                             points.get("face_points"), depth)  # fmt: skip
                 full.write(r, whole_frame, full_masks)
         write_camera_attrs(h5, camera)
         ids = np.array([i for i, _ in frames])

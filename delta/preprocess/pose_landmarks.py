@@ -3,7 +3,9 @@
 ``pose_landmark_full.onnx`` (converted by :mod:`delta.preprocess.mediapipe_convert`)
 takes a 256 x 256 RGB crop in [0, 1] (NHWC) and returns 39 landmarks (x, y, z,
 visibility and presence logits; the first 33 are BlazePose's body points, in crop
-pixels), a pose-presence score and 256 x 256 segmentation logits. The person is
+pixels), a pose-presence score, 256 x 256 segmentation logits and the landmarks in
+metres about the hips' centre, along the camera's axes (``Identity_4``; their depths
+tell a limb swung toward the camera from one swung away, which project alike). The person is
 tracked: each frame's crop is the square around the previous frame's landmarks
 (the whole frame at the start or when the person is lost).
 """
@@ -38,10 +40,19 @@ class PoseResult:
     """(33, 3) BlazePose landmarks (u, v, visibility) in frame pixel coordinates (centres at +0.5)."""
     presence: float
     """Probability that a person is in the crop."""
+    metric: np.ndarray | None = None
+    """(33, 3) the landmarks in metres about the hips' centre, x right, y down, z away from the camera."""
 
     def openpose18(self) -> np.ndarray:
         """(18, 3) keypoints (u, v, confidence); confidence 0 when no person was found."""
         return openpose18(self.landmarks, self.presence)
+
+    def depth18(self) -> np.ndarray:
+        """(18,) the OpenPose keypoints' depths (metres, about the hips' centre, away from the camera); NaN
+        when no person was found."""
+        if self.metric is None or self.presence <= 0.5:
+            return np.full(18, np.nan, np.float32)
+        return np.array([self.metric[list(ids), 2].mean() for ids in OPENPOSE18_FROM_BLAZEPOSE], np.float32)
 
 
 def openpose18(landmarks: np.ndarray, presence: float) -> np.ndarray:
@@ -92,7 +103,9 @@ class PoseLandmarker:
         Minv = cv2.invertAffineTransform(np.array([[scale, 0, tx], [0, scale, ty]]))
         seg = _sigmoid(np.asarray(out[2])[0, :, :, 0]).astype(np.float32)
         mask = cv2.warpAffine(seg, Minv, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
-        result = PoseResult(mask=mask, landmarks=np.stack([u, v, vis], 1).astype(np.float32), presence=presence)
+        metric = np.asarray(out[4], np.float32).reshape(-1, 3)[:33] if len(out) > 4 else None
+        result = PoseResult(mask=mask, landmarks=np.stack([u, v, vis], 1).astype(np.float32), presence=presence,
+                            metric=metric)  # fmt: skip
         self._track(result)
         return result
 

@@ -182,7 +182,8 @@ def run_keypoints(video: Path, wanted: set[int] | None, kind: str, path: str, ou
                   face_path: str | None = None, framing: str = "full") -> None:  # fmt: skip
     """OpenPose-18 keypoints (N, 18, 3) and, with ``face_path`` or a ``head`` framing, face-mesh landmarks
     (N, 468, 3), as (u, v, confidence), for the ``wanted`` frames (None: all) from MediaPipe's pose (and
-    face) landmark models, or for a head from the tracked face alone; zero rows elsewhere."""
+    face) landmark models, or for a head from the tracked face alone; zero rows elsewhere. The body model
+    also gives the keypoints' relative depths, ``keypoint_depth`` (N, 18) in metres (NaN elsewhere)."""
     from delta.preprocess.face_tracking import FaceTracker, blazepose_from_face
     from delta.preprocess.pose_landmarks import FaceLandmarker, openpose18
 
@@ -194,7 +195,7 @@ def run_keypoints(video: Path, wanted: set[int] | None, kind: str, path: str, ou
     else:
         model = landmarker(path, threads, "preprocess.keypoints.path", framing)
     face = FaceLandmarker(face_path, threads=threads) if face_path and not head else None
-    keypoints, faces = [], []
+    keypoints, faces, depths = [], [], []
     for i, rgb in _decoded(Path(video), wanted, "keypoints"):
         if head:
             seen = tracker(rgb)
@@ -203,6 +204,7 @@ def run_keypoints(video: Path, wanted: set[int] | None, kind: str, path: str, ou
             continue
         pose = model(rgb)
         keypoints.append((i, pose.openpose18()))
+        depths.append((i, pose.depth18()))
         if face is not None:
             faces.append((i, face(rgb, pose)))
     if head and not any(a[0, 2] > 0 for _, a in faces):
@@ -210,14 +212,16 @@ def run_keypoints(video: Path, wanted: set[int] | None, kind: str, path: str, ou
                          "a head-and-shoulders close-up by its face (a body seen whole wants framing: full)")  # fmt: skip
     rows = max(_rows(Path(video), wanted), max((i for i, _ in keypoints), default=-1) + 1)
 
-    def table(items, shape):
-        out = np.zeros((rows, *shape), np.float32)
+    def table(items, shape, fill=0.0):
+        out = np.full((rows, *shape), fill, np.float32)
         for i, a in items:
             out[i] = a
         return out
 
     with atomic_path(out) as tmp, h5py.File(tmp, "w") as f:
         f.create_dataset("keypoints", data=table(keypoints, (18, 3)), track_times=False)
+        if depths:
+            f.create_dataset("keypoint_depth", data=table(depths, (18,), np.nan), track_times=False)
         if head or face is not None:
             f.create_dataset("face_landmarks", data=table(faces, (468, 3)), track_times=False)
         f.attrs["model"] = model_name(kind, path, framing)
@@ -228,7 +232,7 @@ def attach(source, path: str | Path) -> None:
     """Add the masks of a step's output file to a Source's provided arrays (not overriding the dataset's).
 
     Each array's shape is checked against the source: (N, H, W) masks of the video's size,
-    (N, 18, 3) keypoints, (N, 468, 3) face landmarks, N covering every selected frame.
+    (N, 18, 3) keypoints, (N, 18) their depths, (N, 468, 3) face landmarks, N covering every selected frame.
     """
     from delta.data.sources import frame_array, mask_what
 
@@ -237,6 +241,7 @@ def attach(source, path: str | Path) -> None:
     W, H = source.camera.width, source.camera.height
     needed = max((i for i, _ in source.frames), default=-1) + 1
     points = {"keypoints": ((18, 3), "18 OpenPose keypoints (u, v, confidence) a frame"),
+              "keypoint_depth": ((18,), "the 18 OpenPose keypoints' relative depths (metres) a frame"),
               "face_landmarks": ((468, 3), "468 face-mesh landmarks (u, v, confidence) a frame")}  # fmt: skip
     try:
         for name in f:

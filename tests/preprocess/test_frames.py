@@ -163,6 +163,33 @@ def test_generic_video_with_a_step_file(tmp_path, tiny_captures):
     src.close()
 
 
+def test_a_step_files_keypoint_depths_reach_the_record_as_they_are(tmp_path, tiny_captures):
+    """The keypoints' relative depths are carried to the record row by row (a crop moves the image, not them),
+    NaN kept; a table of the wrong shape is refused naming the file and the dataset."""
+    from delta.data.sources import video_source
+    from delta.preprocess.steps import attach
+
+    clip_with_masks(tmp_path, tiny_captures)
+    depth = np.random.default_rng(0).normal(size=(7, 18)).astype(np.float32)
+    depth[3, 5] = np.nan
+    with h5py.File(tmp_path / "m.h5", "a") as f:
+        f.create_dataset("keypoint_depth", data=depth)
+    src = video_source(tmp_path, "clip", {"train": [1, 4, 1], "test": [6, 6, 1]})
+    attach(src, tmp_path / "m.h5")
+    summary = prepare(src, tmp_path / "out.h5", 64)
+    assert summary["sources"]["keypoint_depth"] == "model:rvm:test.onnx"
+    with FrameRecord(tmp_path / "out.h5") as rec:
+        ids, got = rec.h5["frame_ids"][:], rec.h5["keypoint_depth"][:]
+    np.testing.assert_array_equal(got, depth[ids])  # NaN where NaN
+    with h5py.File(tmp_path / "m.h5", "a") as f:
+        del f["keypoint_depth"]
+        f.create_dataset("keypoint_depth", data=depth[:, :17])
+    src = video_source(tmp_path, "clip", {})
+    with pytest.raises(DeltaError, match=r"m\.h5: 'keypoint_depth' has shape \(7, 17\), expected \(N >= 7, 18\)"):
+        attach(src, tmp_path / "m.h5")
+    src.close()
+
+
 def test_a_frame_in_two_splits_fills_both_rows(tmp_path, tiny_captures):
     """A one-frame capture (a photograph) lists its frame as training and test: both rows hold the frame."""
     from delta.data.record import FrameRecord

@@ -58,6 +58,33 @@ def test_synthetic_masks_and_keypoints_match_ground_truth(mediapipe_pose_model, 
 
 
 @pytest.mark.parametrize("subject", ["tight", "loose"])
+def test_the_landmarkers_depths_tell_which_way_a_bone_runs(mediapipe_pose_model, tiny_captures, subject):
+    """A bone's detected depth difference has the truth's sign where the truth's exceeds 0.1 m (the init fit
+    takes from it only that side, ``fitting.terms.depth_term``)."""
+    import cv2
+
+    from delta.fitting.fit import DEPTH_BONES
+
+    capture = tiny_captures / subject
+    model = PoseLandmarker(mediapipe_pose_model)
+    cap = cv2.VideoCapture(str(capture / f"{subject}.mp4"))
+    p = np.load(capture / "gt" / "params.npz")
+    bones = np.array(DEPTH_BONES)
+    agree = []
+    with h5py.File(capture / "gt" / "frames.h5") as gt:
+        for i in range(gt["person"].shape[0]):
+            ok, frame = cap.read()
+            assert ok
+            depth = model(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)).depth18()
+            assert depth.shape == (18,) and np.isfinite(depth).all()
+            kp3d = gt["keypoints3d"][i].astype(np.float64)
+            true = (kp3d @ p["R"].T + p["t"])[:, 2] if str(p["camera_model"]) == "pinhole" else -kp3d[:, 2]
+            dt, dd = true[bones[:, 1]] - true[bones[:, 0]], depth[bones[:, 1]] - depth[bones[:, 0]]
+            agree += (np.sign(dt) == np.sign(dd))[np.abs(dt) > 0.1].tolist()
+    assert len(agree) >= 5 and np.mean(agree) >= 0.8, agree
+
+
+@pytest.mark.parametrize("subject", ["tight", "loose"])
 def test_default_parser_partitions_the_person(mediapipe_pose_model, tiny_captures, subject):
     """Skin, hair and clothing partition the person; clothing overlaps the ground truth's."""
     import cv2
