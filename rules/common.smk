@@ -273,7 +273,9 @@ def prepare_inputs(wildcards):
         "video": str(root / f"{wildcards.subject}.mp4"),
         "masks": str(root / "masks.hdf5"),
         "camera": str(root / "camera.pkl"),
-        "keypoints": str(root / "keypoints.hdf5"),
+        "dataset_keypoints": str(
+            root / "keypoints.hdf5"
+        ),  # beside a keypoint step's file
     }
 
 

@@ -85,10 +85,11 @@ class FitConfig:
     forearm fitted behind the torso) and another start hides fewer; then the fewest, the cheapest of those.
     0 (the default): from rest only; on tight it cost the capture's frames more than it gained
     (docs/fitting.md)."""
-    depth_weight: float = 1.0
+    depth_weight: float = 0.3
     """The detector's relative depths (``terms.depth_term`` over ``DEPTH_BONES``), where the record has
     them, against the keypoint term's bound: 1 weighs every bone wholly on the wrong side like every
-    keypoint wholly off. They choose the side a limb swings to, which the keypoints and the mask leave open."""
+    keypoint wholly off. They choose the side a limb swings to, which the keypoints and the mask leave
+    open; a tie-break needs little weight (0.3 and 1 fit tight alike, docs/fitting.md). 0: off."""
     depth_sigma: float = 0.1
     """Robust-penalty scale of a bone's depth on the wrong side (metres)."""
     depth_margin: float = 0.1
@@ -307,8 +308,9 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
         kp2d = _project(camera, pinhole, cam_params, kp3d)
         # stages 2 and 3 (stage 1 is _best_heading)
         total = (terms.keypoint_term(kp2d, detected, cfg.sigma_px) + prior(pose)).sum()
-        if use_depth:
-            along = camera.project(kp3d)[1]  # depth along the viewing axis (an orthographic camera's too)
+        if use_depth:  # the side of a bone says nothing of its length: the shape is not moved by it (a
+            # shorter body runs less far on a wrong side)
+            along = camera.project(kp_model(betas.detach(), pose, transl))[1]  # an orthographic camera's too
             total = total + cfg.depth_weight * cfg.sigma_px**2 * terms.depth_term(
                 along, depth, detected[..., 2], bones, cfg.depth_sigma, cfg.depth_margin).sum()  # fmt: skip
         if stage > 1:
