@@ -308,9 +308,8 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
         kp2d = _project(camera, pinhole, cam_params, kp3d)
         # stages 2 and 3 (stage 1 is _best_heading)
         total = (terms.keypoint_term(kp2d, detected, cfg.sigma_px) + prior(pose)).sum()
-        if use_depth:  # the side of a bone says nothing of its length: the shape is not moved by it (a
-            # shorter body runs less far on a wrong side)
-            along = camera.project(kp_model(betas.detach(), pose, transl))[1]  # an orthographic camera's too
+        if use_depth:
+            along = camera.project(kp3d)[1]  # depth along the viewing axis (an orthographic camera's too)
             total = total + cfg.depth_weight * cfg.sigma_px**2 * terms.depth_term(
                 along, depth, detected[..., 2], bones, cfg.depth_sigma, cfg.depth_margin).sum()  # fmt: skip
         if stage > 1:
@@ -476,7 +475,6 @@ def _limbs_by_visibility(points: PosedPoints, seen_by: tuple, pinhole: bool, det
     P = (pose.repeat_interleave(H, 0) + starts.repeat(F, 1, 1)).requires_grad_()
     tr, cams = _copies(transl, H), [_copies(c, H) for c in cam_params]
     det = detected.repeat_interleave(H, 0)
-    mesh_points, faces, camera = seen_by
     mesh_points, faces, camera = seen_by
     scale = distance_scale(camera, points(betas, pose, transl)[0]) if pinhole else 1.0
     params = [tr] * pinhole + cams + [P]
