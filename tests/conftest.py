@@ -2,54 +2,52 @@
 
 The suite runs in two pytest-xdist workers (``-n 2``, the README's test command): the caches
 under ``resources/`` (Anny's build, the converted MediaPipe models, the perceptual weights) are
-built by one worker at a time (:func:`exclusive`), each worker's torch uses one thread (two
-workers on two cores), and the end-to-end workflow run, the longest test, starts first.
+built once, in the background when a fresh clone runs the whole suite (tests/caches.py), each
+worker's torch uses one thread (two workers on two cores), and the end-to-end workflow run, the
+longest test, starts first.
 """
 
 from __future__ import annotations
 
-import contextlib
-import fcntl
 import os
-from pathlib import Path
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import torch
 
 from delta.body.model import BodyModel
-
-REPO = Path(__file__).resolve().parents[1]
-ANNY_CACHE = Path(os.environ.get("DELTA_ANNY_CACHE", REPO / "resources" / "anny_cache"))
-MODELS_DIR = REPO / "resources" / "models"
+from tests import caches
+from tests.caches import ANNY_CACHE, MODELS_DIR, REPO, exclusive  # noqa: F401 (tests import them from here)
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
     torch.set_num_threads(1)
 
+_BACKGROUND: list[subprocess.Popen] = []
 
-@contextlib.contextmanager
-def exclusive(name: str):
-    """Hold the lock ``resources/.{name}.lock``: one worker builds a shared cache, the others wait and read it."""
-    path = REPO / "resources" / f".{name}.lock"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with open(path, "w") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+
+def pytest_configure(config):
+    """On a whole-suite run in a clone without the caches, start their builds in the background (each under
+    its lock, see tests/caches.py): the workers run tests that need none of them meanwhile."""
+    if hasattr(config, "workerinput") or config.args_source != pytest.Config.ArgsSource.TESTPATHS:
+        return
+    log = REPO / "resources" / "caches.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    for name in caches.missing():
+        with open(log, "a") as fh:
+            _BACKGROUND.append(subprocess.Popen([sys.executable, "-m", "tests.caches", name], cwd=REPO, stdout=fh,
+                                                stderr=subprocess.STDOUT))  # fmt: skip
+
+
+def pytest_unconfigure(config):
+    for proc in _BACKGROUND:
+        proc.wait()
 
 
 def pytest_collection_modifyitems(config, items):
-    """The end-to-end workflow run first (started last, it would run alone at the end), then a test that
-    converts the MediaPipe models: the other worker converts them while the first builds Anny."""
-
-    def order(item) -> int:
-        if item.name == "test_tiny_configuration_end_to_end":
-            return 0
-        return 1 if "mediapipe_pose_model" in getattr(item, "fixturenames", ()) else 2
-
-    items.sort(key=order)
+    """The end-to-end workflow run first: started last, it would run alone at the end."""
+    items.sort(key=lambda item: item.name != "test_tiny_configuration_end_to_end")
 
 
 def tree_model(dtype=torch.float64, num_shape: int = 2, seed: int = 0) -> BodyModel:
@@ -125,19 +123,13 @@ def make_smplx_arrays(num_vertices: int = 10475, num_components: int = 400, seed
 @pytest.fixture(scope="session")
 def anny_model():
     """Anny itself (float64, dense LBS), with its build cache under resources/ (slow the first time)."""
-    from delta.body.anny_convert import build_anny
-
-    with exclusive("anny"):
-        return build_anny(ANNY_CACHE)
+    return caches.anny()
 
 
 @pytest.fixture(scope="session")
 def anny_face_model():
     """Anny with its 52 facial actions (its own build cache entry)."""
-    from delta.body.anny_convert import build_anny
-
-    with exclusive("anny"):
-        return build_anny(ANNY_CACHE, facial_actions=True)
+    return caches.anny(facial_actions=True)
 
 
 @pytest.fixture(scope="session")
@@ -197,22 +189,13 @@ def tiny_captures(tmp_path_factory, anny_files):
 @pytest.fixture(scope="session")
 def mediapipe_pose_model():
     """MediaPipe's pose landmark model in ONNX, converted once (the first run installs the converter)."""
-    from delta.preprocess.mediapipe_convert import MODELS, convert
-
-    target = MODELS_DIR / "mediapipe" / "pose_landmark_full.onnx"
-    with exclusive("mediapipe"):
-        if not all((MODELS_DIR / "mediapipe" / f"{m}.onnx").is_file() for m in MODELS):
-            convert(MODELS_DIR / "mediapipe", REPO / "resources" / "envs" / "mediapipe-convert")
-    return target
+    return caches.mediapipe()
 
 
 @pytest.fixture(scope="session")
 def perceptual_weights():
     """The folder of the shift-tolerant VGG16/AlexNet weights, fetched once from the registry when missing."""
-    from delta.perceptual import weights as W
-
-    with exclusive("stlpips"):
-        return Path(W.ensure_weights(REPO / "resources" / "models" / "stlpips")["vgg"]).parent
+    return caches.stlpips()
 
 
 # ----------------------------------------------------------- tiny training
