@@ -94,12 +94,20 @@ class FitConfig:
     """Robust-penalty scale of a bone's depth on the wrong side (metres)."""
     depth_margin: float = 0.1
     """A bone's detected depth difference below this (metres) says no side."""
+    depth_pair_margin: float = 0.05
+    """The same for the bones across the torso (``DEPTH_PAIRS``: hip to hip), which say which way the
+    pelvis is turned; they also vote in stage 1's choice of heading, where a face turned away from the
+    torso otherwise picks the torso's mirror turn. Beyond 5 cm the detected hips' order is the synthetic
+    truth's in every frame of tight and loose (docs/fitting.md)."""
 
 
 #: OpenPose-18 bones whose extent along the viewing axis the depth term compares: the head, shoulders and hips
 #: from the neck, and the limbs
 DEPTH_BONES = ((1, 0), (1, 2), (2, 3), (3, 4), (1, 5), (5, 6), (6, 7), (1, 8), (8, 9), (9, 10), (1, 11), (11, 12),
                (12, 13))  # fmt: skip
+#: and across the torso: right to left hip (the pelvis's turn; the shoulders' order, wrong beyond 5 cm in 4 of
+#: loose's frames, cost more than it gained)
+DEPTH_PAIRS = ((8, 11),)
 
 
 def fit_config(*overrides: dict, where: str = "fitting") -> FitConfig:
@@ -279,8 +287,14 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
             log_scale = init_ortho_scale(kp0, detected, camera.height).log()
             trans = torch.zeros(F, 2, dtype=torch.float64)
         cam_params = [log_scale.requires_grad_(), trans.requires_grad_()]
+    use_depth = depth is not None and cfg.depth_weight > 0
+    if use_depth:
+        depth = depth.to(torch.float64)
+        depth = torch.cat([depth, depth.new_full((F, detected.shape[1] - depth.shape[1]), torch.nan)], 1)
+        bones, pairs = torch.tensor(DEPTH_BONES), torch.tensor(DEPTH_PAIRS)
     if start is None and cfg.iterations[0] > 0:
-        _best_heading(kp_model, camera, pinhole, detected, betas, pose, transl, cam_params, cfg)
+        _best_heading(kp_model, camera, pinhole, detected, betas, pose, transl, cam_params, cfg,
+                      depth if use_depth else None)  # fmt: skip
     prior = PosePrior(cfg, pose_weights, list(knees), *joint_limits(model), blind)
     starts = limb_starts(model, cfg.forward_start)
     limbs_done = start is None and cfg.iterations[1] > 0 and len(starts) > 1
@@ -297,11 +311,6 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     seq = None if sequence is None else torch.as_tensor(sequence)
     links = None if seq is None else seq[1:] == seq[:-1]
     held = None if seq is None else seq == 0
-    use_depth = depth is not None and cfg.depth_weight > 0
-    if use_depth:
-        depth = depth.to(torch.float64)
-        depth = torch.cat([depth, depth.new_full((F, detected.shape[1] - depth.shape[1]), torch.nan)], 1)
-        bones = torch.tensor(DEPTH_BONES)
 
     def loss(stage: int) -> torch.Tensor:
         kp3d, verts = points(betas, pose, transl)
@@ -310,8 +319,9 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
         total = (terms.keypoint_term(kp2d, detected, cfg.sigma_px) + prior(pose)).sum()
         if use_depth:
             along = camera.project(kp3d)[1]  # depth along the viewing axis (an orthographic camera's too)
-            total = total + cfg.depth_weight * cfg.sigma_px**2 * terms.depth_term(
-                along, depth, detected[..., 2], bones, cfg.depth_sigma, cfg.depth_margin).sum()  # fmt: skip
+            limbs = terms.depth_term(along, depth, detected[..., 2], bones, cfg.depth_sigma, cfg.depth_margin)
+            turn = terms.depth_term(along, depth, detected[..., 2], pairs, cfg.depth_sigma, cfg.depth_pair_margin)
+            total = total + cfg.depth_weight * cfg.sigma_px**2 * (limbs + turn).sum()
         if stage > 1:
             total = total + cfg.shape_weight * terms.shape_prior(betas) * F * cfg.sigma_px
             smooth = terms.rotation_smoothness(pose[:, 0], links) + terms.smoothness(pose[:, 1:], links)
@@ -388,11 +398,14 @@ def _best_heading(
     transl: torch.Tensor,
     cam_params: list[torch.Tensor],
     cfg: FitConfig,
+    depth: torch.Tensor | None = None,
 ) -> None:
     """Stage 1, in place: the global orientation and camera (or translation) fitted to the torso keypoints
     from ``cfg.facing_starts`` headings a frame at once (F x H problems in one batch); each frame keeps
     the heading whose torso and face keypoints (the face tells front from back and left from right
-    turns) reproject best; the limbs, still at rest here, do not vote."""
+    turns) reproject best; the limbs, still at rest here, do not vote. With a detector's relative depths
+    ``depth`` (F, K), the bones across the torso (``DEPTH_PAIRS``) vote too, as the later stages weigh
+    them: a torso turned one way while the face looks the other reprojects almost alike at both turns."""
     F, H = pose.shape[0], max(cfg.facing_starts, 1)
     yaw = torch.arange(H, dtype=torch.float64) * (2 * math.pi / H)
     turn = batch_rodrigues(torch.stack([torch.zeros_like(yaw), yaw, torch.zeros_like(yaw)], -1))  # (H, 3, 3)
@@ -414,7 +427,13 @@ def _best_heading(
     with torch.no_grad():
         kp = kp_model(betas, torch.cat([root[:, None], rest], 1), tr)
         rigid = det * _torso_mask(det, with_face=True)
-        score = terms.keypoint_term(_project(camera, pinhole, cams, kp), rigid, cfg.sigma_px).reshape(F, H)
+        score = terms.keypoint_term(_project(camera, pinhole, cams, kp), rigid, cfg.sigma_px)
+        if depth is not None:
+            along = camera.project(kp)[1]  # depth along the viewing axis, as in the later stages
+            score = score + cfg.depth_weight * cfg.sigma_px**2 * terms.depth_term(
+                along, depth.repeat_interleave(H, 0), det[..., 2], torch.tensor(DEPTH_PAIRS), cfg.depth_sigma,
+                cfg.depth_pair_margin)  # fmt: skip
+        score = score.reshape(F, H)
         best = torch.arange(F) * H + score.nan_to_num(float("inf")).argmin(1)
         pose[:, 0] = root.detach()[best]
         _keep(best, transl, cam_params, tr, cams)

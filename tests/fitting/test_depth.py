@@ -10,6 +10,7 @@ import torch
 
 from delta.cameras.models import PinholeCamera, look_at
 from delta.fitting import terms
+from delta.body.lbs import batch_rodrigues
 from delta.fitting.fit import DEPTH_BONES, FitConfig, KeypointModel, fit
 
 D = torch.float64
@@ -86,3 +87,32 @@ def test_the_detected_depths_choose_the_side_the_arm_swings_to(swung_arms, mirro
     assert (torch.sign(got) == torch.sign(wanted)).all(), (got, wanted)
     assert res.residual_px.max() < 6.0  # either side fits the keypoints; how far in depth is theirs to say
     assert math.isfinite(float(res.residual_px.sum()))
+
+
+@pytest.mark.parametrize("mirrored", [False, True], ids=["true", "mirrored"])
+def test_the_torsos_depths_choose_its_turn_when_the_face_looks_the_other_way(body, mirrored):
+    """A torso turned 0.5 rad one way with the head turned 1 rad the other (its face looks 0.5 rad the
+    other way): stage 1's heading follows the hips' depths, and the mirrored depths the mirrored turn, so
+    the depths decide it (without them, the face picks the mirrored turn)."""
+    model, kp_map = body
+    R, t = look_at(
+        torch.tensor([0.0, 0.0, 3.0], dtype=D), torch.zeros(3, dtype=D), torch.tensor([0.0, 1.0, 0.0], dtype=D)
+    )
+    camera = PinholeCamera(torch.tensor([[700.0, 0, 256], [0, 700, 256], [0, 0, 1]], dtype=D), R, t,
+                           torch.zeros(5, dtype=D), 512, 512)  # fmt: skip
+    pose = torch.zeros(1, model.num_joints, 3, dtype=D)
+    pose[0, 0, 1] = -0.5
+    for name in ("neck01", "head"):
+        pose[0, model.joint_names.index(name), 1] = 0.5
+    kp3d = KeypointModel(model, kp_map)(torch.zeros(model.num_shape, dtype=D), pose, torch.zeros(1, 3, dtype=D))
+    uv, z = camera.project(kp3d)
+    detected = torch.cat([uv, torch.ones_like(uv[..., :1])], -1)
+    rel = z[:, :18] - z[:, [8, 11]].mean(1, keepdim=True)
+    if mirrored:  # the same depths about the torso's own vertical plane: each pair's side swapped
+        rel = -rel
+    cfg = FitConfig(iterations=(80, 0, 0), sil_weight=0.0)
+    res = fit(model, kp_map, detected, camera, cfg, depth=rel)
+    forward = batch_rodrigues(res.pose[:, 0]) @ torch.tensor([0.0, 0.0, 1.0], dtype=D)
+    heading = torch.atan2(forward[0, 0], forward[0, 2]).item()
+    wanted = 0.5 if mirrored else -0.5
+    assert abs(heading - wanted) < 0.2, heading
