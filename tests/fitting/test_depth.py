@@ -51,16 +51,21 @@ def test_the_depth_terms_gradient_against_finite_differences():
     assert torch.autograd.gradcheck(lambda d: terms.depth_term(d, detected, weight, bones, 0.1), (depth,))
 
 
+def facing_camera() -> PinholeCamera:
+    """A 512² pinhole camera 3 m in front of the body (on +z), looking at its origin."""
+    R, t = look_at(
+        torch.tensor([0.0, 0.0, 3.0], dtype=D), torch.zeros(3, dtype=D), torch.tensor([0.0, 1.0, 0.0], dtype=D)
+    )
+    return PinholeCamera(torch.tensor([[700.0, 0, 256], [0, 700, 256], [0, 0, 1]], dtype=D), R, t,
+                         torch.zeros(5, dtype=D), 512, 512)  # fmt: skip
+
+
 @pytest.fixture(scope="module")
 def swung_arms(body):
     """Two frames facing a pinhole camera 3 m away: the left upper arm swung 0.9 rad forward, then 0.9 rad
     back. Their keypoints project alike up to the perspective; the elbows lie ~0.3 m apart in depth."""
     model, kp_map = body
-    R, t = look_at(
-        torch.tensor([0.0, 0.0, 3.0], dtype=D), torch.zeros(3, dtype=D), torch.tensor([0.0, 1.0, 0.0], dtype=D)
-    )
-    camera = PinholeCamera(torch.tensor([[700.0, 0, 256], [0, 700, 256], [0, 0, 1]], dtype=D), R, t,
-                           torch.zeros(5, dtype=D), 512, 512)  # fmt: skip
+    camera = facing_camera()
     pose = torch.zeros(2, model.num_joints, 3, dtype=D)
     arm = model.joint_names.index("upperarm01.L")
     pose[0, arm, 0], pose[1, arm, 0] = -0.9, 0.9
@@ -95,11 +100,7 @@ def test_the_torsos_depths_choose_its_turn_when_the_face_looks_the_other_way(bod
     other way): stage 1's heading follows the hips' depths, and the mirrored depths the mirrored turn, so
     the depths decide it (without them, the face picks the mirrored turn)."""
     model, kp_map = body
-    R, t = look_at(
-        torch.tensor([0.0, 0.0, 3.0], dtype=D), torch.zeros(3, dtype=D), torch.tensor([0.0, 1.0, 0.0], dtype=D)
-    )
-    camera = PinholeCamera(torch.tensor([[700.0, 0, 256], [0, 700, 256], [0, 0, 1]], dtype=D), R, t,
-                           torch.zeros(5, dtype=D), 512, 512)  # fmt: skip
+    camera = facing_camera()
     pose = torch.zeros(1, model.num_joints, 3, dtype=D)
     pose[0, 0, 1] = -0.5
     for name in ("neck01", "head"):
