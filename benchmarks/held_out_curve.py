@@ -39,7 +39,8 @@ import torch
 
 from delta.body.model import load_body_model
 from delta.data.frames import load_frames
-from delta.eval.evaluate import EvalSettings, evaluate, summarize
+from delta.eval.evaluate import evaluate, summarize
+from delta.eval.settings import EvalSettings
 from delta.eval.plots import smooth
 from delta.eval.tradeoff import PSNR_WINDOW
 from delta.training.presets import resolve

@@ -29,7 +29,8 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from delta.eval.evaluate import EvalSettings, evaluate
+from delta.eval.evaluate import evaluate
+from delta.eval.settings import EvalSettings
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -26,7 +26,8 @@ import torch
 
 from delta import losses as L
 from delta.data.frames import sample_rays
-from delta.eval.evaluate import EvalSettings, evaluate
+from delta.eval.evaluate import evaluate
+from delta.eval.settings import EvalSettings
 from delta.training.run import load_trained
 from delta.training.trainer import loss_terms
 

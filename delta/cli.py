@@ -155,7 +155,8 @@ def cmd_prepare(args: argparse.Namespace) -> None:
 
     from delta.data.sources import peoplesnapshot_source, synthetic_source, video_source
     from delta.io import save_json
-    from delta.preprocess.frames import PrepareSettings, prepare, scoring_size
+    from delta.preprocess.frames import prepare, scoring_size
+    from delta.preprocess.settings import PrepareSettings
     from delta.preprocess.steps import attach, embed_landmarks
 
     st = settings.from_arguments(PrepareSettings, args, "prepare")
@@ -329,7 +330,6 @@ def cmd_application_scores(args: argparse.Namespace) -> None:
 
 def cmd_evaluate(args: argparse.Namespace) -> None:
     from delta.eval.evaluate import (
-        EvalSettings,
         clothing_distance,
         convention,
         evaluate,
@@ -337,6 +337,7 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
         train_body_errors_mm,
         write_csv,
     )
+    from delta.eval.settings import EvalSettings
     from delta.io import save_json
     from delta.training.run import load_trained
 
@@ -526,7 +527,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--steps", nargs="*", default=[], help="outputs of matting / parsing steps")
     p.add_argument("--root", required=True)
     p.add_argument("--subject", required=True)
-    from delta.preprocess.frames import PrepareSettings
+    from delta.preprocess.settings import PrepareSettings
 
     settings.add_arguments(p, PrepareSettings)
     p.add_argument("--out", required=True)
@@ -714,7 +715,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gt-meshes", help="synthetic ground truth gt/meshes.h5 (body vertex error)")
     p.add_argument("--export-dir", help="the subject's export/ (clothing Chamfer against the ground truth)")
     p.add_argument("--perceptual", help="folder with alex_shift_tolerant.pth (ST-LPIPS column)")
-    from delta.eval.evaluate import EvalSettings
+    from delta.eval.settings import EvalSettings
 
     settings.add_arguments(p, EvalSettings)
     p.add_argument("--device", default="cpu")

@@ -169,7 +169,7 @@ def add_arguments(parser: Any, cls: type) -> None:
         tp = hints[f.name]
         if tp is dict or typing.get_origin(tp) is dict:
             continue  # a mapping comes through --settings only
-        help_ = docs.get(f.name, "")
+        help_ = docs.get(f.name, "").replace("%", "%%")  # argparse formats help with %
         if tp is bool:
             parser.add_argument(flag, dest=f.name, type=_boolean, default=None, metavar="true|false", help=help_)
         elif _is_tuple(tp) or typing.get_origin(tp) is list:

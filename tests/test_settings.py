@@ -9,7 +9,7 @@ import pytest
 
 from delta import DeltaError
 from delta.config import load_schema
-from delta.eval.evaluate import EvalSettings
+from delta.eval.settings import EvalSettings
 from delta.export.settings import ExportSettings
 from delta.settings import add_arguments, from_arguments, from_mapping, section_schema, to_mapping
 from tests.test_validation import REPO

@@ -26,7 +26,8 @@ import torch
 from delta import DeltaError
 from delta import metrics as M
 from delta.data.sources import synthetic_source
-from delta.eval.evaluate import EvalSettings, Perceptual, body_errors, clothing_distance, gt_body_vertices, score_image
+from delta.eval.evaluate import Perceptual, body_errors, clothing_distance, gt_body_vertices, score_image
+from delta.eval.settings import EvalSettings
 from delta.models.image import View, render_image
 from delta.data.video import iter_video
 from delta.preprocess.frames import Undistorter, whole

@@ -7,12 +7,11 @@ the person keeps its scale across frames.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 from collections import Counter
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Iterator
 
 import cv2
 import h5py
@@ -111,29 +110,6 @@ def crop(img: np.ndarray, box: CropBox, interp: int, mask: bool = False) -> np.n
         img = cv2.copyMakeBorder(img, pad, pad, pad, pad, border, value=0)
     patch = img[box.v0 + pad : box.v0 + pad + box.size, box.u0 + pad : box.u0 + pad + box.size]
     return cv2.resize(patch, (box.out, box.out), interpolation=interp)
-
-
-@dataclasses.dataclass
-class PrepareSettings:
-    """How ``delta prepare`` makes a subject's frame record: what the workflow resolves for one job."""
-
-    kind: str = dataclasses.field(default="video", metadata={"choices": ("synthetic", "peoplesnapshot", "video")})
-    """Which adapter reads the capture."""
-    resolution: int = dataclasses.field(default=512, metadata={"minimum": 32, "maximum": 2048})
-    """Side of the square training images."""
-    crop_margin: float = dataclasses.field(default=0.08, metadata={"minimum": 0, "maximum": 1})
-    """Margin added around the person's box on each side, as a fraction of its side."""
-    frames: dict = dataclasses.field(default_factory=dict)
-    """The subject's frame ranges, ``{"train": [first, last, step], "test": [...]}`` (video, People Snapshot)."""
-    max_frames: dict = dataclasses.field(default_factory=lambda: {"train": 300, "test": 100})
-    """A video subject's ranges are each thinned evenly to at most this many frames (0: all)."""
-    use_provided: Optional[tuple[str, ...]] = dataclasses.field(
-        default=None, metadata={"choices": ("person", "clothing", "skin", "hair", "keypoints", "face_points")}
-    )
-    """The dataset's own arrays to use (None: all it ships); model steps give the rest."""
-    score_size: int = dataclasses.field(default=0, metadata={"minimum": 0, "maximum": 4096})
-    """Long side of the whole frames kept for scoring and exports (0: the dataset's protocol: People
-    Snapshot's 1080² frames halved to 540², any other capture at its own size up to 1080)."""
 
 
 #: the long side of a capture's whole frames when scored, unless the dataset's protocol says otherwise

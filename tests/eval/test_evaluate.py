@@ -9,7 +9,6 @@ import torch
 
 from delta import DeltaError
 from delta.eval.evaluate import (
-    EvalSettings,
     evaluate,
     exterior_leaks,
     face_pixels,
@@ -19,6 +18,7 @@ from delta.eval.evaluate import (
     summarize,
     train_body_errors_mm,
 )
+from delta.eval.settings import EvalSettings
 from delta.eval.heldout import refine_frame, refine_rates
 from delta.models.image import View, render_image
 from delta.training.run import load_trained

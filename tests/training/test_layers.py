@@ -74,7 +74,8 @@ def test_a_one_nerf_model_loads_as_before(tiny_trained):
 
 def test_each_layer_is_scored_against_its_own_mask(layered):
     from delta.data.frames import load_full_frames
-    from delta.eval.evaluate import EvalSettings, evaluate, pick_frames
+    from delta.eval.evaluate import evaluate, pick_frames
+    from delta.eval.settings import EvalSettings
     from delta.metrics import iou
     from delta.models.image import full_view
 

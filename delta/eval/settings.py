@@ -1,0 +1,54 @@
+"""How the held-out frames are scored: the settings alone, so that the command line is built without torch."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+_f = dataclasses.field
+
+
+@dataclasses.dataclass
+class EvalSettings:
+    """Scoring the trained avatars on their held-out frames (results/{dataset}/{subject}/eval/).
+
+    The config section ``evaluation`` and the options of ``delta evaluate`` are generated from these fields.
+    """
+
+    stage: int = _f(default=2, metadata={"minimum": 1, "maximum": 2})
+    """Which training stage's model the workflow evaluates and exports."""
+    splits: tuple[str, ...] = _f(
+        default=("test_view", "test_pose"), metadata={"choices": ("train", "test_view", "test_pose"), "min_items": 1}
+    )
+    """Which frames are scored (frames of these splits in the record)."""
+    max_frames: int = _f(default=0, metadata={"minimum": 0})
+    """At most this many frames per split, evenly spaced (0: all)."""
+    refine_steps: int = _f(default=30, metadata={"minimum": 0})
+    """Test-time refinement of each test frame's pose and camera, model frozen (0: off)."""
+    report_unrefined: bool = True
+    """With refinement on, also score each frame before it (both rows are written)."""
+    refine_rays: int = _f(default=4096, metadata={"minimum": 1})
+    """Rays a refinement step draws from the test frame."""
+    refine_lr: float = _f(default=5e-4, metadata={"exclusive_minimum": 0, "maximum": 1})
+    """Learning rate of the test-time refinement."""
+    refine_lr_end: Optional[float] = _f(default=None, metadata={"exclusive_minimum": 0, "maximum": 1})
+    """The refinement's rate at its last step, reached geometrically from ``refine_lr`` (not set: constant)."""
+    refine_tol: float = _f(default=0.0, metadata={"minimum": 0, "maximum": 1})
+    """Stop a frame's refinement once its windowed loss falls by less than this fraction (0: always
+    ``refine_steps``). The steps taken and the loss before and after are in each refined row."""
+    refine_check: int = _f(default=10, metadata={"minimum": 0})
+    """Every this many steps (and after the last) the refinement measures its probe loss and keeps the pose of
+    the lowest, the given pose included (0: the last step's pose, unchecked). On tight's held-out views the
+    unchecked 30 steps ended 0.23 dB apart on a CPU and a GPU, checked 0.04 apart (docs/evaluation.md)."""
+    supersample: int = _f(default=2, metadata={"minimum": 1, "maximum": 8})
+    """Rays a pixel along each axis, averaged: the frames are area-downsampled photographs whose
+    edge pixels mix person and background; one centre ray a pixel cannot (tight subject, four
+    test views: 1 → 2 → 4 raised PSNR 25.4 → 26.8 → 27.1 dB)."""
+    worst: int = _f(default=3, metadata={"minimum": 0, "maximum": 50})
+    """Per split, side-by-sides (reference | render | error, whole frames) of this many frames with the
+    lowest PSNR (after refinement when it is on), written to eval/worst/ and shown in the report."""
+    lpips_alex: Optional[tuple[str, str]] = None
+    """Standard LPIPS-Alex: [torchvision's alexnet-owt-7be5be79.pth, the lpips package's weights/v0.1/alex.pth]
+    (the user's files); not given: ST-LPIPS only."""
+    perceptual_dir: Optional[str] = _f(default=None, metadata={"config": False})
+    """Folder of alex_shift_tolerant.pth (ST-LPIPS); None: no perceptual column."""
