@@ -36,7 +36,8 @@ from delta.body.lbs import lbs
 from delta.body.model import load_body_model
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.fitting import silhouette as sil
-from delta.fitting.fit import FitConfig, FitResult, fit
+from delta.fitting.fit import FitResult, fit
+from delta.fitting.settings import FitConfig
 from delta.fitting.run import EXTERIOR
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -26,7 +26,8 @@ from delta.body.lbs import batch_rodrigues, posed_joints
 from delta.body.model import load_body_model
 from delta.body.upright import angle_deg, estimate_upright
 from delta.cameras.models import PinholeCamera
-from delta.fitting.fit import FitConfig, KeypointModel, fit
+from delta.fitting.fit import KeypointModel, fit
+from delta.fitting.settings import FitConfig
 from delta.synthetic.generate import frame_span, make_camera
 from delta.synthetic.spec import parse_subject
 

@@ -219,7 +219,7 @@ def cmd_fit_init(args: argparse.Namespace) -> None:
     from delta.fitting.run import run
     from delta.io import save_json
 
-    from delta.fitting.fit import fit_config
+    from delta.fitting.settings import fit_config
 
     _threads(args.threads)
     settings = json_or_file(args.settings, "--settings")
@@ -570,7 +570,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--settings",
         default="{}",
-        help="JSON object (or list of objects) of FitConfig fields (delta/fitting/fit.py), applied in order",
+        help="JSON object (or list of objects) of FitConfig fields (delta/fitting/settings.py), applied in order",
     )
     p.add_argument("--threads", type=int, default=1)
     p.set_defaults(func=cmd_fit_init)

@@ -166,7 +166,7 @@ def _video_frames(path: Path) -> int | None:
 
 def _check_frame_ranges(config: dict, base: Path, generated: set[str]) -> list[str]:
     """Every non-synthetic subject has a ``train`` and a ``test`` range within its video."""
-    from delta.data.peoplesnapshot import STANDARD_SPLITS
+    from delta.data import STANDARD_SPLITS
     from delta.data.video import FRAMINGS
 
     out = []
@@ -219,7 +219,7 @@ def _check_frame_ranges(config: dict, base: Path, generated: set[str]) -> list[s
 
 def _check_settings(config: dict) -> list[str]:
     """Each subject's synthetic spec, fit and training settings, and every trade-off variant, resolved."""
-    from delta.fitting.fit import fit_config
+    from delta.fitting.settings import fit_config
     from delta.synthetic.spec import parse_subject
     from delta.training.presets import resolve
 

@@ -24,7 +24,7 @@ HEADER = ("key", "type", "default", "allowed", "description")
 INTRO = (
     "Free-form keys are documented where they are read: a dataset subject's keys in "
     "[preprocessing](preprocessing.md) (synthetic subjects: `SubjectSpec` in `delta/synthetic/spec.py`), "
-    "`fitting.settings` and `fitting.subjects.<subject>` are `FitConfig`'s fields (`delta/fitting/fit.py`, "
+    "`fitting.settings` and `fitting.subjects.<subject>` are `FitConfig`'s fields (`delta/fitting/settings.py`, "
     "[fitting](fitting.md)), `training.overrides`, `training.subjects.<subject>` and "
     "`tradeoff.variants.<variant>` are the presets' keys (`delta/training/presets.py`)."
 )

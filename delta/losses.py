@@ -7,48 +7,11 @@ the weights multiply them in :func:`total`. Masks are floats in [0, 1]:
 
 from __future__ import annotations
 
-import dataclasses
 
 import torch
 
 from delta.body.model import REGION
-
-
-@dataclasses.dataclass
-class LossWeights:
-    """λ of each term; defaults are the paper's body weights (§4.2)."""
-
-    pixel: float = 1.0
-    """Huber loss of the composite colour."""
-    semantic: float = 0.0005
-    """ID-MRF on rendered patches (stage 2 only)."""
-    exterior: float = 0.5
-    """L1 between the NeRF mask s_v and the exterior mask."""
-    exterior_layers: float = 0.5
-    """L1 between each exterior layer's opacity and its own mask (clothing, hair), averaged over the
-    layers, where the exterior is in layers."""
-    silhouette: float = 0.001
-    """Huber between the soft mesh silhouette and the person mask."""
-    interior_mask: float = 30.0
-    """Mesh silhouette must cover the visible body."""
-    skin: float = 1.0
-    """Mesh colour must match the image on the visible body."""
-    inside: float = 40.0
-    """Mesh silhouette must stay inside the person mask."""
-    skin_inside: float = 0.01
-    """Occluded body colour pulled to the average skin colour."""
-    edge: float = 500.0
-    """Relative edge loss between the mesh with and without offsets."""
-    offset: float = 400.0
-    """Squared offsets, per region (see ``offset_region_weights``)."""
-    offset_region_weights: dict = dataclasses.field(
-        default_factory=lambda: {"body": 2.0, "face": 3.0, "hands": 12.0, "feet": 2.0, "eyes": 3.0, "mouth": 3.0}
-    )
-    """body : face : hands = 2 : 3 : 12 as in the paper (feet like the body, eyes/mouth like the face)."""
-    vertex_detail: float = 0.01
-    """Mean squared per-vertex detail of the offset and albedo fields (``vertex_detail`` fields only)."""
-    huber_delta: float = 0.1
-    """Where the Huber loss turns from quadratic to linear."""
+from delta.loss_weights import LossWeights
 
 
 def huber(x: torch.Tensor, delta: float = 0.1) -> torch.Tensor:

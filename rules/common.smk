@@ -15,7 +15,7 @@ from delta.config import subject_training as _subject_training
 from delta.config import tracks_face as _tracks_face
 from delta.config import validate_workflow_config
 from delta.config import variant_training as _variant_training
-from delta.data.sources import PROVIDES
+from delta.data import PROVIDES
 from delta.scene.settings import FRAME_BUDGET, user_decided
 from delta.synthetic.spec import dressed_raw, parse_subject, reshaped_raw, truth_name
 from delta.training.presets import resolve as resolve_training, stage_view

@@ -21,11 +21,14 @@ from delta.body.model import BodyModel
 from delta.cameras.models import MIN_DEPTH, OrthographicCamera, PinholeCamera, look_at
 from delta.data.frames import RayBatch
 from delta.deformers import knn as deformer
-from delta.fields.networks import FieldSpec, NeRFField
+from delta.fields.networks import NeRFField
+from delta.fields.spec import FieldSpec
 from delta.geometry import distance_grid
 from delta.geometry.raymesh import embree_available, moller_trumbore, ray_mesh_hits
-from delta.models.avatar import AvatarSpec, HybridAvatar, InitParams
-from delta.render.hybrid import PosedMesh, RenderSettings, render_rays
+from delta.models.avatar import HybridAvatar, InitParams
+from delta.models.spec import AvatarSpec
+from delta.render.hybrid import PosedMesh, render_rays
+from delta.render.settings import RenderSettings
 from delta.render.silhouette import soft_silhouette
 from delta.render.volume import composite, nerf_weights, ray_box, stratified_samples
 from delta.training.presets import resolve

@@ -7,7 +7,7 @@ import torch
 
 from delta import losses
 from delta.body.model import REGION
-from delta.losses import LossWeights
+from delta.loss_weights import LossWeights
 
 D = torch.float64
 

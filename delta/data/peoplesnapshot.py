@@ -24,14 +24,6 @@ from delta.cameras.models import PinholeCamera
 from delta.io import atomic_path
 from delta.safe_pickle import load_pickle
 
-#: the novel-view protocol (InstantAvatar, GART, 3DGS-Avatar): [start, end (inclusive), step], 0-based
-STANDARD_SPLITS = {
-    "male-3-casual": {"train": [0, 455, 4], "test": [456, 675, 4]},
-    "male-4-casual": {"train": [0, 659, 6], "test": [660, 872, 6]},
-    "female-3-casual": {"train": [0, 445, 4], "test": [446, 647, 4]},
-    "female-4-casual": {"train": [0, 335, 4], "test": [335, 523, 4]},
-}
-
 CAMERA_KEYS = ("camera_f", "camera_c", "camera_k", "camera_rt", "camera_t", "width", "height")
 #: how many values each array of camera.pkl may hold
 CAMERA_SIZES = {"camera_f": (2,), "camera_c": (2,), "camera_k": (0, 1, 2, 3, 4, 5), "camera_rt": (3,), "camera_t": (3,)}

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from delta import DeltaError
+from delta.data import STANDARD_SPLITS
 from delta.body.face_points import FacePoints
 from delta.cameras.models import OrthographicCamera, PinholeCamera, check_camera
 from delta.data.video import frame_range, probe_video, select_frames
@@ -107,10 +108,10 @@ def peoplesnapshot_source(root: str | Path, subject: str, cfg: dict) -> Source:
     camera = ps.read_camera(d / "camera.pkl").to_pinhole()
     check_camera(camera, str(d / "camera.pkl"))
     key = f"datasets.peoplesnapshot.subjects.{subject}"
-    cfg = {**ps.STANDARD_SPLITS.get(subject, {}), **cfg}
+    cfg = {**STANDARD_SPLITS.get(subject, {}), **cfg}
     if "train" not in cfg or "test" not in cfg:
         raise DeltaError(f"{key}: give 'train' and 'test' frame ranges [start, end, step] (standard ones are "
-                         f"known for {sorted(ps.STANDARD_SPLITS)})")  # fmt: skip
+                         f"known for {sorted(STANDARD_SPLITS)})")  # fmt: skip
     frames = frame_range(cfg.get("train"), 0, f"{key}.train") + frame_range(cfg.get("test"), 1, f"{key}.test")
     kp_all = ps.read_keypoints(d / "keypoints.hdf5")
     masks, close_m, n_masks = _h5_frames(d / "masks.hdf5", "masks", camera.width, camera.height, need[0], 255.0)
@@ -130,14 +131,6 @@ def peoplesnapshot_source(root: str | Path, subject: str, cfg: dict) -> Source:
         close=lambda: [c() for c in closers],
         body_params=body,
     )
-
-
-#: what each dataset kind ships, so the DAG runs only the missing steps
-PROVIDES = {
-    "synthetic": ("person", "clothing", "skin", "hair", "keypoints", "face_points"),
-    "peoplesnapshot": ("person", "keypoints"),
-    "video": (),
-}
 
 
 def default_camera(width: int, height: int) -> PinholeCamera:

@@ -19,86 +19,17 @@ import math
 import torch
 from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 
-from delta import DeltaError
 from delta.body.keypoints import KeypointMap
 from delta.body.lbs import batch_rodrigues, rigid_transforms, skin
 from delta.body.model import BodyModel
 from delta.cameras.models import OrthographicCamera, PinholeCamera
-from delta.data.person import CONF_THRESHOLD, MIN_KEYPOINTS
 from delta.fitting import silhouette as sil
 from delta.fitting import terms
 from delta.fitting.limits import forward_directions, joint_limits
+from delta.fitting.settings import FitConfig
 from delta.fitting.visibility import LIMB_ENDS, SEEN, hidden_seen
 from delta.fitting.start import FACE, TORSO, facing_orientation, init_ortho_scale, init_translation, interpolate
 from delta.progress import Progress
-
-
-@dataclasses.dataclass
-class FitConfig:
-    iterations: tuple[int, int, int] = (150, 200, 150)
-    lr: float = 0.03
-    sigma_px: float = 30.0
-    """Robust-penalty scale of the keypoint residuals (pixels)."""
-    pose_weight: float = 2e-3
-    shape_weight: float = 1e-3
-    bend_weight: float = 1.0
-    limit_weight: float = 100.0
-    """Joint-angle limits (limits.py), per squared radian beyond the range."""
-    unobserved_weight: float = 10.0
-    """Holds at rest, per squared radian, the rotations no keypoint sees (``unobserved_projectors``);
-    left free they follow the silhouette's noise (wrists and feet turned 0.3 rad on the synthetic subjects)."""
-    smooth_weight: float = 0.05
-    accel_weight: float = 0.0
-    """Second-order temporal smoothness (``terms.acceleration``) of the pose, translation and orthographic
-    camera: a steady turn costs nothing, so frames whose heading the keypoints barely constrain (a
-    subject facing the camera under an orthographic one, where width changes with cos θ) follow
-    their neighbours' rate."""
-    static_weight: float = 0.0
-    """Holds the body pose (every joint but the root) of the capture's own sequence near its mean
-    (``terms.static_pose``): for a subject who keeps one pose while turning. A novel-pose sequence
-    (``sequence`` label other than 0) is never held. 0: off (a capture with motion)."""
-    min_keypoints: int = MIN_KEYPOINTS
-    conf_threshold: float = CONF_THRESHOLD
-    sil_weight: float = 300.0
-    """Silhouette term (mean squared coverage error a frame); 0 turns it off."""
-    sil_size: int = 64
-    """Resolution (pixels a side) the masks and the mesh are compared at."""
-    sil_sigma: float = 0.3
-    """Softness of the rasterised silhouette (grid pixels², of the supersampled grid)."""
-    sil_supersample: int = 1
-    """Points a pixel side the silhouette is rendered at, then area-averaged like the masks."""
-    sil_fill: float = 1.0
-    """Weight of mask pixels the body leaves uncovered (skin and, without an exterior mask, everything)."""
-    facing_starts: int = 8
-    """Stage 1 starts each frame from this many headings (turns about the body's vertical, evenly spaced)
-    and keeps the one whose keypoints fit best: one start from the camera-facing pose falls into the
-    mirror minimum when the subject faces away. 1: only the camera-facing start."""
-    exterior_fill: float = 1.0
-    """The same weight on exterior pixels (clothing, hair) when the fit is given their mask: 1 treats them
-    as body (tight clothing); near 0 lets the body stay inside them (a dress, long hair)."""
-    sil_cell: float = 0.03
-    """Vertex-clustering cell (metres) of the coarse silhouette mesh."""
-    forward_start: float = 0.0
-    """With > 0, the body-pose stage also runs each frame from its arms, its legs and both swung this far
-    forward (radians, ``limits.forward_directions``; 0.4 measured). A frame keeps the pose from rest unless
-    that pose hides limb keypoints the detector saw behind the body (``visibility.hidden_seen``: a crossed
-    forearm fitted behind the torso) and another start hides fewer; then the fewest, the cheapest of those.
-    0 (the default): from rest only; on tight it cost the capture's frames more than it gained
-    (docs/fitting.md)."""
-    depth_weight: float = 0.3
-    """The detector's relative depths (``terms.depth_term`` over ``DEPTH_BONES``), where the record has
-    them, against the keypoint term's bound: 1 weighs every bone wholly on the wrong side like every
-    keypoint wholly off. They choose the side a limb swings to, which the keypoints and the mask leave
-    open; a tie-break needs little weight (0.3 and 1 fit tight alike, docs/fitting.md). 0: off."""
-    depth_sigma: float = 0.1
-    """Robust-penalty scale of a bone's depth on the wrong side (metres)."""
-    depth_margin: float = 0.1
-    """A bone's detected depth difference below this (metres) says no side."""
-    depth_pair_margin: float = 0.05
-    """The same for the bones across the torso (``DEPTH_PAIRS``: hip to hip), which say which way the
-    pelvis is turned; they also vote in stage 1's choice of heading, where a face turned away from the
-    torso otherwise picks the torso's mirror turn. Beyond 5 cm the detected hips' order is the synthetic
-    truth's in every frame of tight and loose (docs/fitting.md)."""
 
 
 #: OpenPose-18 bones whose extent along the viewing axis the depth term compares: the head, shoulders and hips
@@ -108,34 +39,6 @@ DEPTH_BONES = ((1, 0), (1, 2), (2, 3), (3, 4), (1, 5), (5, 6), (6, 7), (1, 8), (
 #: and across the torso: right to left hip (the pelvis's turn; the shoulders' order, wrong beyond 5 cm in 4 of
 #: loose's frames, cost more than it gained)
 DEPTH_PAIRS = ((8, 11),)
-
-
-def fit_config(*overrides: dict, where: str = "fitting") -> FitConfig:
-    """FitConfig from the defaults with ``overrides`` (dicts of its field names) applied in order.
-
-    Unknown keys and values of the wrong kind raise a DeltaError naming ``where`` and the key.
-    """
-    fields = {f.name for f in dataclasses.fields(FitConfig)}
-    values: dict = {}
-    for over in overrides:
-        for key, value in (over or {}).items():
-            if key not in fields:
-                raise DeltaError(f"{where}: unknown key '{key}' (known: {', '.join(sorted(fields))})")
-            default = getattr(FitConfig, key)
-            if key == "iterations":
-                if not (isinstance(value, (list, tuple)) and len(value) == 3
-                        and all(isinstance(v, int) and v >= 0 for v in value)):  # fmt: skip
-                    raise DeltaError(f"{where}: 'iterations' must be three step counts >= 0, got {value!r}")
-                value = tuple(value)
-            elif isinstance(default, int) and not isinstance(default, bool):
-                if not isinstance(value, int) or isinstance(value, bool):
-                    raise DeltaError(f"{where}: '{key}' must be an integer, got {value!r}")
-            elif not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
-                raise DeltaError(f"{where}: '{key}' must be a finite number, got {value!r}")
-            if isinstance(value, (int, float)) and value < 0:
-                raise DeltaError(f"{where}: '{key}' must be >= 0, got {value!r}")
-            values[key] = value
-    return FitConfig(**values)
 
 
 @dataclasses.dataclass

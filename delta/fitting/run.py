@@ -20,7 +20,8 @@ from delta.data.record import FrameRecord
 from delta import DeltaError
 from delta.body.face_points import FacePoints
 from delta.fitting.face import FaceFit, fit_face
-from delta.fitting.fit import FitConfig, FitStart, fit
+from delta.fitting.fit import FitStart, fit
+from delta.fitting.settings import FitConfig
 from delta.fitting.start import face_start
 from delta.io import atomic_path, save_npz
 

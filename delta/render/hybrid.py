@@ -19,7 +19,7 @@ import torch
 from delta.deformers import knn as deformer
 from delta.geometry import distance_grid
 from delta.geometry.raymesh import interpolate, ray_mesh_hits
-from delta.render.occupancy import OccupancySettings
+from delta.render.settings import RenderSettings
 from delta.render.silhouette import soft_silhouette
 from delta.render.volume import composite, ray_box, stratified_samples
 
@@ -38,49 +38,6 @@ class PosedMesh:
     """(V, 2) projected vertices in pixels (for the soft silhouette)."""
     skinning: Optional[deformer.SkinningFrame]
     """Backward-skinning data (None when there is no exterior)."""
-
-
-@dataclasses.dataclass
-class RenderSettings:
-    samples: int = 24
-    """Samples per ray, the last at the mesh or far bound."""
-    box_margin: float = 0.25
-    """How far around the posed body's box the exterior may exist (m); never less than a ``max_dist``
-    that bounds the exterior (:func:`room_margin`)."""
-    k: int = 6
-    sigma: float = 0.1
-    max_dist: float = 0.2
-    """Samples farther than this from every body vertex are empty and not evaluated."""
-    sil_sigma: float = 1.0
-    """Softness of the silhouette in pixels²."""
-    sil_k: int = 16
-    sil_hard_value: bool = True
-    """The silhouette's value is the exact coverage of the pixel centre (the ray hits the mesh); its
-    gradient is the soft silhouette's (straight-through). The soft union over many sub-pixel
-    triangles lies ~1 px outside the true edge at 128², and the mask losses shrank the body by
-    about that much (the hard coverage was 2/3 of the person) when they read its value."""
-    probe: int = 32
-    """Probe points a ray that find where it passes within ``max_dist`` of the body; samples go there only."""
-    probe_cell: float = 0.02
-    """Voxel size of the distance grid the probes read (m)."""
-    contact_cell: float = 0.0
-    """Tell body surfaces in contact apart (a hand on the hip): a sample also looks for another surface
-    than its nearest vertex's among one vertex per voxel of this side (m) of the canonical space; its
-    map from there is a second candidate and the denser one renders (``deformers/knn.py``; 0: off)."""
-    round_trip: bool = True
-    """Keep a sample only where its canonical point's nearest canonical vertex maps it back to the sample
-    (``deformers/knn.py``): no clothing or hair density carried into empty space beside another part
-    (a sleeve's ghost beside the torso when the arms are crossed). Needs ``max_dist`` ≤ 1 m (a grid)."""
-    knn_vertices: str = "base"
-    """Backward skinning over the ``base`` mesh's vertices (before upsampling; 4× fewer) or ``all``."""
-    perturb: bool = True
-    early_cull: bool = True
-    """Before the kNN query, drop samples that the distance grid puts beyond ``max_dist`` of the body
-    (with √3 cells of slack: the grid's error) or whose rough canonical point (the nearest vertex's
-    map, ``deformer.rough_canonical``) lies outside the occupancy grid's occupied set grown by
-    ``EARLY_GROW`` cells; the exact tests still run on the samples that pass."""
-    occupancy: OccupancySettings = dataclasses.field(default_factory=OccupancySettings)
-    """The canonical occupancy grid that skips samples in empty space (training updates it)."""
 
 
 @dataclasses.dataclass

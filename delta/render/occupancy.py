@@ -26,7 +26,6 @@ frames needs the canonical mapping, which is what this grid accumulates.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import Callable
 
@@ -34,23 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-
-@dataclasses.dataclass
-class OccupancySettings:
-    enabled: bool = False
-    resolution: int = 64
-    """Cells along the longest side of the NeRF's box."""
-    update_every: int = 16
-    """Training steps between re-evaluations of the density at the cells."""
-    threshold: float = 0.5
-    """Density σ (1/m) above which a cell is occupied (σΔ = 0.01 at Δ = 2 cm), or the mean over cells if lower."""
-    decay: float = 0.95
-    """Per update, the kept maximum decays by this factor before the new density is folded in."""
-    warmup: int = 100
-    """Steps of each stage before the first update; no sample is skipped before it."""
-    carry: bool = True
-    """Stage 2 starts from stage 1's grid (its kept densities, the occupied set re-grown by F_e's
-    reach) instead of every cell occupied until its own ``warmup``."""
+from delta.render.settings import OccupancySettings
 
 
 class OccupancyGrid(nn.Module):

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 
-from delta.data.peoplesnapshot import STANDARD_SPLITS
+from delta.data import STANDARD_SPLITS
 
 PREFIX = "standin-"
 #: How each People Snapshot subject looks, roughly (sex, clothing, hair); other names get the first.

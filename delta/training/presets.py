@@ -14,11 +14,11 @@ import math
 import numpy as np
 
 from delta import DeltaError
-from delta.fields.networks import FieldSpec
-from delta.losses import LossWeights
-from delta.models.avatar import AvatarSpec
-from delta.render.hybrid import RenderSettings
-from delta.render.occupancy import OccupancySettings
+from delta.fields.spec import FieldSpec
+from delta.loss_weights import LossWeights
+from delta.models.spec import AvatarSpec
+from delta.render.settings import RenderSettings
+from delta.render.settings import OccupancySettings
 
 _GRID_NERF = {"encoding": "grid", "levels": 5, "features": 2, "base_res": 12, "max_res": 96, "depth": 2, "width": 64}
 _GRID_OFFSETS = {"encoding": "grid", "levels": 3, "features": 2, "base_res": 8, "max_res": 32, "depth": 1, "width": 32}

@@ -23,7 +23,7 @@ from delta.data.record import FrameRecord
 from delta.io import atomic_path, load_state, save_json
 from delta.models.avatar import HybridAvatar, InitParams
 from delta.models.init import load_init
-from delta.render.occupancy import OccupancySettings
+from delta.render.settings import OccupancySettings
 from delta.scene.analysis import MIN_EXTERIOR_FRACTION
 from delta.scene.settings import scene_settings
 from delta.scene.framing import detect_capture

@@ -14,7 +14,8 @@ import torch
 import trimesh
 
 from delta.deformers.knn import deform, prepare, voxel_subset
-from delta.render.hybrid import PosedMesh, RenderSettings, denser, early_cull, render_rays
+from delta.render.hybrid import PosedMesh, denser, early_cull, render_rays
+from delta.render.settings import RenderSettings
 
 D = torch.float64
 CELL = 0.03  # the contact probe's voxel

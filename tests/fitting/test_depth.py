@@ -11,7 +11,8 @@ import torch
 from delta.cameras.models import PinholeCamera, look_at
 from delta.fitting import terms
 from delta.body.lbs import batch_rodrigues
-from delta.fitting.fit import DEPTH_BONES, FitConfig, KeypointModel, fit
+from delta.fitting.fit import DEPTH_BONES, KeypointModel, fit
+from delta.fitting.settings import FitConfig
 
 D = torch.float64
 

@@ -9,7 +9,8 @@ from delta import DeltaError
 from delta.body.lbs import lbs
 from delta.cameras.models import OrthographicCamera
 from delta.fitting import silhouette as sil
-from delta.fitting.fit import FitConfig, fit, fit_config
+from delta.fitting.fit import fit
+from delta.fitting.settings import FitConfig, fit_config
 from delta.fitting.run import exterior_masks
 from delta.data.record import FrameRecord
 from tests.fitting.test_robust import keypoints

@@ -6,7 +6,8 @@ import torch
 
 from delta.cameras.models import OrthographicCamera, PinholeCamera, look_at
 from delta.fitting import terms
-from delta.fitting.fit import FitConfig, KeypointModel, fit
+from delta.fitting.fit import KeypointModel, fit
+from delta.fitting.settings import FitConfig
 
 
 def test_gmof_hand_computed():

@@ -8,7 +8,8 @@ import torch
 from delta.body.lbs import batch_rodrigues
 from delta.cameras.models import OrthographicCamera
 from delta.fitting import terms
-from delta.fitting.fit import FitConfig, KeypointModel, fit, unobserved_projectors
+from delta.fitting.fit import KeypointModel, fit, unobserved_projectors
+from delta.fitting.settings import FitConfig
 from tests.fitting.test_robust import keypoints
 
 D = torch.float64

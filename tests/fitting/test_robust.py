@@ -8,7 +8,8 @@ import torch
 
 from delta.body.smplx_loader import load_smplx
 from delta.cameras.models import OrthographicCamera, PinholeCamera, look_at
-from delta.fitting.fit import FitConfig, FitStart, KeypointModel, fit
+from delta.fitting.fit import FitStart, KeypointModel, fit
+from delta.fitting.settings import FitConfig
 from delta.fitting.run import run
 from tests.conftest import make_smplx_arrays
 

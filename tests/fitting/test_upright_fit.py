@@ -9,7 +9,8 @@ import torch
 from delta.body.lbs import batch_rodrigues, posed_joints
 from delta.body.upright import angle_deg, estimate_upright
 from delta.cameras.models import PinholeCamera
-from delta.fitting.fit import FitConfig, fit
+from delta.fitting.fit import fit
+from delta.fitting.settings import FitConfig
 from delta.synthetic.generate import frame_span, make_camera
 from delta.synthetic.spec import parse_subject
 from tests.fitting.test_robust import keypoints

@@ -87,7 +87,8 @@ def _frontal_camera():
 def test_where_rest_hides_nothing_the_limb_starts_change_nothing(body):
     """The starts run side by side in one batch: a frame whose rest fit hides no seen keypoint keeps it (the
     fit with ``forward_start`` is the fit without, to the rounding of a larger batch's arithmetic)."""
-    from delta.fitting.fit import FitConfig, fit
+    from delta.fitting.fit import fit
+    from delta.fitting.settings import FitConfig
     from tests.fitting.test_fit import true_motion
 
     model, kp_map = body

@@ -209,7 +209,7 @@ def test_a_frame_in_two_splits_fills_both_rows(tmp_path, tiny_captures):
 
 
 def test_peoplesnapshot_standard_splits_and_missing_ranges(tmp_path, tiny_captures):
-    from delta.data.peoplesnapshot import STANDARD_SPLITS
+    from delta.data import STANDARD_SPLITS
 
     start, end, step = STANDARD_SPLITS["male-3-casual"]["train"]
     assert len(range(start, end + 1, step)) == 114  # as the published protocol counts

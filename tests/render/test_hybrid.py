@@ -4,7 +4,8 @@ import torch
 import trimesh
 
 from delta.deformers import knn as deformer
-from delta.render.hybrid import PosedMesh, RenderSettings, render_rays
+from delta.render.hybrid import PosedMesh, render_rays
+from delta.render.settings import RenderSettings
 
 BG = torch.tensor([1.0, 1.0, 1.0])
 MESH_RGB = torch.tensor([0.2, 0.4, 0.6])

@@ -3,8 +3,10 @@
 import pytest
 import torch
 
-from delta.render.hybrid import RenderSettings, render_rays
-from delta.render.occupancy import OccupancyGrid, OccupancySettings
+from delta.render.hybrid import render_rays
+from delta.render.settings import RenderSettings
+from delta.render.occupancy import OccupancyGrid
+from delta.render.settings import OccupancySettings
 from tests.render.test_hybrid import BG, sphere_avatar
 
 BOX = torch.tensor([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])

@@ -1,0 +1,39 @@
+"""What an avatar is made of: its fields, scales, capture and renderer (torch-free: the workflow resolves
+presets from it before any job starts)."""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+from delta.fields.spec import FieldSpec
+from delta.render.settings import RenderSettings
+
+
+@dataclasses.dataclass
+class AvatarSpec:
+    """Architecture of the avatar (a preset fills it)."""
+
+    nerf: Optional[FieldSpec]
+    """The exterior field; None: the capture has no exterior, no NeRF is built."""
+    offsets: FieldSpec
+    albedo: FieldSpec
+    deformation: Optional[FieldSpec] = None
+    """F_e; None in stage 1."""
+    offset_scale: float = 0.04
+    """Largest offset (m)."""
+    nerf_margin: float = 0.3
+    """The NeRF's box: the canonical template's box plus this margin (m)."""
+    deformation_scale: float = 0.05
+    time_freqs: int = 0
+    """F_e also reads the frame's time (``time_features`` with this many frequencies; 0: pose only)."""
+    pose_knots: int = 0
+    """Knots of the smooth-in-time heading and placement correction (``Trajectory``); 0: none."""
+    render: RenderSettings = dataclasses.field(default_factory=RenderSettings)
+    capture: str = "full"
+    """``full`` or ``upper``: the lower body is left out of backward skinning and the NeRF's box."""
+    frozen_joints: tuple[int, ...] = ()
+    """Joints whose pose is not optimised (their gradient is zeroed)."""
+    layers: tuple[str, ...] = ()
+    """The exterior's layers, each its own NeRF (``clothing``, ``hair``: :class:`LayeredNeRF`); empty:
+    one NeRF for the whole exterior."""

@@ -1,0 +1,67 @@
+"""How rays are sampled and rendered: the renderer's and the occupancy grid's settings (torch-free: the
+workflow resolves presets from them before any job starts)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+
+@dataclasses.dataclass
+class OccupancySettings:
+    enabled: bool = False
+    resolution: int = 64
+    """Cells along the longest side of the NeRF's box."""
+    update_every: int = 16
+    """Training steps between re-evaluations of the density at the cells."""
+    threshold: float = 0.5
+    """Density σ (1/m) above which a cell is occupied (σΔ = 0.01 at Δ = 2 cm), or the mean over cells if lower."""
+    decay: float = 0.95
+    """Per update, the kept maximum decays by this factor before the new density is folded in."""
+    warmup: int = 100
+    """Steps of each stage before the first update; no sample is skipped before it."""
+    carry: bool = True
+    """Stage 2 starts from stage 1's grid (its kept densities, the occupied set re-grown by F_e's
+    reach) instead of every cell occupied until its own ``warmup``."""
+
+
+@dataclasses.dataclass
+class RenderSettings:
+    samples: int = 24
+    """Samples per ray, the last at the mesh or far bound."""
+    box_margin: float = 0.25
+    """How far around the posed body's box the exterior may exist (m); never less than a ``max_dist``
+    that bounds the exterior (:func:`room_margin`)."""
+    k: int = 6
+    sigma: float = 0.1
+    max_dist: float = 0.2
+    """Samples farther than this from every body vertex are empty and not evaluated."""
+    sil_sigma: float = 1.0
+    """Softness of the silhouette in pixels²."""
+    sil_k: int = 16
+    sil_hard_value: bool = True
+    """The silhouette's value is the exact coverage of the pixel centre (the ray hits the mesh); its
+    gradient is the soft silhouette's (straight-through). The soft union over many sub-pixel
+    triangles lies ~1 px outside the true edge at 128², and the mask losses shrank the body by
+    about that much (the hard coverage was 2/3 of the person) when they read its value."""
+    probe: int = 32
+    """Probe points a ray that find where it passes within ``max_dist`` of the body; samples go there only."""
+    probe_cell: float = 0.02
+    """Voxel size of the distance grid the probes read (m)."""
+    contact_cell: float = 0.0
+    """Tell body surfaces in contact apart (a hand on the hip): a sample also looks for another surface
+    than its nearest vertex's among one vertex per voxel of this side (m) of the canonical space; its
+    map from there is a second candidate and the denser one renders (``deformers/knn.py``; 0: off)."""
+    round_trip: bool = True
+    """Keep a sample only where its canonical point's nearest canonical vertex maps it back to the sample
+    (``deformers/knn.py``): no clothing or hair density carried into empty space beside another part
+    (a sleeve's ghost beside the torso when the arms are crossed). Needs ``max_dist`` ≤ 1 m (a grid)."""
+    knn_vertices: str = "base"
+    """Backward skinning over the ``base`` mesh's vertices (before upsampling; 4× fewer) or ``all``."""
+    perturb: bool = True
+    early_cull: bool = True
+    """Before the kNN query, drop samples that the distance grid puts beyond ``max_dist`` of the body
+    (with √3 cells of slack: the grid's error) or whose rough canonical point (the nearest vertex's
+    map, ``deformer.rough_canonical``) lies outside the occupancy grid's occupied set grown by
+    ``EARLY_GROW`` cells; the exact tests still run on the samples that pass."""
+    occupancy: OccupancySettings = dataclasses.field(default_factory=OccupancySettings)
+    """The canonical occupancy grid that skips samples in empty space (training updates it)."""
