@@ -33,7 +33,13 @@ REPO = Path(__file__).resolve().parents[1]
 #:   settings), then the configuration reference generated from its schema, and the command line.
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("delta",),  # the package root: DeltaError, __version__
-    ("delta.io", "delta.safe_pickle", "delta.settings", "delta.progress"),  # files, unpickling, settings, progress
+    (
+        "delta.io",
+        "delta.safe_pickle",
+        "delta.settings",
+        "delta.progress",
+        "delta.loss_weights",
+    ),  # files, unpickling, settings, progress, loss weights
     ("delta.body", "delta.cameras", "delta.geometry", "delta.fields", "delta.metrics", "delta.perceptual"),
     ("delta.data", "delta.losses", "delta.deformers"),
     ("delta.render",),

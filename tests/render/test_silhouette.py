@@ -66,6 +66,54 @@ def test_gradcheck_uv_tiny():
     assert torch.autograd.gradcheck(lambda x: soft_silhouette(x, faces, pixels, sigma=2.0, k=2), (uv,))
 
 
+def autograd_coverage(uv, faces, pixels, sigma, k):
+    """The same coverage written with autograd through point_triangle_distance_2d (the distance to the
+    nearest of the three segments), the independent oracle of the closed-form gradient."""
+    idx = nearest_faces(uv, faces, pixels, k)
+    corners = uv[faces[idx]]
+    dist_sq, inside = point_triangle_distance_2d(
+        pixels[:, None], corners[..., 0, :], corners[..., 1, :], corners[..., 2, :]
+    )
+    logit = (torch.where(inside, dist_sq, -dist_sq) / sigma).clamp(-1e4, 1e4)
+    return -torch.expm1(-torch.nn.functional.softplus(logit).sum(-1))
+
+
+def test_closed_form_gradient_is_autograds_on_a_crowded_mesh():
+    """A jittered grid of 1-pixel triangles (the init fit's coarse mesh on its 64-pixel grid), pixels inside,
+    on edges and vertices and outside, and a degenerate triangle: values and uv gradients agree."""
+    gen = torch.Generator().manual_seed(3)
+    n = 9
+    ys, xs = torch.meshgrid(torch.arange(n, dtype=D), torch.arange(n, dtype=D), indexing="ij")
+    uv = torch.stack([xs, ys], -1).reshape(-1, 2) + 0.3 * torch.rand(n * n, 2, generator=gen, dtype=D)
+    q = (torch.arange(n - 1)[:, None] * n + torch.arange(n - 1)[None]).reshape(-1)
+    faces = torch.cat([torch.stack([q, q + 1, q + n], 1), torch.stack([q + 1, q + n + 1, q + n], 1),
+                       torch.tensor([[0, 1, 1]])])  # fmt: skip
+    pixels = torch.cat([torch.rand(300, 2, generator=gen, dtype=D) * (n + 2) - 1, uv[:20].clone(),
+                        (uv[:10] + uv[1:11]) / 2])  # fmt: skip
+    weights = torch.rand(len(pixels), generator=gen, dtype=D)
+    for sigma in (0.05, 0.3, 2.0):
+        a = uv.clone().requires_grad_(True)
+        b = uv.clone().requires_grad_(True)
+        got, want = soft_silhouette(a, faces, pixels, sigma=sigma, k=8), autograd_coverage(b, faces, pixels, sigma, 8)
+        torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+        (got * weights).sum().backward()
+        (want * weights).sum().backward()
+        assert b.grad.abs().max() > 0.1, "the gradient is a real signal"
+        torch.testing.assert_close(a.grad, b.grad, rtol=1e-9, atol=1e-9)
+
+
+def test_closed_form_gradient_in_float32_is_autograds_in_float64():
+    gen = torch.Generator().manual_seed(5)
+    uv = torch.rand(40, 2, generator=gen, dtype=D) * 20
+    faces = torch.randint(0, 40, (60, 3), generator=gen)
+    pixels = torch.rand(500, 2, generator=gen, dtype=D) * 20
+    a = uv.float().requires_grad_(True)
+    b = uv.clone().requires_grad_(True)
+    soft_silhouette(a, faces, pixels.float(), sigma=1.0, k=6).sum().backward()
+    autograd_coverage(b, faces, pixels, 1.0, 6).sum().backward()
+    torch.testing.assert_close(a.grad.double(), b.grad, rtol=1e-3, atol=1e-3 * float(b.grad.abs().max()))
+
+
 def test_degenerate_triangles_are_finite():
     uv = torch.tensor(
         [[0.0, 0], [4, 0], [4, 0], [2, 20], [2, 20], [2, 20], [0, 40], [1, 41], [2, 42]],
