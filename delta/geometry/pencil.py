@@ -36,6 +36,11 @@ def shared_origin(origins: torch.Tensor) -> bool:
     return origins.shape[0] > 0 and bool((origins == origins[0]).all())
 
 
+def shared_direction(dirs: torch.Tensor) -> bool:
+    """Whether every ray (R, 3) has the same direction (exactly: an orthographic camera's rays)."""
+    return dirs.shape[0] > 0 and bool((dirs == dirs[0]).all()) and bool(dirs[0].abs().amax() > 0)
+
+
 @dataclasses.dataclass
 class Bins:
     """Faces binned on a grid over the rays' projections."""
@@ -81,7 +86,7 @@ class Bins:
 def bin_faces(tri: torch.Tensor, origin: torch.Tensor, dirs: torch.Tensor) -> Bins | None:
     """The faces ``tri`` (F, 3, 3) binned for rays ``origin`` (3,) + t ``dirs`` (R, 3), R >= 1; None when
     the rays spread wider than :data:`MIN_COS` allows or the faces are too large for the grid."""
-    dev, dtype = tri.device, tri.dtype
+    dtype = tri.dtype
     dn = torch.nn.functional.normalize(dirs.to(dtype), dim=1)
     axis = dn.mean(0)
     if not bool(axis.norm() > 0):
@@ -90,10 +95,7 @@ def bin_faces(tri: torch.Tensor, origin: torch.Tensor, dirs: torch.Tensor) -> Bi
     cos = dn @ axis
     if not bool((cos > MIN_COS).all()):
         return None
-    helper = torch.zeros(3, dtype=dtype, device=dev)
-    helper[int(axis.abs().argmin())] = 1.0
-    e1 = torch.nn.functional.normalize(torch.linalg.cross(axis, helper), dim=0)
-    basis = torch.stack([e1, torch.linalg.cross(axis, e1), axis])  # rows: the projection plane's axes, depth
+    basis = _plane(axis)  # rows: the projection plane's axes, depth
     ray_uv = (dn @ basis[:2].T) / cos[:, None]  # (R, 2)
     rel = (tri - origin.to(dtype)) @ basis.T  # (F, 3, 3) corners in the pencil's frame
     depth = rel[..., 2]
@@ -104,6 +106,36 @@ def bin_faces(tri: torch.Tensor, origin: torch.Tensor, dirs: torch.Tensor) -> Bi
     uv = rel[ids, :, :2] / depth[ids, :, None]  # (Ff, 3, 2)
     pad = torch.finfo(dtype).eps ** 0.5 * (1 + uv.abs().amax((1, 2)))  # (Ff,): far more than its rounding
     f_lo, f_hi = uv.amin(1) - pad[:, None], uv.amax(1) + pad[:, None]
+    return _grid(ids, f_lo, f_hi, ray_uv, everywhere)
+
+
+def _plane(axis: torch.Tensor) -> torch.Tensor:
+    """(3, 3) rows: two axes of the plane across ``axis`` (unit), then ``axis``."""
+    helper = torch.zeros(3, dtype=axis.dtype, device=axis.device)
+    helper[int(axis.abs().argmin())] = 1.0
+    e1 = torch.nn.functional.normalize(torch.linalg.cross(axis, helper), dim=0)
+    return torch.stack([e1, torch.linalg.cross(axis, e1), axis])
+
+
+@torch.no_grad()
+def bin_faces_parallel(tri: torch.Tensor, origins: torch.Tensor, direction: torch.Tensor) -> Bins | None:
+    """The faces ``tri`` (F, 3, 3) binned for parallel rays ``origins`` (R, 3) + t ``direction`` (3,), R >= 1
+    (an orthographic camera's): the projection along the direction is a parallel one, so every face projects
+    to the triangle of its projected corners and none is a candidate everywhere. None when the faces are too
+    large for the grid."""
+    dtype = tri.dtype
+    basis = _plane(torch.nn.functional.normalize(direction.to(dtype), dim=0))[:2]
+    ray_uv = origins.to(dtype) @ basis.T  # (R, 2)
+    uv = tri @ basis.T  # (F, 3, 2)
+    pad = torch.finfo(dtype).eps ** 0.5 * (1 + uv.abs().amax((1, 2)))
+    ids = torch.arange(tri.shape[0], device=tri.device)
+    return _grid(ids, uv.amin(1) - pad[:, None], uv.amax(1) + pad[:, None], ray_uv, ids[:0])
+
+
+def _grid(ids, f_lo, f_hi, ray_uv, everywhere) -> Bins | None:
+    """Faces ``ids`` with projected boxes [f_lo, f_hi] (Ff, 2) binned on a grid over the rays' projections
+    ``ray_uv`` (R, 2); None when their (face, cell) entries exceed :data:`MAX_BINNED`."""
+    dev = ray_uv.device
     lo, hi = ray_uv.amin(0), ray_uv.amax(0)
     side = int(min(MAX_SIDE, max(1, round((max(len(ids), 1) / FACES_PER_CELL) ** 0.5))))
     cell = ((hi - lo) / side).clamp_min(1e-12 * (1 + float(lo.abs().amax())))

@@ -123,10 +123,19 @@ def _test_leaves(tree, o, d, tri, tol, best, face, ray, leaf) -> None:
 
 
 @torch.no_grad()
+def _bins(tri, o, d) -> pencil.Bins | None:
+    """The faces binned for a camera's rays: a pinhole's (one origin) or an orthographic one's (one direction)."""
+    if pencil.shared_origin(o):
+        return pencil.bin_faces(tri, o[0], d)
+    if pencil.shared_direction(d):
+        return pencil.bin_faces_parallel(tri, o, d[0])
+    return None
+
+
 def _search_torch(vertices, faces, origins, dirs) -> torch.Tensor:
     """(R,) first-hit face (-1: none), each candidate pair decided by the direct Möller–Trumbore
-    (:func:`_confirm`) in float64 where the device has it. Rays that leave one point (a camera's) take
-    their candidates from faces binned in their image (:mod:`delta.geometry.pencil`); others walk a box
+    (:func:`_confirm`) in float64 where the device has it. Rays that leave one point or share one direction
+    (a camera's) take their candidates from faces binned in their image (:mod:`delta.geometry.pencil`); others walk a box
     hierarchy of the faces (:mod:`delta.geometry.clusters`). Tensor work on the inputs' device."""
     work = torch.float64 if vertices.device.type != "mps" else torch.float32
     o, d = origins.detach().to(work), dirs.detach().to(work)
@@ -137,7 +146,7 @@ def _search_torch(vertices, faces, origins, dirs) -> torch.Tensor:
     tri = vertices.detach().to(work)[faces]
     tol = 64 * torch.finfo(work).eps
     best = torch.full((R,), torch.inf, dtype=work, device=o.device)
-    bins = pencil.bin_faces(tri, o[0], d) if pencil.shared_origin(o) else None
+    bins = _bins(tri, o, d)
     if bins is not None:  # a camera's rays: each ray's candidates from its cell, no walk
         for ray, f in bins.pairs(_CHUNK_PAIRS):
             _keep_nearest(best, face, ray, _confirm(o[ray], d[ray], tri[f], tol), f)
@@ -172,11 +181,15 @@ class _MeshCache:
     def __init__(self):
         self.key, self.value = None, None
 
+    def holds(self, vertices: torch.Tensor, faces: torch.Tensor) -> bool:
+        if self.key is None:
+            return False
+        v_ref, v_ver, f_ref, f_ver = self.key
+        return v_ref() is vertices and f_ref() is faces and v_ver == vertices._version and f_ver == faces._version
+
     def get(self, vertices: torch.Tensor, faces: torch.Tensor, build: Callable[[], object]):
-        if self.key is not None:
-            v_ref, v_ver, f_ref, f_ver = self.key
-            if v_ref() is vertices and f_ref() is faces and v_ver == vertices._version and f_ver == faces._version:
-                return self.value
+        if self.holds(vertices, faces):
+            return self.value
         self.value = build()
         self.key = (weakref.ref(vertices), vertices._version, weakref.ref(faces), faces._version)
         return self.value
@@ -214,6 +227,22 @@ def _search_embree(vertices, faces, origins, dirs) -> torch.Tensor:
     return torch.from_numpy(np.asarray(face, dtype=np.int64)).to(origins.device)
 
 
+TORCH_RAYS = 4096
+"""A camera's rays up to this many (a training step's), cast against a mesh Embree has no scene of, are
+searched in torch: on two CPU cores Embree's scene of a 110k-face body takes 0.1-0.2 s to build, the binned
+torch search of 128-8192 rays 0.03-0.08 s in all. Beyond it, and against a mesh already built, Embree's
+queries are the faster (32k rays: 0.01 s against 0.5 s): a whole image's chunks of
+:data:`delta.models.image.CPU_CHUNK` rays build the scene once. ``benchmarks/ray_casting.py`` measures both."""
+
+
+def _auto_backend(vertices, faces, origins, dirs) -> str:
+    if vertices.device.type != "cpu" or not embree_available():
+        return "torch"
+    if _SCENES.holds(vertices, faces) or origins.shape[0] > TORCH_RAYS:
+        return "embree"
+    return "torch" if pencil.shared_origin(origins) or pencil.shared_direction(dirs) else "embree"
+
+
 def ray_mesh_hits(vertices, faces, origins, dirs, backend: str = "auto") -> RayHits:
     """First hit of each ray on a triangle mesh, differentiable in t and barycentrics.
 
@@ -223,14 +252,16 @@ def ray_mesh_hits(vertices, faces, origins, dirs, backend: str = "auto") -> RayH
         origins: (R, 3) ray origins; dirs: (R, 3) directions (any non-zero length;
             t is measured in units of |dir|).
         backend: "embree" (CPU), "torch" (a box hierarchy walked with tensor operations on the
-            inputs' device) or "auto" (Embree for CPU tensors when importable, else torch).
+            inputs' device) or "auto" (torch off the CPU or without Embree; on the CPU, a camera's
+            rays against a mesh Embree has not built, up to :data:`TORCH_RAYS` of them, in torch, the rest
+            in Embree).
     Returns:
         :class:`RayHits`. Barycentrics are clamped to [0, 1] and renormalised,
         which only changes rays through an edge or vertex (rounding); t is the
         exact hit on the found face's plane in the inputs' precision.
     """
     if backend == "auto":
-        backend = "embree" if vertices.device.type == "cpu" and embree_available() else "torch"
+        backend = _auto_backend(vertices, faces, origins, dirs)
     if backend == "embree":
         face = _search_embree(vertices, faces, origins, dirs)
     elif backend == "torch":

@@ -1,4 +1,4 @@
-"""A camera's rays (one origin) take their candidate faces from bins in their image: the first hits are
+"""A camera's rays (one origin, or an orthographic camera's one direction) take their candidate faces from bins in their image: the first hits are
 the brute-force first hits, the hierarchy walk's and Embree's, including faces beside and behind the
 camera, grazing rays and batches split across chunks."""
 
@@ -40,6 +40,7 @@ def _walk(monkeypatch, *args):
     """The hierarchy walk's answer for the same rays (binning switched off)."""
     with monkeypatch.context() as m:
         m.setattr(pencil, "shared_origin", lambda origins: False)
+        m.setattr(pencil, "shared_direction", lambda dirs: False)
         return ray_mesh_hits(*args, backend="torch")
 
 
@@ -52,6 +53,53 @@ def test_camera_rays_are_binned_and_match_the_brute_force_first_hit():
     assert 0.3 * len(o) < int(got.hit.sum()) < len(o)
     assert torch.equal(got.hit, torch.isfinite(want))
     torch.testing.assert_close(got.t[got.hit], want[got.hit], rtol=1e-12, atol=0)
+
+
+def test_parallel_rays_are_binned_and_match_the_brute_force_first_hit(monkeypatch):
+    """An orthographic camera's rays: one direction, origins spread over its image plane, some of them
+    inside the scene (faces behind a ray's origin are not hit)."""
+    v, f = _bubbles(2)
+    g = torch.Generator().manual_seed(4)
+    direction = torch.nn.functional.normalize(torch.tensor([0.2, -0.1, -1.0], dtype=D), dim=0)
+    o = v[torch.randint(len(v), (1200,), generator=g)] + 0.05 * torch.randn(1200, 3, generator=g, dtype=D)
+    o[:800] -= 6.0 * direction  # in front of the scene; the rest start inside it
+    d = direction.expand(1200, 3).clone()
+    assert pencil.shared_direction(d) and not pencil.shared_origin(o)
+    bins = pencil.bin_faces_parallel(v[f], o, d[0])
+    assert bins is not None and bins.everywhere.numel() == 0
+    got = ray_mesh_hits(v, f, o, d, backend="torch")
+    want = _brute(v, f, o, d)
+    assert 0.3 * len(o) < int(got.hit.sum()) < len(o)
+    assert torch.equal(got.hit, torch.isfinite(want))
+    torch.testing.assert_close(got.t[got.hit], want[got.hit], rtol=1e-12, atol=0)
+    walk = _walk(monkeypatch, v, f, o, d)
+    assert torch.equal(walk.face, got.face)
+    d2 = d.clone()
+    d2[5, 0] += 1e-12
+    assert not pencil.shared_direction(d2) and not pencil.shared_direction(d[:0])
+
+
+@pytest.mark.skipif(not embree_available(), reason="no embreex")
+def test_auto_casts_a_training_steps_rays_in_torch_and_a_whole_image_in_embree():
+    """A fresh mesh and a camera's rays up to TORCH_RAYS: the torch search (no scene to build); more rays, rays
+    from no camera, or a mesh Embree has already built: Embree. Either way the same first hits."""
+    v, f = _bubbles(3)
+    o, d = _camera_rays(v, torch.tensor([0.1, 0.2, 4.0], dtype=D), 600, seed=2)
+    v = v.clone()
+    assert raymesh._auto_backend(v, f, o, d) == "torch"
+    ortho = d[0].expand(600, 3).clone()
+    assert raymesh._auto_backend(v, f, o + torch.randn(600, 3, dtype=D), ortho) == "torch"
+    scattered = o + torch.randn(600, 3, dtype=D)
+    assert raymesh._auto_backend(v, f, scattered, d) == "embree"
+    many = raymesh.TORCH_RAYS + 1
+    assert raymesh._auto_backend(v, f, o[:1].expand(many, 3), d[:1].expand(many, 3)) == "embree"
+    auto = ray_mesh_hits(v, f, o, d)
+    embree = ray_mesh_hits(v, f, o, d, backend="embree")  # builds v's scene
+    assert raymesh._auto_backend(v, f, o, d) == "embree"
+    assert torch.equal(auto.hit, embree.hit)
+    torch.testing.assert_close(auto.t[auto.hit], embree.t[auto.hit], rtol=1e-6, atol=0)
+    v.add_(0.0)  # modified in place: the scene no longer holds
+    assert raymesh._auto_backend(v, f, o, d) == "torch"
 
 
 def test_a_camera_inside_the_scene_sees_faces_beside_and_behind_its_plane(monkeypatch):
