@@ -186,8 +186,9 @@ class VertexField(nn.Module):
                 self.head.out.bias.copy_(torch.log(c / (1 - c)))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """(V, 3) values at the mesh's vertices ``x`` (V, 3), in vertex order when the field has detail."""
-        raw = self.head(self.encoding(x))
+        """(V, 3) values at the mesh's vertices ``x`` (V, 3), in vertex order when the field has detail. The
+        vertices are the template's, the same every call: their encoding is kept (``at_fixed``)."""
+        raw = self.head(self.encoding.at_fixed(x))
         if self.detail is not None:
             if len(x) != len(self.detail):
                 raise ValueError(

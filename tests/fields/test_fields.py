@@ -463,3 +463,53 @@ def test_layered_nerf_stays_finite_where_a_layer_is_empty_or_at_the_cap():
     assert bool((sigma == 0).all()) and bool(torch.isfinite(rgb).all())
     rgb.sum().backward()
     assert all(bool(torch.isfinite(p.grad).all()) for p in both_empty.parameters() if p.grad is not None)
+
+
+@pytest.mark.parametrize("inside", [True, False])
+def test_the_sparse_trilinear_matrix_is_grid_samples_interpolation(inside):
+    """Points inside the box, on its faces and nodes, and outside it (zeros padding): values and the grid's
+    gradient as grid_sample gives them."""
+    from delta.fields.encodings import _Interpolate, trilinear_matrix
+
+    gen = torch.Generator().manual_seed(1)
+    shape = (5, 7, 3)  # nx, ny, nz
+    grid = torch.randn(1, 2, shape[2], shape[1], shape[0], generator=gen, dtype=torch.float64, requires_grad=True)
+    span = 1.0 if inside else 1.4
+    xn = (torch.rand(400, 3, generator=gen, dtype=torch.float64) * 2 - 1) * span
+    xn[:6] = torch.tensor([[-1.0, -1, -1], [1, 1, 1], [1, -1, 0.5], [0, 0, 0], [-0.5, 1 / 3, -1], [1, 0.2, 1]])
+    want = torch.nn.functional.grid_sample(grid, xn.view(1, -1, 1, 1, 3), align_corners=True).view(2, -1).T
+    W, WT = trilinear_matrix(xn, shape)
+    got = _Interpolate.apply(grid.view(2, -1).T, W, WT)
+    torch.testing.assert_close(got, want, rtol=0, atol=1e-12)
+    weights = torch.randn(400, 2, generator=gen, dtype=torch.float64)
+    (g_want,) = torch.autograd.grad((want * weights).sum(), grid)
+    (g_got,) = torch.autograd.grad((_Interpolate.apply(grid.view(2, -1).T, W, WT) * weights).sum(), grid)
+    torch.testing.assert_close(g_got, g_want, rtol=0, atol=1e-12)
+    assert (want[6:].abs().sum(1) == 0).any() != inside  # outside the box some points read zeros
+
+
+def test_a_vertex_field_keeps_its_vertices_encoding_and_rebuilds_it_when_they_change():
+    from delta.fields.encodings import GridEncoding, PositionalEncoding
+
+    gen = torch.Generator().manual_seed(2)
+    bounds = torch.tensor([[-1.0, -1.0, -0.5], [1.0, 1.5, 0.5]])
+    x = torch.rand(300, 3, generator=gen) * (bounds[1] - bounds[0]) + bounds[0]
+    for enc in (GridEncoding(bounds, levels=3, features=2, base_res=4, max_res=16), PositionalEncoding(4, bounds)):
+        first = enc.at_fixed(x)
+        torch.testing.assert_close(first, enc(x), rtol=0, atol=1e-6)
+        kept = enc._fixed
+        enc.at_fixed(x)
+        assert enc._fixed is kept, "the same points: nothing rebuilt"
+        x.add_(0.01)  # moved in place: rebuilt for the new places
+        torch.testing.assert_close(enc.at_fixed(x), enc(x), rtol=0, atol=1e-6)
+        assert enc._fixed is not kept
+        with torch.no_grad():
+            enc.lo.sub_(0.1)  # a loaded state's box: rebuilt too
+        torch.testing.assert_close(enc.at_fixed(x), enc(x), rtol=0, atol=1e-6)
+        y = x.clone().requires_grad_(True)  # points that need their gradient go the plain way
+        (g,) = torch.autograd.grad(enc.at_fixed(y).sum(), y)
+        assert g.abs().sum() > 0
+    grid = GridEncoding(bounds, levels=2, features=2, base_res=4, max_res=8)
+    (g_fixed,) = torch.autograd.grad((grid.at_fixed(x) ** 2).sum(), grid.grids[1])
+    (g_plain,) = torch.autograd.grad((grid(x) ** 2).sum(), grid.grids[1])
+    torch.testing.assert_close(g_fixed, g_plain, rtol=1e-5, atol=1e-7)
