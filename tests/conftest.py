@@ -45,9 +45,17 @@ def pytest_unconfigure(config):
         proc.wait()
 
 
+#: the fixtures that wait for a cache of tests/caches.py (directly or through the fixtures they use)
+CACHE_FIXTURES = frozenset({"anny_model", "anny_face_model", "mediapipe_pose_model", "perceptual_weights"})
+
+
 def pytest_collection_modifyitems(config, items):
-    """The end-to-end workflow run first: started last, it would run alone at the end."""
-    items.sort(key=lambda item: item.name != "test_tiny_configuration_end_to_end")
+    """The end-to-end workflow run first (started last, it would run alone at the end), then the tests that
+    need no cache, then those that do: pytest-xdist's work stealing gives each worker a contiguous half of
+    this order to start with, so in a fresh clone the second worker runs cache-free tests while the caches
+    build, instead of waiting on their locks."""
+    items.sort(key=lambda item: (item.name != "test_tiny_configuration_end_to_end",
+                                 bool(CACHE_FIXTURES & set(getattr(item, "fixturenames", ())))))  # fmt: skip
 
 
 def tree_model(dtype=torch.float64, num_shape: int = 2, seed: int = 0) -> BodyModel:

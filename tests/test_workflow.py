@@ -229,7 +229,7 @@ def test_cuda_without_a_gpu_stops_before_any_job(tmp_path):
 
 
 @pytest.mark.slow
-def test_model_steps_run_only_where_the_dataset_ships_nothing(tmp_path):
+def test_model_steps_run_only_where_the_dataset_ships_nothing(tmp_path, anny_model):  # its jobs read the Anny cache
     """With the synthetic masks set aside, matting and parsing run (stand-in ONNX graphs with the real
     signatures); with them used, the DAG holds no such step."""
     from tests.preprocess.test_onnx_models import parser_graph, rvm_graph
