@@ -14,6 +14,9 @@ from delta.cli import main
 from delta.data.video import probe_video
 
 REAL = Path(os.environ.get("DELTA_REAL_CLIPS", Path(__file__).resolve().parents[2] / "shared" / "real"))
+#: the init fit at half its default steps (150, 200, 150): what these tests check (upright, tracked by the
+#: face, residuals) holds there, and each fit costs half its time on CI
+SHORT_FIT = ["--settings", json.dumps({"iterations": [75, 100, 75]})]
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.skipif(not (REAL / "dress_dance.mp4").is_file(), reason=f"no real clips at {REAL}"),
@@ -46,7 +49,7 @@ def test_the_dancer_is_prepared_and_fitted_standing_upright(tmp_path, mediapipe_
     with h5py.File(record) as rec:  # the landmarker's relative depths of the keypoints, for the init fit
         assert rec["keypoint_depth"].shape == (14, 18) and np.isfinite(rec["keypoint_depth"][:]).all()
     out = tmp_path / "init"
-    assert main(["fit-init", "--record", str(record), "--body", anny_files["body"], "--out", str(out)]) == 0
+    assert main(["fit-init", "--record", str(record), "--body", anny_files["body"], "--out", str(out), *SHORT_FIT]) == 0
     fit = json.loads((out / "summary.json").read_text())
     assert fit["flagged"] == 0 and fit["residual_px_mean"] < 12.0
     # a level camera: the dancer stands along its vertical (measured 2.2° on all 101 frames)
@@ -94,7 +97,7 @@ def test_a_talking_head_close_up_is_tracked_and_fitted_by_its_face(tmp_path, med
     face_body = tmp_path / "face.npz"
     with_expressions(load_body_model(anny_files["body"]), ExpressionSpace.load(anny_expressions_file)).save(face_body)
     out = tmp_path / "init"
-    assert main(["fit-init", "--record", str(record), "--body", str(face_body), "--out", str(out)]) == 0
+    assert main(["fit-init", "--record", str(record), "--body", str(face_body), "--out", str(out), *SHORT_FIT]) == 0
     fit = json.loads((out / "summary.json").read_text())
     assert fit["started_from"] == "face" and fit["flagged"] == 0
     # measured 6.2 px (body keypoints and face points, 128² record) and 1.5 px (face points alone, 512²)
