@@ -196,7 +196,8 @@ def cmd_parse(args: argparse.Namespace) -> None:
     from delta.preprocess.steps import run_parsing
 
     _threads(args.threads)
-    run_parsing(args.video, _step_frames(args), args.model, args.path, args.out, args.threads, args.framing)
+    run_parsing(args.video, _step_frames(args), args.model, args.path, args.out, args.threads, args.framing,
+                args.person or None)  # fmt: skip
 
 
 def cmd_keypoints(args: argparse.Namespace) -> None:
@@ -556,6 +557,9 @@ def build_parser() -> argparse.ArgumentParser:
         )
         if name == "keypoints":
             p.add_argument("--face-path", help="face_landmark.onnx: also write face-mesh landmarks")
+        if name == "parse":
+            p.add_argument("--person", default="", help="the matting step's file (delta matte): the default parser "
+                           "partitions its person masks instead of cutting its own")  # fmt: skip
         p.set_defaults(func=func)
 
     p = sub.add_parser("convert-mediapipe", help="convert MediaPipe's shipped TFLite models to ONNX (once)")

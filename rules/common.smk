@@ -308,6 +308,13 @@ def step_files(wildcards):
     return files
 
 
+def parsed_person(wildcards):
+    """The matting step's file where it runs for the subject: the default parser partitions its person."""
+    if PRE["parsing"]["model"] != "default":
+        return []
+    return step_files(wildcards).get("matting", [])
+
+
 def _step_model(step, default_model):
     """The ONNX file a step runs: the converted MediaPipe model for the defaults, else the user's export."""
     m = PRE[step]

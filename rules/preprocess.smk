@@ -58,6 +58,7 @@ rule parse:
         video=video_input,
         model=parsing_model(),
         head=head_models,
+        person=parsed_person,
     output:
         PATHS["parsing"],
     log:
@@ -72,9 +73,10 @@ rule parse:
     params:
         model=PRE["parsing"]["model"],
         select=step_selection,
+        person=lambda w, input: ["--person", input.person] if input.person else [],
     shell:
         "delta parse --video {input.video:q} --model {params.model:q} --path {input.model:q} --out {output:q}"
-        " {params.select:q} --threads {threads} > {log:q} 2>&1"
+        " {params.select:q} {params.person:q} --threads {threads} > {log:q} 2>&1"
 
 
 rule keypoints:

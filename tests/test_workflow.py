@@ -503,6 +503,8 @@ def test_a_video_close_up_tracks_its_face_and_gets_the_face_body_model(tmp_path)
         lines = {s: re.search(rf"delta {step} --video clips/{s}\.mp4[^\n]*", out).group(0) for s in ("talk", "walk")}
         assert "--framing head" in lines["talk"] and "--framing full" in lines["walk"], (step, lines)
         assert '"framing"' not in lines["talk"]  # the frame ranges hold the ranges only
+        if step == "parse":  # the parser partitions the matting step's person: a head's mask is cut once
+            assert all(f"--person results/clips/{s}/matting.h5" in line for s, line in lines.items()), lines
     embedding = "resources/body/anny_sub1_face_landmarks.npz"
     assert "delta embed-face-landmarks" in out
     prepare = {

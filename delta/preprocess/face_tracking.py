@@ -267,8 +267,10 @@ class HeadLandmarker:
     def reset(self) -> None:
         self.tracker.reset()
 
-    def __call__(self, frame_rgb_uint8: np.ndarray) -> PoseResult:
+    def __call__(self, frame_rgb_uint8: np.ndarray, mask: np.ndarray | None = None) -> PoseResult:
+        """The tracked face's landmarks and head mask (``mask``: a given person mask, no GrabCut)."""
         self.face = self.tracker(frame_rgb_uint8)
         seen = self.face[0, 2] > 0
-        mask = head_mask(frame_rgb_uint8, self.face) if seen else np.zeros(frame_rgb_uint8.shape[:2], np.float32)
+        if mask is None:
+            mask = head_mask(frame_rgb_uint8, self.face) if seen else np.zeros(frame_rgb_uint8.shape[:2], np.float32)
         return PoseResult(mask=mask, landmarks=blazepose_from_face(self.face), presence=float(self.face[0, 2]))

@@ -88,7 +88,8 @@ class PoseLandmarker:
                               borderMode=cv2.BORDER_CONSTANT)  # fmt: skip
         return crop, scale, tx, ty
 
-    def __call__(self, frame_rgb_uint8: np.ndarray) -> PoseResult:
+    def __call__(self, frame_rgb_uint8: np.ndarray, mask: np.ndarray | None = None) -> PoseResult:
+        """The frame's landmarks and person mask (``mask``: a given person mask taken instead of the model's)."""
         frame = check_frame(frame_rgb_uint8, self.path)
         H, W = frame.shape[:2]
         roi = self.roi or (W / 2, H / 2, float(max(H, W)))
@@ -101,8 +102,9 @@ class PoseLandmarker:
         v = (raw[:, 1] - 0.5 - ty) / scale + 0.5
         vis = _sigmoid(raw[:, 3])
         Minv = cv2.invertAffineTransform(np.array([[scale, 0, tx], [0, scale, ty]]))
-        seg = _sigmoid(np.asarray(out[2])[0, :, :, 0]).astype(np.float32)
-        mask = cv2.warpAffine(seg, Minv, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        if mask is None:
+            seg = _sigmoid(np.asarray(out[2])[0, :, :, 0]).astype(np.float32)
+            mask = cv2.warpAffine(seg, Minv, (W, H), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         metric = np.asarray(out[4], np.float32).reshape(-1, 3)[:33] if len(out) > 4 else None
         result = PoseResult(mask=mask, landmarks=np.stack([u, v, vis], 1).astype(np.float32), presence=presence,
                             metric=metric)  # fmt: skip

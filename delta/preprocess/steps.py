@@ -51,17 +51,49 @@ def _mediapipe(path, threads=1, config_key=None, framing="full"):
 MATTING = {"rvm": om.RobustVideoMatting, "modnet": om.MODNet, "mediapipe": _mediapipe}
 
 
-def _default_parser(path, threads=1, config_key=None, framing="full"):
-    """MediaPipe pose (or tracked face) landmarks + the skin-colour parser (:mod:`delta.preprocess.parsing_default`)."""
+def _default_parser(path, threads=1, config_key=None, framing="full", person=None):
+    """MediaPipe pose (or tracked face) landmarks + the skin-colour parser (:mod:`delta.preprocess.parsing_default`),
+    within the landmarker's own person mask or, given ``person`` (:class:`PersonMasks`), the matting step's."""
     from delta.preprocess.parsing_default import VideoParser
 
     model, parser = landmarker(path, threads, config_key, framing), VideoParser()
 
-    def parse(frame):
-        pose = model(frame)
-        return parser(frame, pose.mask, pose)
+    def parse(i, frame):
+        if person is None:
+            pose = model(frame)
+            return parser(frame, pose.mask, pose)
+        alpha = person(i, frame.shape[:2])
+        pose = model(frame, mask=alpha)  # a tracked head's GrabCut is not cut twice
+        return parser(frame, alpha, pose)
 
     return parse
+
+
+class PersonMasks:
+    """The person alpha of a matting step's file (``delta matte``), frame by frame, as 0..1 floats: the
+    parser's person where the matting step ran, so that the parts lie inside the record's person mask and
+    a tracked head's mask is cut once."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise DeltaError(f"{self.path}: no such matting file (--person)")
+        self.file = h5py.File(self.path, "r")
+        if "person" not in self.file:
+            self.file.close()
+            raise DeltaError(f"{self.path}: not a matting step's file: it holds no 'person' masks")
+        self.masks = self.file["person"]
+
+    def __call__(self, i: int, shape: tuple[int, int]) -> np.ndarray:
+        if i >= len(self.masks):
+            raise DeltaError(f"{self.path}: no person mask for video frame {i} (the file holds {len(self.masks)} rows)")
+        if tuple(self.masks.shape[1:]) != tuple(shape):
+            raise DeltaError(f"{self.path}: person masks are {self.masks.shape[2]}x{self.masks.shape[1]}, "
+                             f"the video's frames {shape[1]}x{shape[0]}")  # fmt: skip
+        return self.masks[i].astype(np.float32) / 255.0
+
+    def close(self) -> None:
+        self.file.close()
 
 
 PARSING = {"default": _default_parser, "u2net_cloth": om.ClothSegmentation, "bisenet_face": om.FaceParsing}
@@ -72,10 +104,11 @@ PARSED = {"default": ("clothing", "skin", "hair"), "u2net_cloth": ("clothing",),
 LANDMARKED = ("mediapipe", "default")
 
 
-def _model(kind: str, table: dict, path: str, threads: int, key: str, framing: str = "full"):
+def _model(kind: str, table: dict, path: str, threads: int, key: str, framing: str = "full", **extra):
     if kind not in table:
         raise DeltaError(f"{key}: unknown model '{kind}'; known: {sorted(table)}")
-    extra = {"framing": framing} if kind in LANDMARKED else {}
+    if kind in LANDMARKED:
+        extra["framing"] = framing
     return table[kind](path, threads=threads, config_key=f"{key.rsplit('.', 1)[0]}.path", **extra)
 
 
@@ -123,7 +156,7 @@ def _decoded(video: Path, wanted: set[int] | None, what: str):
 
 def _mask_step(video: Path, wanted: set[int] | None, names: tuple[str, ...], compute, out: str | Path, model: str,
                what: str) -> int:  # fmt: skip
-    """Write the masks ``names`` that ``compute(rgb) -> {name: (H, W) uint8}`` gives for the ``wanted``
+    """Write the masks ``names`` that ``compute(i, rgb) -> {name: (H, W) uint8}`` gives for the ``wanted``
     frames (None: all), one row per video frame, empty where no frame was analysed; returns how many
     frames were analysed."""
     rows = _rows(Path(video), wanted)
@@ -134,7 +167,7 @@ def _mask_step(video: Path, wanted: set[int] | None, names: tuple[str, ...], com
             for i, rgb in _decoded(Path(video), wanted, what):
                 if f is None:
                     f, d = _masks_file(tmp, rows, rgb.shape[:2], names)
-                for name, mask in compute(rgb).items():
+                for name, mask in compute(i, rgb).items():
                     if i >= d[name].shape[0]:  # the video holds more frames than its header said
                         d[name].resize(i + 1, axis=0)
                     d[name][i] = mask
@@ -152,7 +185,7 @@ def run_matting(video: Path, wanted: set[int] | None, kind: str, path: str, out:
     recurrent); one row per video frame, empty where no frame was analysed."""
     model = _model(kind, MATTING, path, threads, "preprocess.matting.model", framing)
 
-    def alpha(rgb):
+    def alpha(i, rgb):
         return {"person": np.round(np.clip(model(rgb), 0, 1) * 255).astype(np.uint8)}
 
     count = _mask_step(video, wanted, ("person",), alpha, out, model_name(kind, path, framing), "matting")
@@ -160,22 +193,32 @@ def run_matting(video: Path, wanted: set[int] | None, kind: str, path: str, out:
 
 
 def run_parsing(video: Path, wanted: set[int] | None, kind: str, path: str, out: str | Path, threads: int = 1,
-                framing: str = "full") -> None:  # fmt: skip
+                framing: str = "full", person: str | Path | None = None) -> None:  # fmt: skip
     """Clothing, skin and hair (default), clothing (U²-Net cloth) or hair and face skin (BiSeNet face
-    parsing) masks, 0/1, for the ``wanted`` frames (None: all)."""
-    model = _model(kind, PARSING, path, threads, "preprocess.parsing.model", framing)
+    parsing) masks, 0/1, for the ``wanted`` frames (None: all). ``person``: a matting step's file whose
+    person masks the default parser partitions (the other parsers see the frame alone)."""
+    if person is not None and kind != "default":
+        raise DeltaError(f"--person: only the default parser partitions a matting step's person, not '{kind}'")
+    masks = PersonMasks(person) if person is not None else None
+    extra = {"person": masks} if masks is not None else {}
+    model = _model(kind, PARSING, path, threads, "preprocess.parsing.model", framing, **extra)
     names = PARSED[kind]
 
-    def parts(rgb):
-        result = model(rgb)
+    def parts(i, rgb):
         if kind == "default":
+            result = model(i, rgb)
             return {name: result[name] for name in names}
+        result = model(rgb)
         if kind == "u2net_cloth":
             return {"clothing": om.clothing_mask(result)}
         return {"hair": om.hair_mask(result), "skin": om.face_skin_mask(result)}
 
-    count = _mask_step(video, wanted, names, parts, out, model_name(kind, path, framing), "parsing")
-    log.info("parsing (%s) of %d frames -> %s", kind, count, out)
+    try:
+        count = _mask_step(video, wanted, names, parts, out, model_name(kind, path, framing), "parsing")
+    finally:
+        if masks is not None:
+            masks.close()
+    log.info("parsing (%s) of %d frames%s -> %s", kind, count, f" within {person}'s person" if masks else "", out)
 
 
 def run_keypoints(video: Path, wanted: set[int] | None, kind: str, path: str, out: str | Path, threads: int = 1,

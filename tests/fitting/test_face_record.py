@@ -14,6 +14,7 @@ from delta.body.model import load_body_model
 from delta.data.record import FrameRecord
 from delta.data.sources import synthetic_source
 from delta.fitting import run as fit_run
+from delta.fitting.settings import FitConfig
 from delta.preprocess.frames import prepare
 from delta.synthetic.generate import generate
 from delta.synthetic.spec import parse_subject
@@ -55,7 +56,9 @@ def test_face_points_move_with_the_crop(talking):
 
 
 def test_the_init_fit_tracks_the_face(talking, tmp_path):
-    summary = fit_run.run(talking["record"], talking["face_body"], tmp_path, overlays=0)
+    # half the default steps (measured: jaw correlation 0.997 and mean error 0.018 against 0.999 and 0.018)
+    summary = fit_run.run(talking["record"], talking["face_body"], tmp_path, overlays=0,
+                          cfg=FitConfig(iterations=(75, 100, 75)))  # fmt: skip
     assert summary["flagged"] == 0
     with np.load(tmp_path / "params.npz") as p:
         fitted, names, flags = p["expression"], [str(n) for n in p["expression_names"]], p["face_flags"]
