@@ -338,6 +338,7 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
         train_body_errors_mm,
         write_csv,
     )
+    from delta.eval.expressions import train_expression_errors
     from delta.eval.settings import EvalSettings
     from delta.io import save_json
     from delta.training.run import load_trained
@@ -353,6 +354,9 @@ def cmd_evaluate(args: argparse.Namespace) -> None:
                "convention": convention(df, st), "scores": summarize(df)}  # fmt: skip
     if args.gt_meshes:
         summary |= {k: round(v, 2) for k, v in train_body_errors_mm(trained, args.gt_meshes).items()}
+        params = Path(args.gt_meshes).parent / "params.npz"
+        train = trained.data.train
+        summary |= {k: round(v, 4) for k, v in train_expression_errors(trained.model, trained.data.frame_ids, params, train).items()}  # fmt: skip
         surface = Path(args.export_dir or "") / "clothing_nerf_space.ply"
         if args.export_dir and surface.exists():
             frames = sorted({int(f) for f in df["frame"]})

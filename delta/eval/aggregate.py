@@ -5,7 +5,8 @@ training resolution, supersampling, data range, perceptual metric, test-time ref
 wall time and peak memory of each training stage (from the rules' benchmark files), the
 mean of every score per test split — ``{split}_{score}`` before test-time refinement and
 ``{split}_{score}_refined`` after it, with the refinement's steps taken and its loss before and after
-(``{split}_refine_steps_refined``, ``{split}_refine_loss_start_refined``, ``..._end_refined``) — the body error over the training frames, and the
+(``{split}_refine_steps_refined``, ``{split}_refine_loss_start_refined``, ``..._end_refined``) — the body error
+(and a tracked face's expression error, ``train_expr_*``) over the training frames, and the
 export's numbers (``export_*``: mesh sizes, line-up IoUs), and the clothing surface against ground
 truth where there is one (``clothing_*``: Chamfer / normal consistency, sample to sample, and the exact
 point-to-surface distance ``clothing_p2s_*``).
@@ -71,7 +72,7 @@ def subject_row(dataset: str, subject: str, summary: dict, export: dict | None, 
             tag = "_refined" if name == "refined" else ""
             for k, v in scores.items():
                 row[f"{split}_{k}{tag}"] = math.nan if v is None else v
-    for key in ("train_body_err_mm", "train_body_err_pa_mm"):
+    for key in ("train_body_err_mm", "train_body_err_pa_mm", "train_expr_mae", "train_expr_err_mm"):
         if key in summary:
             row[key] = summary[key]
     row |= {k: v for k, v in summary.get("geometry", {}).items() if isinstance(v, (int, float))}

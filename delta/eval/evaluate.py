@@ -28,6 +28,7 @@ from delta import DeltaError
 from delta import metrics as M
 from delta.body.model import REGION
 from delta.data.frames import load_full_frames
+from delta.eval.expressions import AvatarExpressions
 from delta.eval.geometry import mesh_distance, point_to_surface, vertex_error, vertex_errors, visible_vertices
 from delta.eval.heldout import refine_frame
 from delta.eval.settings import EvalSettings
@@ -168,6 +169,10 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
     full = load_full_frames(record, [f for f, _ in frames], trained.settings.background)
     view = full_view(full, model.resolution)
     gt = gt_body_vertices(gt_meshes, data.frame_ids[[f for f, _ in frames]]) if gt_meshes else {}
+    face = None
+    if gt_meshes:  # a talking capture's truth: the tracked face's expressions are scored too
+        ids = [int(data.frame_ids[f]) for f, _ in frames]
+        face = AvatarExpressions.of(model, Path(gt_meshes).parent / "params.npz", ids)
     passes = [False, True] if st.refine_steps and st.report_unrefined else [bool(st.refine_steps)]
     bg = "white" if tuple(trained.settings.background) == (1.0, 1.0, 1.0) else str(tuple(trained.settings.background))
     keep = model.modelled.cpu().numpy()
@@ -210,6 +215,8 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
                 worst.offer(split, row["psnr"], int(data.frame_ids[f]), img["rgb"], full.images[k])
             if gt:
                 row |= body_errors(mesh, gt[int(data.frame_ids[f])], keep, model.camera(f))
+            if face is not None:
+                row |= face(f, int(data.frame_ids[f]))
             rows.append(row)
         scores = " ".join(f"{k} {v:.3f}" for k, v in rows[-1].items() if k in ("psnr", "ssim", "stlpips_alex"))
         progress.report(k + 1, f"frame {f} ({split}) {scores}")
