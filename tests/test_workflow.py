@@ -446,6 +446,28 @@ def test_a_talking_subject_alone_gets_the_face_body_model(tmp_path):
     assert '"use_provided": ["person", "clothing", "skin", "hair", "keypoints"]' in out
 
 
+def test_hair_moves_between_two_talking_heads_as_a_layer(tmp_path):
+    """config/heads.yaml: both talkers train their hair and shirt as layers; the long-haired talker wears the
+    short hair over its own shirt, both avatars read with the face body model, scored against a talking
+    capture the generator renders with the short hair."""
+    work = workflow_copy(tmp_path)
+    target = "results/synthetic/talker/dress/short-hair/dress.json"
+    res = snakemake(work, target, "--configfile", "config/config.yaml", "config/heads.yaml", "--dry-run",
+                    "--printshellcmds")  # fmt: skip
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out[-3000:]
+    face = "resources/body/anny_sub1_face.npz"
+    dress = re.search(r"delta dress [^\n]*", out).group(0)
+    assert f"--body {face}" in dress and f"--wearer-body {face}" in dress and "--layers hair" in dress
+    assert "--model results/synthetic/talker/stage2/model.pt" in dress
+    assert "--wearer-model results/synthetic/talker-short/stage2/model.pt" in dress
+    trains = re.findall(r"delta train [^\n]*", out)
+    assert len(trains) == 4 and all('"layers": "split"' in line for line in trains)
+    truth = re.search(r"delta synthesize --subject talker\.wears\.short-hair [^\n]*", out).group(0)
+    assert '"expressions": "talk"' in truth and '"hair": "short"' in truth and '"kind": "tshirt", "pattern": "plaid"' in truth
+    assert "--expressions resources/body/anny_expressions.npz" in truth  # the truth talks as the talker does
+
+
 def test_a_talking_head_is_reenacted_by_a_tracked_face_and_only_by_one(tmp_path):
     """applications.reenact: the talker driven by a tracked face is one job reading both avatars with the
     face body model; a driver or an avatar without a tracked face is refused before any job."""
