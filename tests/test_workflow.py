@@ -464,7 +464,11 @@ def test_hair_moves_between_two_talking_heads_as_a_layer(tmp_path):
     trains = re.findall(r"delta train [^\n]*", out)
     assert len(trains) == 4 and all('"layers": "split"' in line for line in trains)
     truth = re.search(r"delta synthesize --subject talker\.wears\.short-hair [^\n]*", out).group(0)
-    assert '"expressions": "talk"' in truth and '"hair": "short"' in truth and '"kind": "tshirt", "pattern": "plaid"' in truth
+    assert (
+        '"expressions": "talk"' in truth
+        and '"hair": "short"' in truth
+        and '"kind": "tshirt", "pattern": "plaid"' in truth
+    )
     assert "--expressions resources/body/anny_expressions.npz" in truth  # the truth talks as the talker does
 
 

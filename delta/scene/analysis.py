@@ -19,7 +19,10 @@ From the frame record (person, clothing and hair masks) and the init fit, before
 - ``stage2.length_factor``: stage 2's length as a multiple of the configured one, the room over the
   preset's: stage 2 learns the exterior's motion about the body (F_e), and a garment hanging farther
   from the body sways farther (on the loose dress, 300 -> 600 stage-2 steps lifted held-out views
-  25.5 -> 26.3 dB; a T-shirt's stage 2 keeps the configured length).
+  25.5 -> 26.3 dB; a T-shirt's stage 2 keeps the configured length);
+- ``weights``: for a tracked face (the init fit tracked its expressions: a talking head), the paper's
+  head weights where they differ from its body weights (:data:`HEAD_WEIGHTS`: the stage-2 semantic term
+  30 times the body's, the hidden skin's pull to the visible skin colour a tenth).
 
 Written to ``results/{dataset}/{subject}/scene.json`` and read by both training stages: a decision
 applies where the user's config does not set that key itself (``training.overrides`` or
@@ -48,7 +51,7 @@ from delta.models.image import pixel_grid
 from delta.models.init import load_init
 from delta.scene.framing import MAX_LOWER_IN_VIEW, frame_camera, lower_body_in_view
 from delta.scene.reach import Beyond, beyond_body, region_reach
-from delta.scene.settings import FRAME_BUDGET
+from delta.scene.settings import FRAME_BUDGET, HEAD_WEIGHTS
 
 log = logging.getLogger(__name__)
 
@@ -158,6 +161,9 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
                  "render": {"max_dist": room, "samples": samples}}  # fmt: skip
     if exterior == "yes":
         decisions["stage2"] = {"length_factor": stage2_factor(room, preset_room)}
+    face = init.expression is not None
+    if face:
+        decisions["weights"] = dict(HEAD_WEIGHTS)
     evidence = {
         "frames": picked, "size": size,
         "exterior": {"shares": shares, "min_share": MIN_EXTERIOR_FRACTION,
@@ -177,6 +183,10 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
                            f"{SAMPLE_PIXELS:g} of the {resolution}² training pixels apart ({1000 * footprint:.1f} mm "
                            f"at the body), at most {MAX_SAMPLE_FACTOR}x the preset's"},
     }  # fmt: skip
+    if face:
+        evidence["weights"] = {"expressions": int(init.expression.shape[1]),
+                               "why": f"a tracked face ({init.expression.shape[1]} expression coefficients a "
+                                      "frame): the paper's head weights"}  # fmt: skip
     if "stage2" in decisions:
         evidence["stage2"] = {"room_over_preset": round(room / preset_room, 3), "max_factor": MAX_STAGE2_FACTOR,
                               "why": f"stage 2 learns the exterior's motion about the body, which grows with its "

@@ -14,7 +14,19 @@ from pathlib import Path
 from delta import DeltaError
 
 #: The keys the analysis decides (dotted paths of the training settings).
-DECIDED = ("exterior", "capture", "resolution", "render.max_dist", "render.samples", "stage2.iterations")
+DECIDED = (
+    "exterior",
+    "capture",
+    "resolution",
+    "render.max_dist",
+    "render.samples",
+    "stage2.iterations",
+    "weights.semantic",
+    "weights.skin_inside",
+)
+#: The paper's head weights (DELTA §Implementation, head videos) where they differ from its body weights
+#: (:class:`delta.loss_weights.LossWeights`: semantic 0.0005, skin_inside 0.01); a tracked face takes them.
+HEAD_WEIGHTS = {"semantic": 0.015, "skin_inside": 0.001}
 #: The most memory the training frames may hold (bytes) where the scene decides their size: 400 frames
 #: fit up to 579² pixels. The workflow sizes a training job's memory by it.
 FRAME_BUDGET = 1 << 30

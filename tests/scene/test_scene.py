@@ -9,7 +9,8 @@ import pytest
 
 from delta.data.frames import BYTES_PER_PIXEL
 from delta.scene.analysis import SAMPLE_PIXELS, analyze, room_and_samples, stage2_factor, training_resolution
-from delta.scene.settings import FRAME_BUDGET, scene_settings, user_decided
+from delta.scene.settings import FRAME_BUDGET, HEAD_WEIGHTS, scene_settings, user_decided
+from delta.training.presets import resolve
 from delta.scene.reach import beyond_body, region_reach
 
 
@@ -107,6 +108,36 @@ def test_decisions_apply_only_where_the_config_is_silent(tmp_path):
     path.write_text("{}")
     with pytest.raises(Exception, match="not a scene analysis"):
         scene_settings(path, auto, [])
+
+
+def test_a_tracked_faces_head_weights_reach_the_loss_weights_unless_the_config_sets_them(tmp_path):
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps({"decisions": {"resolution": 64, "weights": HEAD_WEIGHTS}}))
+    taken = scene_settings(path, {"exterior": "auto"}, [])
+    assert taken == {"resolution": 64, "weights": {"semantic": 0.015, "skin_inside": 0.001}}
+    body = resolve("fast").weights
+    weights = resolve("fast", taken).weights
+    assert (weights.semantic, weights.skin_inside) == (0.015, 0.001)
+    assert (body.semantic, body.skin_inside) == (0.0005, 0.01)  # the paper's body weights otherwise
+    assert weights.inside == body.inside and weights.offset == body.offset  # the rest as for a body
+    assert scene_settings(path, {}, ["weights.semantic"]) == {"resolution": 64, "weights": {"skin_inside": 0.001}}
+    assert user_decided(["weights.skin_inside", "weights.edge"], 1) == ["weights.skin_inside"]
+
+
+@pytest.mark.slow
+def test_a_tracked_face_takes_the_head_weights_and_a_body_does_not(tiny_training, tmp_path):
+    t = tiny_training["tight"]
+    body = analyze(t["record"], t["init"], t["body"], 0.1, 16, size=32, frames=3)
+    assert "weights" not in body["decisions"] and "weights" not in body["evidence"]
+    with np.load(t["init"]) as p:  # the same fit with a tracked face: three expression coefficients a frame
+        arrays = dict(p)
+    arrays["expression"] = np.zeros((len(arrays["poses"]), 3), np.float32)
+    face_init = tmp_path / "face_params.npz"
+    np.savez(face_init, **arrays)
+    face = analyze(t["record"], face_init, t["body"], 0.1, 16, size=32, frames=3)
+    assert face["decisions"]["weights"] == HEAD_WEIGHTS
+    assert "a tracked face (3 expression coefficients a frame)" in face["evidence"]["weights"]["why"]
+    assert {k: v for k, v in face["decisions"].items() if k != "weights"} == body["decisions"]
 
 
 @pytest.mark.slow
