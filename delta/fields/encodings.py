@@ -8,6 +8,7 @@ grids' trilinear weights as sparse matrices (on the CPU, where ``grid_sample``'s
 from __future__ import annotations
 
 import math
+import warnings
 import weakref
 
 import torch
@@ -141,7 +142,9 @@ def trilinear_matrix(xn: torch.Tensor, shape: tuple[int, int, int]) -> tuple[tor
     index = torch.stack([rows, torch.stack(cols, 1).reshape(-1)])
     W = torch.sparse_coo_tensor(index, torch.stack(weights, 1).reshape(-1), (P, math.prod(shape)),
                                 check_invariants=True).coalesce()  # fmt: skip
-    return W.to_sparse_csr(), W.t().coalesce().to_sparse_csr()
+    with warnings.catch_warnings():  # torch calls its CSR support beta, in every job's log
+        warnings.filterwarnings("ignore", message="Sparse CSR tensor support is in beta state")
+        return W.to_sparse_csr(), W.t().coalesce().to_sparse_csr()
 
 
 class _Interpolate(torch.autograd.Function):
