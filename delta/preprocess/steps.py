@@ -59,12 +59,9 @@ def _default_parser(path, threads=1, config_key=None, framing="full", person=Non
     model, parser = landmarker(path, threads, config_key, framing), VideoParser()
 
     def parse(i, frame):
-        if person is None:
-            pose = model(frame)
-            return parser(frame, pose.mask, pose)
-        alpha = person(i, frame.shape[:2])
-        pose = model(frame, mask=alpha)  # a tracked head's GrabCut is not cut twice
-        return parser(frame, alpha, pose)
+        # a given mask is the landmarker's result's: a tracked head's GrabCut is not cut twice
+        pose = model(frame, mask=None if person is None else person(i, frame.shape[:2]))
+        return parser(frame, pose.mask, pose)
 
     return parse
 
