@@ -21,7 +21,7 @@ from delta.geometry import distance_grid
 from delta.geometry.raymesh import interpolate, ray_mesh_hits
 from delta.render.settings import RenderSettings
 from delta.render.silhouette import soft_silhouette
-from delta.render.volume import composite, ray_box, stratified_samples
+from delta.render.volume import composite, ray_box, sample_deltas, stratified_samples
 
 
 @dataclasses.dataclass
@@ -78,7 +78,8 @@ NeRF = Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
 Deform = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 Occupied = Callable[[torch.Tensor], torch.Tensor]
 """Canonical points (N, 3) -> (N,) bool: may have density (False: skipped); ``grow`` (keyword):
-the same test in the occupied set grown by that many cells."""
+the same test in the occupied set grown by that many cells; ``settled`` (keyword): the points are
+where the NeRF is queried (after F_e), tested against the set without F_e's reach."""
 
 
 def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixels: torch.Tensor,
@@ -162,58 +163,88 @@ def early_cull(skinning: deformer.SkinningFrame, points: torch.Tensor, max_dist:
     return keep
 
 
+#: samples a ray takes at once when rendering without gradients: the rays whose transmittance has
+#: fallen below ``OPAQUE`` by then take no more (early ray termination)
+MARCH = 16
+#: transmittance below which the rest of a ray changes its colour by less than this share (no more samples)
+OPAQUE = 1e-4
+
+
 def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: NeRF, nonrigid, occupied=None):
     """Densities and colours of the NeRF samples (all but the last), zero where culled, each layer's
     density (R, S - 1, L) for a layered NeRF (else None), and the number of samples evaluated.
 
     Culling, cheapest first: rays with an empty span, the early cull (distance grid and rough
     canonical point), samples beyond ``max_dist`` of the body (kNN), then samples whose canonical
-    point is in an empty occupancy cell (before F_e and the NeRF).
+    point is in an empty occupancy cell (before F_e and the NeRF). Without gradients the rays march
+    ``MARCH`` samples at a time, and a ray whose transmittance is below ``OPAQUE`` stops: its later
+    samples keep σ = 0, which moves its colour by less than ``OPAQUE`` (the mesh or background then
+    takes the weight those samples would have had, at most the transmittance left).
     """
     R, S = t.shape
-    tn = t[:, :-1]
-    points = origins[:, None] + tn[..., None] * dirs[:, None]  # (R, S - 1, 3)
+    points = origins[:, None] + t[:, :-1, None] * dirs[:, None]  # (R, S - 1, 3)
     flat = points.reshape(-1, 3)
-    live = (t[:, -1:] > t[:, :1]).expand(R, S - 1).reshape(-1)  # rays with a non-empty interval
+    layered = hasattr(nerf, "with_layers")
     sigma = flat.new_zeros(R * (S - 1))
     rgb = flat.new_zeros(R * (S - 1), 3)
-    layered = hasattr(nerf, "with_layers")
     layer_sigma = flat.new_zeros(R * (S - 1), len(nerf.names)) if layered else None
-    idx = torch.nonzero(live).squeeze(1)
-    if settings.early_cull and mesh.skinning.near is not None and len(idx):
-        idx = idx[early_cull(mesh.skinning, flat[idx], settings.max_dist, occupied)]
+    open_rays = torch.nonzero(t[:, -1] > t[:, 0]).squeeze(1)  # rays with a non-empty interval
+    march = S - 1 if torch.is_grad_enabled() else MARCH
+    optical = flat.new_zeros(R)  # optical depth so far (-log transmittance)
     evaluated = 0
-    if len(idx):
-        d = deformer.deform(mesh.skinning, flat[idx], settings.k, settings.sigma, settings.max_dist)
-        x_c, ref, rows = d.canonical, d.posed_ref, torch.arange(len(idx), device=idx.device)
-        valid = d.valid
-        if d.other is not None:  # second candidates near surfaces in contact: evaluated beside the first
-            x_c, ref = torch.cat([x_c, d.other.canonical]), torch.cat([ref, d.other.posed_ref])
-            rows, valid = torch.cat([rows, d.other.rows]), torch.cat([valid, d.other.valid])
-        if occupied is not None:
-            valid = valid & occupied(x_c)
-        keep = torch.nonzero(valid).squeeze(1)
-        evaluated = len(keep)
-        if len(keep):
-            x_c = x_c[keep]
-            if nonrigid is not None:
-                x_c = x_c + nonrigid(x_c, ref[keep])
-            s_layers = None
-            if layered:
-                c, s, s_layers = nerf.with_layers(x_c)
-            else:
-                c, s = nerf(x_c)
-            at, pick = rows[keep], slice(None)  # one candidate a point: each is its point's own
-            if d.other is not None:
-                at, pick = denser(at, s)
-            at = idx[at]
-            sigma = sigma.index_put((at,), s[pick])
-            rgb = rgb.index_put((at,), c[pick])
-            if layered:
-                layer_sigma = layer_sigma.index_put((at,), s_layers[pick])
+    for s0 in range(0, S - 1, march):
+        s1 = min(s0 + march, S - 1)
+        if s0:
+            open_rays = open_rays[optical[open_rays] < -math.log(OPAQUE)]
+        idx = (open_rays[:, None] * (S - 1) + torch.arange(s0, s1, device=t.device)).reshape(-1)
+        at, s, c, s_layers = _query_points(mesh, flat, idx, settings, nerf, nonrigid, occupied)
+        evaluated += len(at)
+        sigma = sigma.index_put((at,), s)
+        rgb = rgb.index_put((at,), c)
+        if layered:
+            layer_sigma = layer_sigma.index_put((at,), s_layers)
+        if s1 < S - 1:
+            optical = optical + (sigma.view(R, S - 1)[:, s0:s1] * sample_deltas(t[:, s0 : s1 + 1])).sum(1)
     if layered:
         layer_sigma = layer_sigma.view(R, S - 1, -1)
     return sigma.view(R, S - 1), rgb.view(R, S - 1, 3), layer_sigma, evaluated
+
+
+def _query_points(mesh: PosedMesh, flat, idx, settings: RenderSettings, nerf: NeRF, nonrigid, occupied):
+    """The NeRF at posed points ``flat[idx]`` that pass the culls: their indices into ``flat`` (P,),
+    densities (P,), colours (P, 3) and each layer's density (P, L) (None for one NeRF)."""
+    layered = hasattr(nerf, "with_layers")
+    none = idx[:0], flat.new_zeros(0), flat.new_zeros(0, 3), flat.new_zeros(0, len(nerf.names)) if layered else None
+    if settings.early_cull and mesh.skinning.near is not None and len(idx):
+        idx = idx[early_cull(mesh.skinning, flat[idx], settings.max_dist, occupied)]
+    if not len(idx):
+        return none
+    d = deformer.deform(mesh.skinning, flat[idx], settings.k, settings.sigma, settings.max_dist)
+    x_c, ref, rows = d.canonical, d.posed_ref, torch.arange(len(idx), device=idx.device)
+    valid = d.valid
+    if d.other is not None:  # second candidates near surfaces in contact: evaluated beside the first
+        x_c, ref = torch.cat([x_c, d.other.canonical]), torch.cat([ref, d.other.posed_ref])
+        rows, valid = torch.cat([rows, d.other.rows]), torch.cat([valid, d.other.valid])
+    if occupied is not None:
+        valid = valid & occupied(x_c)
+    keep = torch.nonzero(valid).squeeze(1)
+    x_c = x_c[keep]
+    if nonrigid is not None and len(keep):
+        x_c = x_c + nonrigid(x_c, ref[keep])
+        if occupied is not None:  # the test above allowed for F_e's reach; the moved point meets the set itself
+            settled = torch.nonzero(occupied(x_c.detach(), settled=True)).squeeze(1)
+            keep, x_c = keep[settled], x_c[settled]
+    if not len(keep):
+        return none
+    s_layers = None
+    if layered:
+        c, s, s_layers = nerf.with_layers(x_c)
+    else:
+        c, s = nerf(x_c)
+    at, pick = rows[keep], slice(None)  # one candidate a point: each is its point's own
+    if d.other is not None:
+        at, pick = denser(at, s)
+    return idx[at], s[pick], c[pick], None if s_layers is None else s_layers[pick]
 
 
 def denser(rows: torch.Tensor, sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

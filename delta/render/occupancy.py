@@ -11,7 +11,10 @@ the NeRF) lands in an empty cell: they cost neither the NeRF query nor F_e, and 
 σ = 0 exactly as if the NeRF had returned ~0 there. Points outside the box are kept (the
 grid says nothing about them). With F_e (stage 2) the occupied set is dilated by F_e's
 largest displacement, since the check happens before F_e moves the point; stage 2 starts from
-stage 1's grid so grown (``carry``), not from an all-occupied one. The mean in the
+stage 1's grid so grown (``carry``), not from an all-occupied one. The point F_e has moved is
+tested again against the set itself (``settled``): the grid's densities are the NeRF's at canonical
+points, where the moved point is looked up, so a sample F_e carries into an empty cell is dropped
+before the NeRF as in stage 1. The mean in the
 threshold (instant-NGP's) keeps a still nearly uniform field (early training) from being
 emptied all at once: the denser part of the cells stays; a perfectly flat one keeps every cell.
 
@@ -102,19 +105,34 @@ class OccupancyGrid(nn.Module):
         self.occupied.copy_(_grow(occ, self.dilation))
         self.active.fill_(True)
 
-    def contains(self, points: torch.Tensor, grow: int = 0) -> torch.Tensor:
+    def contains(self, points: torch.Tensor, grow: int = 0, settled: bool = False) -> torch.Tensor:
         """(N,) bool: the point lies in an occupied cell, or outside the grid (never skipped).
 
         ``grow``: in the occupied set grown by this many cells (a test for a point known only
-        to within that many cells; the renderer's cull before the kNN query).
+        to within that many cells; the renderer's cull before the kNN query). ``settled``: the point
+        is where the NeRF will be queried (after F_e): tested against the occupied set without F_e's
+        dilation (``grow`` then counts from that set).
         """
-        occupied = self._grown(grow) if grow > 0 else self.occupied
+        if settled:
+            occupied = _grow(self._settled(), grow)
+        else:
+            occupied = self._grown(grow) if grow > 0 else self.occupied
         shape = torch.tensor(self.shape, device=points.device)
         fijk = torch.floor((points.detach() - self.lo) / self.cell)
         inside = ((fijk >= 0) & (fijk < shape)).all(-1)
         ijk = torch.where(inside[:, None], fijk, torch.zeros_like(fijk)).long()
         occ = occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
         return occ | ~inside
+
+    def _settled(self) -> torch.Tensor:
+        """The occupied set without the dilation (from the kept densities), cached until they change."""
+        if not self.dilation:
+            return self.occupied
+        key = (self.density._version, self.density.data_ptr(), self.occupied._version)
+        if getattr(self, "_settled_key", None) != key:
+            occ = self.density > min(self.threshold, float(self.density.mean()))
+            self._settled_cache, self._settled_key = occ if occ.any() else self.occupied, key
+        return self._settled_cache
 
     def _grown(self, cells: int) -> torch.Tensor:
         """The occupied set grown by ``cells``, cached until ``occupied`` changes in place (an update,

@@ -190,3 +190,42 @@ def test_empty_layers_give_zero_opacity_and_finite_gradients():
     assert bool((out.layer_masks == 0).all()) and bool((out.nerf_mask == 0).all())
     (out.layer_masks.sum() + out.rgb.sum()).backward()
     assert bool(torch.isfinite(scale.grad))
+
+
+def _march(offsets, sigma, march, monkeypatch, grad):
+    """Rays through the shell of density ``sigma`` with 48 samples, marching ``march`` at a time
+    when ``grad`` is off (with gradients a ray takes all its samples at once)."""
+    from delta.render import hybrid
+
+    monkeypatch.setattr(hybrid, "MARCH", march)
+    mesh = sphere_avatar()
+    nerf, calls = shell_nerf(0.3, 0.05, sigma)
+    o, d = rays(offsets)
+    st = RenderSettings(samples=48, box_margin=0.3, max_dist=0.1, perturb=False)
+    with torch.set_grad_enabled(grad):
+        return render_rays(mesh, o, d, o[:, :2] * 100, BG, st, nerf), calls
+
+
+OFFSETS = [0.0, 0.15, 0.28, 0.32, 0.38]  # through the body's middle, its rim, past it in the shell
+
+
+def test_rays_that_stay_translucent_render_exactly_as_in_one_pass(monkeypatch):
+    whole, _ = _march(OFFSETS, 0.5, 4, monkeypatch, grad=True)
+    marched, calls = _march(OFFSETS, 0.5, 4, monkeypatch, grad=False)
+    assert float(whole.nerf_mask.max()) < 0.5 and len(calls) > 1  # several steps, none opaque
+    assert marched.samples_evaluated == whole.samples_evaluated > 0
+    assert torch.equal(marched.rgb, whole.rgb) and torch.equal(marched.nerf_mask, whole.nerf_mask)
+
+
+def test_opaque_rays_stop_early_and_their_colour_moves_by_less_than_the_transmittance_left(monkeypatch):
+    from delta.render.hybrid import OPAQUE
+
+    whole, _ = _march(OFFSETS, 400.0, 4, monkeypatch, grad=True)
+    marched, _ = _march(OFFSETS, 400.0, 4, monkeypatch, grad=False)
+    assert float(whole.nerf_mask.max()) > 1 - 1e-6  # some rays saturate in the shell
+    assert 0 < marched.samples_evaluated < whole.samples_evaluated
+    assert float((marched.rgb - whole.rgb).abs().max()) <= OPAQUE
+    assert float((marched.nerf_mask - whole.nerf_mask).abs().max()) <= OPAQUE
+    for march in (1, 7, 47, 100):  # a step of one sample, uneven steps, one step for all
+        other, _ = _march(OFFSETS, 400.0, march, monkeypatch, grad=False)
+        torch.testing.assert_close(other.rgb, marched.rgb, atol=OPAQUE, rtol=0)

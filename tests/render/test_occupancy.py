@@ -229,3 +229,52 @@ def test_early_cull_loses_few_samples_the_exact_tests_keep_on_a_posed_anny(anny_
     early = early_cull(frame, x, 0.1, occ.contains)
     assert int(exact.sum()) > 2000 and int(early.sum()) < 0.6 * len(x)  # both act
     assert int((exact & ~early).sum()) <= most_lost * int(exact.sum())
+
+
+def test_a_settled_point_meets_the_occupied_set_without_the_dilation():
+    g = OccupancyGrid(BOX, OccupancySettings(enabled=True, resolution=10, threshold=1.0), dilation=0.05)
+    g.update(slab_density, seed=1)  # cells 6..9 along x, grown by one cell for the test before F_e
+    x = torch.tensor([[0.15, 0.0, 0.0], [0.05, 0.0, 0.0], [-0.05, 0.0, 0.0], [0.9, 0.0, 0.0]])
+    assert g.contains(x).tolist() == [True, True, False, True]
+    assert g.contains(x, settled=True).tolist() == [True, False, False, True]
+    assert g.contains(x, grow=1, settled=True).tolist() == [True, True, False, True]
+    other = grid(threshold=1.0)
+    other.update(lambda p: 5.0 * (p[:, 0] < -0.4).float(), seed=3)  # cell 0 only
+    g.load_state_dict(other.state_dict())  # the loaded densities decide, not a cached set
+    assert g.contains(torch.tensor([[-0.45, 0.0, 0.0], [0.15, 0.0, 0.0]]), settled=True).tolist() == [True, False]
+    flat = grid(threshold=1.0)
+    flat.update(lambda p: torch.zeros_like(p[:, 0]), seed=0)  # a collapsed field keeps every cell here too
+    assert flat.contains(x, settled=True).all()
+
+
+def test_points_F_e_moves_into_empty_cells_skip_the_nerf_and_change_nothing():
+    """F_e shifts every point 0.08 m along -x; the grid (dilated by F_e's 0.1-m reach) holds the slab
+    and the body. The NeRF sees only points that land in the slab's or the body's cells, and the
+    render and its gradients are those without a grid, whose NeRF is exactly 0 elsewhere."""
+    g = OccupancyGrid(BOX, OccupancySettings(enabled=True, resolution=10, threshold=0.5), dilation=0.1)
+    g.update(lambda x: slab_density(x) + 1e6 * (x.norm(dim=-1) < 0.3).float(), seed=0)
+    shift = torch.tensor([-0.08, 0.0, 0.0])
+    seen, out = [], {}
+    for name, occ in (("plain", None), ("culled", g.contains)):
+        a, b = torch.tensor(30.0, requires_grad=True), torch.tensor([1.0, 2.0, 3.0], requires_grad=True)
+        nerf = _nerf(a, b, [])
+        r = render_rays(*_scene(), nerf=lambda x: seen.append((name, x.detach())) or nerf(x),
+                        nonrigid=lambda x, ref: shift.expand_as(x), occupied=occ)  # fmt: skip
+        (r.rgb * torch.tensor([1.0, 2.0, 3.0])).sum().backward()
+        out[name] = (r, a.grad, b.grad)
+    (p, pa, pb), (c, ca, cb) = out["plain"], out["culled"]
+    culled_points = torch.cat([x for name, x in seen if name == "culled"])
+    assert g.contains(culled_points, settled=True).all()
+    assert not g.contains(torch.cat([x for name, x in seen if name == "plain"]), settled=True).all()
+    assert 0 < c.samples_evaluated < p.samples_evaluated and float(p.nerf_mask.detach().max()) > 0.1
+    torch.testing.assert_close(c.rgb, p.rgb, atol=1e-6, rtol=0)
+    torch.testing.assert_close(ca, pa, rtol=1e-5, atol=1e-7)
+    torch.testing.assert_close(cb, pb, rtol=1e-5, atol=1e-7)
+
+
+def _scene():
+    mesh = sphere_avatar()
+    o = torch.tensor([[x, 0.0, 2.0] for x in (-0.32, -0.1, 0.05, 0.15, 0.22, 0.33, 0.36)])
+    d = torch.tensor([[0.0, 0.0, -1.0]] * len(o))
+    st = RenderSettings(samples=24, box_margin=0.3, max_dist=0.1, perturb=False)
+    return mesh, o, d, o[:, :2] * 100, BG, st
