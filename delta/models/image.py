@@ -16,6 +16,7 @@ import dataclasses
 import itertools
 
 import torch
+import torch.nn.functional as F
 
 from delta.data.frames import FullFrames
 from delta.models.avatar import HybridAvatar
@@ -96,25 +97,61 @@ def live_rays(pixels: torch.Tensor, box: torch.Tensor | None) -> torch.Tensor:
 
 #: rays a whole-image render casts at once on the CPU; a GPU takes 8x as many (large batches keep it busy)
 CPU_CHUNK = 8192
+#: supersampling renders the s² rays only of pixels where the image changes by more than this from a
+#: neighbouring pixel's centre (in colour or in any mask); elsewhere the pixel's centre stands for them
+EDGE = 1 / 64
 
 
 @torch.no_grad()
 def render_image(model: HybridAvatar, frame: int, chunk: int | None = None, supersample: int = 1,
-                 view: View | None = None, soft_silhouette: bool = True) -> dict[str, torch.Tensor]:  # fmt: skip
+                 view: View | None = None, soft_silhouette: bool = True, edge: float | None = EDGE) -> dict[str, torch.Tensor]:  # fmt: skip
     """Composite, mesh-only, NeRF-only images, NeRF mask and silhouette, (H, W, ·) each; with an exterior
     in layers also each layer's opacity (``layer_clothing``, ``layer_hair``).
 
-    The image is the model's n×n crop, or ``view``. ``supersample`` s renders s² rays a pixel and
-    averages them (anti-aliased edges). Rays outside the projection of the box that holds the
+    The image is the model's n×n crop, or ``view``. ``supersample`` s averages s² rays a pixel
+    (anti-aliased edges) where the pixel's centre differs by more than ``edge`` from a neighbour's
+    (:func:`busy_pixels`); elsewhere the image is smooth and its centre ray is the average to second
+    order. ``edge`` None: s² rays in every pixel. Rays outside the projection of the box that holds the
     posed mesh and the exterior's reach meet nothing: they get the background without being cast.
     ``soft_silhouette`` False: the silhouette is the mesh hits' coverage (cheaper; no soft edges).
     """
     view = view or View(model.resolution, model.resolution)
-    H, W, s2 = view.height, view.width, int(supersample) ** 2
+    H, W, s = view.height, view.width, int(supersample)
+    mesh = model.posed_mesh(frame)[0]
+    dev = model.background.device
+
+    def rays(pixels: torch.Tensor) -> dict[str, torch.Tensor]:
+        return _render_pixels(model, frame, mesh, view.to_model(pixels), chunk, soft_silhouette)
+
+    if s == 1 or edge is None:
+        out = {k: x.reshape(H * W, s * s, -1).mean(1) for k, x in rays(pixel_grid(H, s, dev, width=W)).items()}
+    else:
+        out = rays(pixel_grid(H, 1, dev, width=W))
+        busy = torch.nonzero(busy_pixels(out, H, W, edge)).squeeze(1)
+        if len(busy):
+            sub = pixel_grid(H, s, dev, width=W).view(H * W, s * s, 2)[busy].reshape(-1, 2)
+            for k, x in rays(sub).items():
+                out[k][busy] = x.reshape(len(busy), s * s, -1).mean(1).view_as(out[k][busy])
+    return {k: x.reshape(H, W, -1).squeeze(-1).cpu() for k, x in out.items()}
+
+
+def busy_pixels(image: dict[str, torch.Tensor], height: int, width: int, edge: float) -> torch.Tensor:
+    """(H·W,) bool: pixels whose value in any of ``image``'s (H·W, C) channels differs by more than ``edge``
+    from one of its 8 neighbours'."""
+    flat = torch.cat([x.reshape(height * width, -1).float() for x in image.values()], 1)
+    grid = flat.T.reshape(1, -1, height, width)
+    # the largest difference to a neighbour: max over the 3x3 window of |x - centre|, per channel
+    hi = F.max_pool2d(grid, 3, stride=1, padding=1)
+    lo = -F.max_pool2d(-grid, 3, stride=1, padding=1)
+    spread = torch.maximum(hi - grid, grid - lo).amax(1)[0]
+    return (spread > edge).reshape(-1)
+
+
+def _render_pixels(model: HybridAvatar, frame: int, mesh, pixels: torch.Tensor, chunk: int | None,
+                   soft_silhouette: bool) -> dict[str, torch.Tensor]:  # fmt: skip
+    """Every image of :func:`render_image` at ray positions (R, 2) (the model's pixels): (R, C) each."""
     dev = model.background.device
     chunk = chunk or (CPU_CHUNK if dev.type == "cpu" else 8 * CPU_CHUNK)
-    pixels = view.to_model(pixel_grid(H, supersample, dev, width=W))
-    mesh = model.posed_mesh(frame)[0]
     live = torch.nonzero(live_rays(pixels, reach_box(model, frame, mesh.vertices))).squeeze(1)
     bg = model.background
     full = {"rgb": bg.expand(len(pixels), 3), "mesh": bg.expand(len(pixels), 3), "nerf": bg.expand(len(pixels), 3),
@@ -132,4 +169,4 @@ def render_image(model: HybridAvatar, frame: int, chunk: int | None = None, supe
                 full[k][idx] = v.to(full[k].dtype)
     finally:
         model.spec.render.perturb = perturb
-    return {k: x.reshape(H * W, s2, -1).mean(1).reshape(H, W, -1).squeeze(-1).cpu() for k, x in full.items()}
+    return full

@@ -127,7 +127,7 @@ def test_a_finer_view_renders_the_supersampled_rays(tiny_trained, subject):
     own = load_trained(t["model"], t["record"], t["body"])
     n = own.model.resolution
     f = int(np.flatnonzero(own.data.split == 1)[0])
-    a = render_image(own.model, f, supersample=2)
+    a = render_image(own.model, f, supersample=2, edge=None)  # every pixel's four rays
     b = render_image(own.model, f, view=View(2 * n, 2 * n, (0.5, 0.5)))
     for key in ("rgb", "silhouette"):
         down = b[key].reshape(n, 2, n, 2, -1).mean((1, 3)).reshape(a[key].shape)
@@ -148,7 +148,7 @@ def test_the_whole_frame_holds_the_crop(trained):
     (u0, v0, side), (W, H), n = full.crop, full.size, tr.model.resolution
     assert full.source_size == (W, H) and side % n == 0, "the tiny capture is scored at its own size"
     k = side // n
-    own = render_image(tr.model, f, supersample=k)["rgb"]
+    own = render_image(tr.model, f, supersample=k, edge=None)["rgb"]  # every pixel's k² rays
     rows = [i for i in range(n) if 0 <= v0 + k * i and v0 + k * (i + 1) <= H]
     cols = [j for j in range(n) if 0 <= u0 + k * j and u0 + k * (j + 1) <= W]
     assert len(rows) > n // 2 and len(cols) > n // 2
