@@ -14,6 +14,13 @@ are missing), and where the fitted face turns more than ``max_turn_deg`` from th
 ``turned away``; flagged frames take their neighbours' values. A capture with no usable frame is an
 error.
 
+A frame the joint fit leaves far from its points (median residual over ``outlier_factor`` times the
+capture's and over ``outlier_px``: a local minimum, typically every activation at its bound) starts
+again from its neighbours' values for ``restart_iterations`` more steps of all frames; one still that
+far is flagged ``poor fit`` and takes its neighbours' values too. The restart takes the nearest good
+frame's whole pose and place for the frame as well: a face left that far usually sits on a body fit
+that is off.
+
 Shapes: F frames, K face points, J joints, E expression coefficients.
 """
 
@@ -65,6 +72,12 @@ class FaceFitConfig:
     """A fitted face turned further than this from the camera is flagged."""
     head_joints: tuple[str, ...] = ("neck02", "head", "neck")
     """The joints whose rotation the face corrects (those of them the body model has)."""
+    outlier_factor: float = 4.0
+    """A fitted frame whose median residual exceeds this many times the median over the fitted frames ..."""
+    outlier_px: float = 2.0
+    """... and this many pixels is fitted again from its neighbours (then flagged if it stays so)."""
+    restart_iterations: int = 100
+    """Steps of the fit again from the neighbours' values (0: no second try)."""
 
 
 @dataclasses.dataclass
@@ -109,6 +122,13 @@ def face_turn_deg(out_transforms: torch.Tensor, head: int, camera, head_pos: tor
     return torch.rad2deg(torch.acos(cos.clamp(-1, 1)))
 
 
+def nearest_good(bad: torch.Tensor) -> torch.Tensor:
+    """(F,) for each frame the nearest frame not ``bad`` (itself when it is good; the earlier one on a tie)."""
+    good = torch.nonzero(~bad).squeeze(1)
+    frames = torch.arange(len(bad))
+    return good[(frames[:, None] - good[None]).abs().argmin(1)]
+
+
 def fit_face(
     model: BodyModel,
     points: FacePoints,
@@ -149,46 +169,77 @@ def fit_face(
     place = torch.zeros(F, 3, dtype=dtype, requires_grad=True)  # in the camera's axes: across, up, depth
     axes = torch.eye(3, dtype=dtype) if isinstance(camera, OrthographicCamera) else camera.R.to(dtype)
     place_w = torch.tensor([cfg.place_weight, cfg.place_weight, cfg.depth_weight], dtype=dtype)
-    base = poses.to(dtype).detach()
+    base = poses.to(dtype).detach().clone()  # (a restart replaces a frame's body fit: never the caller's)
     B0 = betas.to(dtype).detach()
-    T0 = transl.to(dtype).detach()
+    T0 = transl.to(dtype).detach().clone()
     target = detected[..., :2].to(dtype)
     weight = usable.to(dtype) * (torch.tensor([not f for f in flags], dtype=dtype)[:, None])
-    # metres move pixels ~10x more than radians and activations: smaller steps for the translation
-    opt = torch.optim.Adam([{"params": [expression, head, shape], "lr": cfg.lr},
-                            {"params": [place], "lr": cfg.lr / 10}])  # fmt: skip
 
     def pose_of(h):
         full = base.clone()
         full[:, joints] = full[:, joints] + h
         return full
 
-    rigid = cfg.iterations // 3
-    for it in range(cfg.iterations):
-        # first the face's placement, size and turn with a neutral face and a wide robust scale (a body fit
-        # off by tens of pixels), then the expressions with it
-        sigma = cfg.sigma_px * (5.0 if it < rigid else 1.0)
-        expression.requires_grad_(it >= rigid)
-        opt.zero_grad()
+    def fitted_points():
         out = lbs(small, (B0 + shape)[None].expand(F, -1), pose_of(head), expression, transl=T0 + place @ axes)
-        uv, _ = camera.project(local(out.vertices))
-        data = (weight * gmof(uv - target, sigma)).sum(1)
-        prior = cfg.expression_weight * expression.square().sum(1) + cfg.sparsity_weight * expression.abs().sum(1)
-        prior = prior + cfg.head_weight * head.square().sum((1, 2)) + (place.square() * place_w).sum(1)
-        smooth = cfg.smooth_weight * (
-            (expression[1:] - expression[:-1]).square().sum(1) + (head[1:] - head[:-1]).square().sum((1, 2))
-        ) + ((place[1:] - place[:-1]).square() * place_w).sum(1)
-        loss = (data + prior).sum() + smooth.sum() + cfg.shape_weight * F * shape.square().sum()
-        loss.backward()
-        opt.step()
-        with torch.no_grad():
-            expression.clamp_(0.0, 1.0)
+        return out, camera.project(local(out.vertices))[0]
 
+    def optimise(iterations: int, rigid: int) -> None:
+        # metres move pixels ~10x more than radians and activations: smaller steps for the translation
+        opt = torch.optim.Adam([{"params": [expression, head, shape], "lr": cfg.lr},
+                                {"params": [place], "lr": cfg.lr / 10}])  # fmt: skip
+        for it in range(iterations):
+            # first the face's placement, size and turn with a neutral face and a wide robust scale (a body
+            # fit off by tens of pixels), then the expressions with it
+            sigma = cfg.sigma_px * (5.0 if it < rigid else 1.0)
+            expression.requires_grad_(it >= rigid)
+            opt.zero_grad()
+            uv = fitted_points()[1]
+            data = (weight * gmof(uv - target, sigma)).sum(1)
+            prior = cfg.expression_weight * expression.square().sum(1) + cfg.sparsity_weight * expression.abs().sum(1)
+            prior = prior + cfg.head_weight * head.square().sum((1, 2)) + (place.square() * place_w).sum(1)
+            smooth = cfg.smooth_weight * (
+                (expression[1:] - expression[:-1]).square().sum(1) + (head[1:] - head[:-1]).square().sum((1, 2))
+            ) + ((place[1:] - place[:-1]).square() * place_w).sum(1)
+            loss = (data + prior).sum() + smooth.sum() + cfg.shape_weight * F * shape.square().sum()
+            loss.backward()
+            opt.step()
+            with torch.no_grad():
+                expression.clamp_(0.0, 1.0)
+        expression.requires_grad_(True)
+
+    def residuals() -> torch.Tensor:
+        with torch.no_grad():
+            err = (fitted_points()[1] - target).norm(dim=-1)
+            return err.masked_fill(~usable, math.nan).nanmedian(1).values
+
+    def far_off(residual: torch.Tensor, fitted: torch.Tensor) -> torch.Tensor:
+        typical = float(residual[fitted].median())
+        return fitted & (residual > max(cfg.outlier_factor * typical, cfg.outlier_px))
+
+    optimise(cfg.iterations, cfg.iterations // 3)
+    fitted = torch.tensor([not f for f in flags])
+    off = far_off(residuals(), fitted)
+    if off.any() and cfg.restart_iterations > 0 and int(fitted.sum()) > int(off.sum()):
+        log.info("face tracking: %d frame(s) far from their points (%s); fitted again from their neighbours",
+                 int(off.sum()), torch.nonzero(off).squeeze(1).tolist()[:10])  # fmt: skip
+        with torch.no_grad():  # from the frames fitted well (the unfitted ones take theirs at the end)
+            bad = off | ~fitted
+            expression.copy_(interpolate(expression.detach(), bad))
+            # the body fit under such a frame is often off itself (a body turned or moved by decimetres
+            # where the face moved a pixel): the frame takes its nearest good frame's whole pose and place
+            # (not a blend: two fits may split one head turn differently between root, spine and neck)
+            near = nearest_good(bad)[off]
+            base[off] = pose_of(head.detach())[near]
+            T0[off] = (T0 + place.detach() @ axes)[near]
+            head[off], place[off] = 0.0, 0.0
+        optimise(cfg.restart_iterations, cfg.restart_iterations // 3)
+        off = far_off(residuals(), fitted)
+    flags = [f or ("poor fit" if off[i] else "") for i, f in enumerate(flags)]
+
+    residual = residuals()
     with torch.no_grad():
-        out = lbs(small, (B0 + shape)[None].expand(F, -1), pose_of(head), expression, transl=T0 + place @ axes)
-        uv, _ = camera.project(local(out.vertices))
-        err = (uv - target).norm(dim=-1)
-        residual = err.masked_fill(~usable, math.nan).nanmedian(1).values
+        out = fitted_points()[0]
         head_j = model.joint_names.index("head") if "head" in model.joint_names else joints[-1]
         turn = face_turn_deg(out.joint_transforms, head_j, camera, out.joints[:, head_j])
         flags = [f or ("turned away" if turn[i] > cfg.max_turn_deg else "") for i, f in enumerate(flags)]

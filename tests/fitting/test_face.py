@@ -150,3 +150,36 @@ def test_a_body_model_without_expressions_is_refused(scene, anny_files):
                  scene["transl"])  # fmt: skip
     with pytest.raises(DeltaError, match="dense face points need its expression space"):
         dense_face_points(plain)
+
+
+def test_a_frame_left_far_from_its_points_is_fitted_again_then_flagged(scene):
+    """Frame 25's detections are another face's points shuffled (a detector that latched onto garbage): no
+    expression or head turn explains them, the restart from its neighbours cannot either, and the frame is
+    flagged ``poor fit`` and bridged; every other frame is fitted as before."""
+    s = scene
+    det = s["detected"].clone()
+    gen = torch.Generator().manual_seed(1)
+    det[25, :, :2] = det[25, torch.randperm(det.shape[1], generator=gen), :2]
+    out = fit(s, det)
+    assert out.flags[25] == "poor fit" and sum(bool(f) for f in out.flags) == 1
+    assert out.residual_px[25] > 4 * out.residual_px.median()
+    assert torch.allclose(out.expression[25], (out.expression[24] + out.expression[26]) / 2)
+    kept = fit(s, det, outlier_factor=1e9)  # no frame counts as far off: the garbage frame is kept as fitted
+    assert not any(kept.flags) and not torch.allclose(kept.expression[25], out.expression[25])
+
+
+def test_a_frame_whose_body_fit_is_far_off_is_recovered_by_the_restart(scene):
+    """Frame 25's body fit turns the whole body 1.2 rad and moves it 0.8 m (a head capture's body fit can
+    jump so between frames while the face moves a pixel): the face's corrections, held to the body fit
+    by their priors and moved by Adam's bounded steps, cannot undo that; started again on its nearest good
+    frame's body, it fits."""
+    s = scene
+    start, transl = s["start"].clone(), s["transl"].clone()
+    start[25, 0] += torch.tensor([0.0, 1.2, 0.0], dtype=start.dtype)
+    transl[25] += torch.tensor([0.8, 0.0, 0.0], dtype=transl.dtype)
+    one = fit_face(s["body"], s["points"], s["detected"], s["camera"], s["betas"], start, transl,
+                   FaceFitConfig(restart_iterations=0, outlier_factor=1e9))  # fmt: skip
+    out = fit_face(s["body"], s["points"], s["detected"], s["camera"], s["betas"], start, transl)
+    print("residual of frame 25 without / with the restart", float(one.residual_px[25]), float(out.residual_px[25]))
+    assert one.residual_px[25] > 4 * one.residual_px.median()
+    assert not any(out.flags) and out.residual_px[25] < 2 * out.residual_px.median()
