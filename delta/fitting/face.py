@@ -173,7 +173,8 @@ def fit_face(
     B0 = betas.to(dtype).detach()
     T0 = transl.to(dtype).detach().clone()
     target = detected[..., :2].to(dtype)
-    weight = usable.to(dtype) * (torch.tensor([not f for f in flags], dtype=dtype)[:, None])
+    fitted = torch.tensor([not f for f in flags])
+    weight = usable.to(dtype) * fitted.to(dtype)[:, None]
 
     def pose_of(h):
         full = base.clone()
@@ -213,13 +214,13 @@ def fit_face(
             err = (fitted_points()[1] - target).norm(dim=-1)
             return err.masked_fill(~usable, math.nan).nanmedian(1).values
 
-    def far_off(residual: torch.Tensor, fitted: torch.Tensor) -> torch.Tensor:
+    def far_off(residual: torch.Tensor) -> torch.Tensor:
         typical = float(residual[fitted].median())
         return fitted & (residual > max(cfg.outlier_factor * typical, cfg.outlier_px))
 
     optimise(cfg.iterations, cfg.iterations // 3)
-    fitted = torch.tensor([not f for f in flags])
-    off = far_off(residuals(), fitted)
+    residual = residuals()
+    off = far_off(residual)
     if off.any() and cfg.restart_iterations > 0 and int(fitted.sum()) > int(off.sum()):
         log.info("face tracking: %d frame(s) far from their points (%s); fitted again from their neighbours",
                  int(off.sum()), torch.nonzero(off).squeeze(1).tolist()[:10])  # fmt: skip
@@ -234,10 +235,10 @@ def fit_face(
             T0[off] = (T0 + place.detach() @ axes)[near]
             head[off], place[off] = 0.0, 0.0
         optimise(cfg.restart_iterations, cfg.restart_iterations // 3)
-        off = far_off(residuals(), fitted)
+        residual = residuals()
+        off = far_off(residual)
     flags = [f or ("poor fit" if off[i] else "") for i, f in enumerate(flags)]
 
-    residual = residuals()
     with torch.no_grad():
         out = fitted_points()[0]
         head_j = model.joint_names.index("head") if "head" in model.joint_names else joints[-1]

@@ -96,14 +96,18 @@ class OccupancyGrid(nn.Module):
 
     def _mark(self) -> None:
         """The occupied set from the kept densities, grown by the dilation; the grid is used from now on."""
+        self.occupied.copy_(_grow(self._core(), self.dilation))
+        self.active.fill_(True)
+
+    def _core(self) -> torch.Tensor:
+        """The cells the kept densities mark occupied, before any dilation."""
         occ = self.density > min(self.threshold, float(self.density.mean()))
         if not occ.any():
             # no cell above the field's own mean: a flat field (σ underflowed to 0 everywhere, as a
             # PE NeRF at a grid's learning rate does) says nothing about where the exterior is, and an
             # empty grid would cut the NeRF off from every gradient for good: keep every cell
             occ = torch.ones_like(occ)
-        self.occupied.copy_(_grow(occ, self.dilation))
-        self.active.fill_(True)
+        return occ
 
     def contains(self, points: torch.Tensor, grow: int = 0, settled: bool = False) -> torch.Tensor:
         """(N,) bool: the point lies in an occupied cell, or outside the grid (never skipped).
@@ -125,13 +129,12 @@ class OccupancyGrid(nn.Module):
         return occ | ~inside
 
     def _settled(self) -> torch.Tensor:
-        """The occupied set without the dilation (from the kept densities), cached until they change."""
+        """The occupied set without the dilation, cached until the kept densities or the set change."""
         if not self.dilation:
             return self.occupied
         key = (self.density._version, self.density.data_ptr(), self.occupied._version)
         if getattr(self, "_settled_key", None) != key:
-            occ = self.density > min(self.threshold, float(self.density.mean()))
-            self._settled_cache, self._settled_key = occ if occ.any() else self.occupied, key
+            self._settled_cache, self._settled_key = self._core(), key
         return self._settled_cache
 
     def _grown(self, cells: int) -> torch.Tensor:
