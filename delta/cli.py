@@ -258,7 +258,7 @@ def cmd_export(args: argparse.Namespace) -> None:
 
     _threads(args.threads)
     st = settings.from_arguments(ExportSettings, args, "export")
-    export_avatar(args.model, args.record, args.body, args.out, st, args.device)
+    export_avatar(args.model, args.record, args.body, args.out, st, args.device, args.part)
 
 
 def cmd_animate(args: argparse.Namespace) -> None:
@@ -621,7 +621,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_analyze_scene)
 
     from delta.perceptual.weights import add_fetch_perceptual_arguments, cmd_fetch_perceptual
-    from delta.export.settings import ExportSettings
+    from delta.export.settings import PARTS, ExportSettings
 
     p = sub.add_parser(
         "fetch-perceptual", help="fetch the shift-tolerant VGG16/AlexNet weights (stlpips-pytorch 0.0.2)"
@@ -632,6 +632,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("export", help="export a trained avatar: meshes (PLY, GLB), videos, side-by-side images")
     _avatar_arguments(p)
     p.add_argument("--out", required=True, help="folder for the meshes, videos, sidebyside/ and export.json")
+    p.add_argument("--part", choices=PARTS, default="all",
+                   help="meshes (PLY, GLB, meshes.json: seconds), videos (side-by-sides, line-up check, videos, "
+                        "export.json; reads the meshes part's output in --out) or all")  # fmt: skip
     settings.add_arguments(p, ExportSettings)
     _job_arguments(p)
     p.set_defaults(func=cmd_export)

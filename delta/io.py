@@ -72,6 +72,14 @@ def save_json(path: str | os.PathLike, obj: Any) -> None:
         tmp.write_text(json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
+def load_json(path: str | os.PathLike) -> Any:
+    """A JSON file's content, or an error naming the file and what is wrong with it."""
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise DeltaError(f"{path}: cannot read ({e})") from None
+
+
 def load_state(path: str | os.PathLike, map_location: Any = "cpu") -> dict:
     """A ``model.pt`` or ``checkpoint.pt``: tensors and plain values only, never code.
 

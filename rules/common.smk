@@ -16,6 +16,7 @@ from delta.config import tracks_face as _tracks_face
 from delta.config import validate_workflow_config
 from delta.config import variant_training as _variant_training
 from delta.data import PROVIDES
+from delta.export.settings import part_settings as _export_part_settings
 from delta.scene.settings import FRAME_BUDGET, user_decided
 from delta.synthetic.spec import dressed_raw, parse_subject, reshaped_raw, truth_name
 from delta.training.presets import resolve as resolve_training, stage_view
@@ -120,6 +121,7 @@ PATHS = {
     "eval_worst": "results/{dataset}/{subject}/eval/worst",
     "export_dir": "results/{dataset}/{subject}/export",
     "export_json": "results/{dataset}/{subject}/export/export.json",
+    "export_meshes": "results/{dataset}/{subject}/export/meshes.json",
     "export_glb": "results/{dataset}/{subject}/export/avatar.glb",
     "export_animated": "results/{dataset}/{subject}/export/avatar_animated.glb",
     "turntable": "results/{dataset}/{subject}/export/turntable.mp4",
@@ -594,7 +596,7 @@ def eval_inputs(wildcards):
         or wildcards.subject in config["standins"]
     ):  # ground truth for the geometry columns
         files["gt"] = PATHS["syn_meshes"].format(subject=wildcards.subject)
-        files["export"] = PATHS["export_json"].format(**wildcards)
+        files["export"] = PATHS["export_meshes"].format(**wildcards)
     return files
 
 
@@ -613,8 +615,9 @@ def eval_truth(wildcards, input):
     return args
 
 
-def export_settings(wildcards):
-    return json.dumps(EXPORT, sort_keys=True)
+def export_settings(part):
+    """The export settings one part's job reads, as JSON (a change to the others does not rerun it)."""
+    return json.dumps(_export_part_settings(EXPORT, part), sort_keys=True)
 
 
 def dataset_subjects(wildcards):
@@ -709,7 +712,7 @@ def animate_inputs(wildcards):
     else:
         files["motion"] = source
     if ANIMATE["meshes"]:
-        files["export"] = PATHS["export_json"].format(**wildcards)
+        files["export"] = PATHS["export_meshes"].format(**wildcards)
     return files
 
 
@@ -726,10 +729,10 @@ def truth_inputs(wildcards, application, name, wearer=None):
     files = {
         "truth": PATHS["syn_params"].format(subject=truth[0]),
         "alex": PATHS["perceptual_alex"],
-        "export": PATHS["export_json"].format(**wildcards),
+        "export": PATHS["export_meshes"].format(**wildcards),
     }
     if wearer is not None:
-        files["wearer_export"] = PATHS["export_json"].format(**wearer)
+        files["wearer_export"] = PATHS["export_meshes"].format(**wearer)
     return files
 
 

@@ -23,13 +23,39 @@ rule plot_losses:
         "delta plot-losses --losses {input:q} --out {output:q} --title {params.title:q} > {log:q} 2>&1"
 
 
-rule export_avatar:
+rule export_meshes:
     input:
         unpack(trained_inputs),
     output:
-        json=PATHS["export_json"],
+        json=PATHS["export_meshes"],
         glb=PATHS["export_glb"],
         animated=PATHS["export_animated"],
+    log:
+        log_path("export_meshes", "{dataset}_{subject}"),
+    benchmark:
+        benchmark_path("export_meshes", "{dataset}_{subject}")
+    conda:
+        "../workflow/envs/delta.yaml"
+    threads: 2
+    resources:
+        mem_mb=lambda w, attempt: _grow(3000, attempt),
+        runtime=lambda w, attempt: 10 * attempt,
+    params:
+        out=lambda w: PATHS["export_dir"].format(**w),
+        settings=export_settings("meshes"),
+        device=config["device"],
+    shell:
+        "delta export --part meshes --model {input.model:q} --record {input.record:q} --body {input.body:q}"
+        " --out {params.out:q} --settings {params.settings:q} --device {params.device:q} --threads {threads}"
+        " > {log:q} 2>&1"
+
+
+rule export_avatar:
+    input:
+        unpack(trained_inputs),
+        meshes=PATHS["export_meshes"],
+    output:
+        json=PATHS["export_json"],
         turntable=report(
             PATHS["turntable"],
             caption="../workflow/report/turntable.rst",
@@ -64,11 +90,12 @@ rule export_avatar:
         runtime=lambda w, attempt: 20 * attempt,
     params:
         out=lambda w: PATHS["export_dir"].format(**w),
-        settings=export_settings,
+        settings=export_settings("videos"),
         device=config["device"],
     shell:
-        "delta export --model {input.model:q} --record {input.record:q} --body {input.body:q} --out {params.out:q}"
-        " --settings {params.settings:q} --device {params.device:q} --threads {threads} > {log:q} 2>&1"
+        "delta export --part videos --model {input.model:q} --record {input.record:q} --body {input.body:q}"
+        " --out {params.out:q} --settings {params.settings:q} --device {params.device:q} --threads {threads}"
+        " > {log:q} 2>&1"
 
 
 rule evaluate:

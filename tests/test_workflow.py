@@ -576,3 +576,25 @@ def test_a_layer_of_an_exterior_is_worn_alone(tmp_path):
     (work / "one.yaml").write_text(yaml.safe_dump(cfg))
     res = snakemake(work, targets[0], "--configfile", "config/config.yaml", "one.yaml", "--dry-run")
     assert res.returncode != 0 and "which is trained as one NeRF" in res.stdout + res.stderr
+
+
+def test_evaluation_waits_for_the_meshes_not_the_videos(tmp_path):
+    """The export is two jobs: the meshes (seconds), which evaluation and the applications read, and the
+    videos (whole frames rendered at the capture's size), which only the dataset's table waits for; each
+    job is given only the export settings it reads."""
+    work = workflow_copy(tmp_path)
+    res = snakemake(work, "results/synthetic/tight/eval/metrics.csv", "--dry-run", "--printshellcmds")
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out[-3000:]
+    assert re.findall(r"delta export --part (\w+)", out) == ["meshes"]
+    evaluate = re.search(r"delta evaluate [^\n]*", out).group(0)
+    assert "--export-dir results/synthetic/tight/export" in evaluate
+    res = snakemake(work, "results/synthetic/metrics.csv", "--dry-run", "--printshellcmds")
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out[-3000:]
+    jobs = dict(
+        re.findall(r"delta export --part (\w+) [^\n]*--out results/synthetic/tight/export --settings '([^']*)'", out)
+    )
+    meshes, videos = json.loads(jobs["meshes"]), json.loads(jobs["videos"])
+    assert "grid" in meshes and "turntable_frames" not in meshes
+    assert "turntable_frames" in videos and "grid" not in videos

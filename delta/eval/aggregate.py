@@ -14,25 +14,17 @@ point-to-surface distance ``clothing_p2s_*``).
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import pandas as pd
 
 from delta import DeltaError
-from delta.io import atomic_path
+from delta.io import atomic_path, load_json
 
 
 #: the parts of export.json that become columns
 EXPORT_KEYS = ("body", "clothing", "lineup")
-
-
-def _read_json(path: str | Path) -> dict:
-    try:
-        return json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise DeltaError(f"{path}: cannot read ({e})") from None
 
 
 def _flatten(d: dict, prefix: str) -> dict:
@@ -98,7 +90,7 @@ def aggregate(dataset: str, subjects: list[str], summaries: list[str], exports: 
         if not path or subject not in bench:
             raise DeltaError(f"aggregate: benchmark '{item}' is not SUBJECT/RULE=PATH for a listed subject")
         bench[subject][rule] = path
-    rows = [subject_row(dataset, s, _read_json(summaries[i]), _read_json(exports[i]) if exports else None, bench[s])
+    rows = [subject_row(dataset, s, load_json(summaries[i]), load_json(exports[i]) if exports else None, bench[s])
             for i, s in enumerate(subjects)]  # fmt: skip
     df = pd.DataFrame(rows)
     numeric = df.select_dtypes("number").columns.drop(["stage", "refine_steps"], errors="ignore")

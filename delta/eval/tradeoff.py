@@ -20,18 +20,16 @@ the row.
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from delta import DeltaError
 from delta.eval.aggregate import benchmark_row
 from delta.eval.plots import smooth
 from delta.geometry.distance_grid import GRID_REACH
-from delta.io import atomic_path
+from delta.io import atomic_path, load_json
 
 #: training-ray PSNR is noisy (one frame a step); this many steps are averaged
 PSNR_WINDOW = 25
@@ -110,16 +108,9 @@ def stage_seconds(bench_s: float, clock_s: float) -> float:
     return round(max(bench_s, clock_s), 1)
 
 
-def _read_json(path) -> dict:
-    try:
-        return json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise DeltaError(f"{path}: cannot read ({e})") from None
-
-
 def variant_row(subject: str, variant: str, files: dict, peak: float) -> dict:
     """``files``: summary, profile, losses1 [, losses2], bench1 [, bench2]."""
-    prof = _read_json(files["profile"])
+    prof = load_json(files["profile"])
     row = {"subject": subject, "variant": variant} | knobs(prof)
     total = 0.0
     curves = {k: pd.read_csv(files[f"losses{k}"]) for k in (1, 2) if f"losses{k}" in files}
@@ -132,7 +123,7 @@ def variant_row(subject: str, variant: str, files: dict, peak: float) -> dict:
             total += row[f"stage{stage}_s"]
     row["train_s"] = total
     row["stages"] = 2 if "bench2" in files else 1
-    summary = _read_json(files["summary"])
+    summary = load_json(files["summary"])
     scored = summary.get("convention", {}).get("resolution") or summary.get("settings", {}).get("resolution")
     row["eval_resolution"] = scored or row["resolution"]
     scores = summary.get("scores", {})
@@ -161,7 +152,7 @@ def tradeoff(
     manifest: dict, peak_json: str | Path, reference: str, out_csv: str | Path, out_png: str | Path
 ) -> pd.DataFrame:
     """``manifest``: {subject: {variant: files}} (see :func:`variant_row`)."""
-    peak = float(_read_json(peak_json)["flop_per_s"])
+    peak = float(load_json(peak_json)["flop_per_s"])
     rows = [variant_row(s, v, files, peak) for s, variants in manifest.items() for v, files in variants.items()]
     df = pd.DataFrame(rows)
     df["held_out_psnr"] = [held_out_psnr(r) for r in rows]

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import torch
 
+from delta import DeltaError
 from delta.export import lineup
 from delta.body.lbs import posed_joints
 from delta.body.upright import Upright
@@ -22,13 +23,14 @@ from delta.export.meshes import (
     pose_clothing,
     rest_body,
     borrowed_weights,
+    read_mesh,
     write_glb,
     write_mesh,
 )
-from delta.export.settings import ExportSettings
+from delta.export.settings import PARTS, ExportSettings, part_settings
 from delta.export.video import capture_upright, render_frames, side_by_side, turntable, write_video
 from delta.geometry.raymesh import ray_mesh_hits
-from delta.io import atomic_path, require_files, save_json
+from delta.io import atomic_path, load_json, require_files, save_json
 from delta.metrics import psnr
 from delta.models.avatar import HybridAvatar
 from delta.cameras.models import camera_vertical, metres_per_pixel
@@ -162,30 +164,62 @@ def _load(model_path, record, body_path, device):
     return load_trained(model_path, record, body_path, device)  # names a record of other frames
 
 
+#: The summary of the meshes part, read by the videos part and merged into ``export.json``.
+MESHES_JSON = "meshes.json"
+
+
 def export_avatar(model_path: str | Path, record: str | Path, body_path: str | Path, out_dir: str | Path,
-                  settings: ExportSettings, device: str = "cpu") -> dict:  # fmt: skip
-    """Write every export of a trained avatar into ``out_dir``; returns the summary (also ``export.json``)."""
+                  settings: ExportSettings, device: str = "cpu", part: str = "all") -> dict:  # fmt: skip
+    """Write the exports of a trained avatar into ``out_dir`` (``part``: meshes, videos or all); returns
+    the part's summary (``meshes.json``; ``export.json`` for the videos and all)."""
     t_start = time.perf_counter()
     tr = _load(model_path, record, body_path, device)
-    summary = export_trained(tr, out_dir, settings, {"model": str(model_path), "record": str(record)}, record)
-    log.info("export (%.1f s, loading included) written to %s", time.perf_counter() - t_start, out_dir)
+    summary = export_trained(tr, out_dir, settings, {"model": str(model_path), "record": str(record)}, record, part)
+    log.info("export %s (%.1f s, loading included) written to %s", part, time.perf_counter() - t_start, out_dir)
     return summary
 
 
 def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, about: dict | None = None,
-                   record: str | Path | None = None) -> dict:  # fmt: skip
-    """The exports of a loaded avatar (``about`` is copied into the summary).
+                   record: str | Path | None = None, part: str = "all") -> dict:  # fmt: skip
+    """The exports of a loaded avatar (``about`` is copied into the summary): ``meshes`` writes the meshes,
+    the GLBs and ``meshes.json``; ``videos`` the side-by-sides, line-up check and videos, reading the
+    meshes part's output in ``out_dir``, and ``export.json`` (both summaries); ``all`` both.
 
     With the frame ``record``, the videos and side-by-sides show the capture's whole frame at its
     scoring size, whatever the avatar was trained at; without, the avatar's own crop.
     """
-    t_start = time.perf_counter()
-    model, data, out = tr.model, tr.data, Path(out_dir)
+    if part not in PARTS:
+        raise DeltaError(f"export: part '{part}' is not one of {', '.join(PARTS)}")
+    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    frames = report_frames(data.split, max(settings.sidebyside, 1))
-    full = load_full_frames(record, frames, tr.settings.background) if record is not None else None
+    if part in ("meshes", "all"):
+        meshes = export_meshes(tr, out, settings, about, record)
+        if part == "meshes":
+            return meshes
+    else:
+        meshes = read_meshes_summary(out)
+    return export_videos(tr, out, settings, meshes, record)
+
+
+def read_meshes_summary(out: Path) -> dict:
+    """The meshes part's summary in ``out``, or an error saying to export the meshes first."""
+    path = out / MESHES_JSON
+    if not path.is_file():
+        raise DeltaError(f"{path}: missing; the videos part reads the meshes part's output "
+                         f"(run `delta export --part meshes --out {out}` first)")  # fmt: skip
+    return load_json(path)
+
+
+def export_meshes(tr: Trained, out: Path, settings: ExportSettings, about: dict | None = None,
+                  record: str | Path | None = None) -> dict:  # fmt: skip
+    """Body and clothing/hair meshes (PLY), ``avatar.glb``, ``avatar_animated.glb`` and ``meshes.json``;
+    the clothing's colours are read a pixel of the ``record``'s whole frame apart (of the model's crop
+    without it)."""
+    t_start = time.perf_counter()
+    model, data = tr.model, tr.data
+    posed_frame = report_frames(data.split, 1)[0]
+    full = load_full_frames(record, [posed_frame], tr.settings.background) if record is not None else None
     view = full_view(full, model.resolution) if full is not None else None
-    posed_frame = frames[0]
     times: dict[str, float] = {}
 
     t = time.perf_counter()
@@ -195,7 +229,7 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
     write_mesh(out / "body_posed.ply", body_p)
     parts = {"body": body_c}
     summary: dict = {**(about or {}), "stage": tr.stage, "preset": tr.preset,
-                     "settings": vars(settings).copy(), "posed_frame": posed_frame,
+                     "settings": part_settings(settings, "meshes"), "posed_frame": posed_frame,
                      "body": {"vertices": len(body_c.vertices), "faces": len(body_c.faces),
                               "watertight": bool(body_c.to_trimesh().is_watertight)}}  # fmt: skip
     times["body"] = time.perf_counter() - t
@@ -243,6 +277,40 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
     summary["animated"] = {**write_capture_animation(model, data.frame_ids, out / "avatar_animated.glb", settings.fps,
                                                      clothing, upright), "fps": settings.fps}  # fmt: skip
     times["animated"] = time.perf_counter() - t
+    times["meshes"] = time.perf_counter() - t_start
+    summary["seconds"] = {k: round(v, 2) for k, v in times.items()}
+    save_json(out / MESHES_JSON, summary)
+    log.info("meshes written in %.1f s", times["meshes"])
+    return summary
+
+
+def exported_clothing(model: HybridAvatar, out: Path, meshes: dict) -> MeshPart | None:
+    """The clothing surface in the NeRF's space the meshes part wrote (empty where the NeRF's density
+    never reached the threshold; None without a NeRF)."""
+    if model.nerf is None:
+        return None
+    path = out / "clothing_nerf_space.ply"
+    if not meshes.get("clothing", {}).get("faces"):
+        return MeshPart(np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3)))
+    if not path.is_file():
+        raise DeltaError(f"{path}: missing, but {out / MESHES_JSON} says the clothing mesh has "
+                         f"{meshes['clothing']['faces']} faces; export the meshes again")  # fmt: skip
+    return read_mesh(path)
+
+
+def export_videos(tr: Trained, out: Path, settings: ExportSettings, meshes: dict,
+                  record: str | Path | None = None) -> dict:  # fmt: skip
+    """Side-by-sides, the line-up check of the exported meshes against the renders, ``turntable.mp4`` and
+    ``novel_pose.mp4``; writes ``export.json``: the meshes part's summary with these added."""
+    t_start = time.perf_counter()
+    model, data = tr.model, tr.data
+    frames = report_frames(data.split, max(settings.sidebyside, 1))
+    full = load_full_frames(record, frames, tr.settings.background) if record is not None else None
+    view = full_view(full, model.resolution) if full is not None else None
+    clothing = exported_clothing(model, out, meshes)
+    upright = capture_upright(model)
+    summary = {**meshes, "settings": {**meshes.get("settings", {}), **part_settings(settings, "videos")}}
+    times: dict[str, float] = dict(meshes.get("seconds", {}))
 
     t = time.perf_counter()
     rows = []
@@ -277,7 +345,8 @@ def export_trained(tr: Trained, out_dir: str | Path, settings: ExportSettings, a
     summary["novel_pose"] = {"frames": write_video(out / "novel_pose.mp4", progress.counted(render_frames(model, novel, view), "novel pose"), settings.fps),
                              "test_pose_frames": bool((data.split == 2).any())}  # fmt: skip
     times["novel_pose"] = time.perf_counter() - t
-    times["total"] = time.perf_counter() - t_start
+    times["videos"] = time.perf_counter() - t_start
+    times["total"] = times["videos"] + times.get("meshes", 0.0)
     summary["seconds"] = {k: round(v, 2) for k, v in times.items()}
     summary["resolution"] = "{}x{}".format(*full.size) if full else f"{model.resolution}x{model.resolution}"
     summary["model_resolution"] = model.resolution

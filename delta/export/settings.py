@@ -44,3 +44,22 @@ class ExportSettings:
 
     def __post_init__(self) -> None:
         check(self, "export")
+
+
+#: What each part of an export writes (``delta export --part``): the meshes take seconds, the videos
+#: render whole frames (minutes to hours at the capture's size), so evaluation and the applications,
+#: which read only the clothing surface, need not wait for the videos.
+PARTS = ("meshes", "videos", "all")
+#: The settings each part reads; each workflow job is given only its part's, so that a change to the
+#: videos does not make the meshes again (nor rerun the evaluation that reads them).
+PART_FIELDS = {
+    "meshes": ("grid", "threshold", "smooth", "decimate", "color_spacing", "min_component_faces", "chunk", "fps"),
+    "videos": ("turntable_frames", "fps", "novel_frames", "sidebyside"),
+}
+
+
+def part_settings(settings: ExportSettings | dict, part: str) -> dict:
+    """The fields of ``settings`` (an object or the config's mapping) that ``part`` reads (all for ``all``)."""
+    values = vars(settings) if isinstance(settings, ExportSettings) else settings
+    names = PART_FIELDS.get(part, tuple(f.name for f in dataclasses.fields(ExportSettings)))
+    return {name: values[name] for name in names if name in values}

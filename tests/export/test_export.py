@@ -246,6 +246,37 @@ def test_posed_clothing_follows_the_body(shell_export, shell_avatar):
         assert abs(np.median(d) - SHELL) < 0.3 * SHELL
 
 
+def test_the_meshes_and_the_videos_export_apart_as_together(shell_export, shell_avatar, tmp_path):
+    """``--part meshes`` writes the meshes and no video; ``--part videos`` then reads them (the line-up
+    check poses the clothing file) and writes what one whole export writes; videos alone are refused."""
+    from delta import DeltaError
+
+    whole_dir, whole = shell_export
+    with pytest.raises(DeltaError, match="meshes.json: missing; the videos part reads the meshes part's output"):
+        export_trained(shell_avatar, tmp_path / "none", SETTINGS, part="videos")
+    out = tmp_path / "apart"
+    meshes = export_trained(shell_avatar, out, SETTINGS, {"model": "tiny"}, part="meshes")
+    assert (out / "meshes.json").is_file() and not (out / "export.json").exists()
+    assert not (out / "turntable.mp4").exists() and (out / "avatar_animated.glb").stat().st_size > 0
+    assert "grid" in meshes["settings"] and "turntable_frames" not in meshes["settings"]
+    videos = export_trained(shell_avatar, out, SETTINGS, part="videos")
+    assert json.loads((out / "export.json").read_text()) == json.loads(json.dumps(videos))
+    for key in ("body", "clothing", "colour_sampling", "upright", "animated", "posed_frame", "model"):
+        assert videos[key] == whole[key], key
+    assert videos["settings"] == vars(SETTINGS) == whole["settings"]
+    # the clothing read back from its PLY lines up as the one made in the same process
+    for mine, theirs in zip(videos["frames"], whole["frames"]):
+        assert mine["iou_avatar"] == pytest.approx(theirs["iou_avatar"], abs=1e-3)
+        assert mine["iou_body"] == theirs["iou_body"] and mine["psnr"] == theirs["psnr"]
+    for name in ("turntable.mp4", "novel_pose.mp4", "clothing_nerf_space.ply", "avatar.glb"):
+        assert (out / name).stat().st_size > 0, name
+    assert set(videos["seconds"]) >= {"meshes", "videos", "total", "turntable"}
+    # the clothing file gone, where the meshes' summary says there is one: named
+    (out / "clothing_nerf_space.ply").unlink()
+    with pytest.raises(DeltaError, match="clothing_nerf_space.ply: missing, but .* says the clothing mesh has"):
+        export_trained(shell_avatar, out, SETTINGS, part="videos")
+
+
 def test_frame_choice():
     split = np.array([0, 0, 1, 0, 2, 2, 1])
     assert report_frames(split, 2) == [2, 6] and report_frames(split, 10) == [2, 4, 5, 6]
