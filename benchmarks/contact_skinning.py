@@ -27,7 +27,8 @@ import pandas as pd
 import torch
 
 from delta.deformers import knn
-from delta.eval.evaluate import SPLITS, evaluate
+from delta.eval.evaluate import evaluate
+from delta.eval.settings import SPLITS
 from delta.eval.settings import EvalSettings
 from delta.render import hybrid
 from delta.training.run import load_trained

@@ -16,7 +16,13 @@ from delta.config import tracks_face as _tracks_face
 from delta.config import validate_workflow_config
 from delta.config import variant_training as _variant_training
 from delta.data import PROVIDES
+from delta.eval.runtime import evaluation_minutes as _evaluation_minutes
+from delta.eval.runtime import read_job as _read_render_job
+from delta.eval.runtime import videos_minutes as _videos_minutes
+from delta.eval.settings import EvalSettings
+from delta.export.settings import ExportSettings
 from delta.export.settings import part_settings as _export_part_settings
+from delta.settings import from_mapping as _from_mapping
 from delta.scene.settings import FRAME_BUDGET, user_decided
 from delta.synthetic.spec import dressed_raw, parse_subject, reshaped_raw, truth_name
 from delta.training.presets import resolve as resolve_training, stage_view
@@ -613,6 +619,27 @@ def eval_truth(wildcards, input):
     if "export" in input.keys():
         args += ["--export-dir", str(Path(input.export).parent)]
     return args
+
+
+EVAL_SETTINGS = _from_mapping(EvalSettings, EVAL, "evaluation")
+EXPORT_SETTINGS = _from_mapping(ExportSettings, EXPORT, "export")
+
+
+def render_job(input):
+    """What a job renders with (the record's whole frames, the evaluated stage's samples); None in a dry
+    run, before the files exist: Snakemake evaluates the resources again before the job runs.
+    """
+    return _read_render_job(input.record, Path(input.model).with_name("settings.json"))
+
+
+def eval_runtime(wildcards, input, attempt):
+    """Minutes: the scored frames' renders and refinement steps (delta.eval.runtime)."""
+    return _evaluation_minutes(render_job(input), EVAL_SETTINGS, attempt)
+
+
+def videos_runtime(wildcards, input, attempt):
+    """Minutes: the export's whole-frame renders (delta.eval.runtime)."""
+    return _videos_minutes(render_job(input), EXPORT_SETTINGS, attempt)
 
 
 def export_settings(part):

@@ -87,7 +87,7 @@ rule export_avatar:
     threads: 2
     resources:
         mem_mb=lambda w, attempt: _grow(3000, attempt),
-        runtime=lambda w, attempt: 20 * attempt,
+        runtime=videos_runtime,
     params:
         out=lambda w: PATHS["export_dir"].format(**w),
         settings=export_settings("videos"),
@@ -121,7 +121,7 @@ rule evaluate:
     threads: 2
     resources:
         mem_mb=lambda w, attempt: _grow(2500, attempt),
-        runtime=lambda w, attempt: 30 * attempt,
+        runtime=eval_runtime,
     params:
         settings=eval_settings,
         truth=eval_truth,

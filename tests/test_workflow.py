@@ -14,6 +14,10 @@ import pytest
 import yaml
 
 from delta.body.model import load_body_model
+from delta.eval.runtime import evaluation_minutes, read_job, videos_minutes
+from delta.eval.settings import EvalSettings
+from delta.export.settings import ExportSettings
+from delta.settings import from_mapping
 from tests.conftest import ANNY_CACHE
 
 REPO = Path(__file__).resolve().parents[1]
@@ -129,6 +133,18 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
             assert len((out / "losses.csv").read_text().splitlines()) == 1 + (6 if stage == 1 else 4)
             assert (work / "logs/train" / f"{dataset}_{subject}_stage{stage}.log").is_file()
             assert (work / "results/benchmarks/train" / f"{dataset}_{subject}_stage{stage}.tsv").is_file()
+    # the rendering jobs asked for the minutes their renders need, read from the files as each job started
+    log = res.stdout + res.stderr
+    asked = re.findall(r"(?:local)?rule (evaluate|export_avatar):(?:\n    [^\n]*)*?\n    wildcards: dataset=(\w+), subject=([\w-]+)"
+                       r"(?:\n    [^\n]*)*?\n    resources: [^\n]*runtime=(\d+)", log)  # fmt: skip
+    assert {a[0] + a[2] for a in asked} == {r + s for r in ("evaluate", "export_avatar") for s in ("loose", STANDIN)}
+    evaluation = from_mapping(EvalSettings, {**main["evaluation"], **cfg["evaluation"]}, "evaluation")
+    export = from_mapping(ExportSettings, {**main.get("export", {}), **cfg["export"]}, "export")
+    for rule, dataset, subject, minutes in asked:
+        out = work / "results" / dataset / subject
+        job = read_job(out / "frames.h5", out / f"stage{evaluation.stage}" / "settings.json")
+        expected = evaluation_minutes(job, evaluation, 1) if rule == "evaluate" else videos_minutes(job, export, 1)
+        assert job is not None and int(minutes) == expected, (rule, subject)
     # evaluation, export and the per-dataset tables
     # scored on whole frames at the capture's scoring size: the stand-in's 64² frames halved as People
     # Snapshot's 1080² are (540²), the synthetic capture at its own 64²; exported at that size too

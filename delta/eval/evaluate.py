@@ -38,22 +38,10 @@ from delta.io import atomic_path
 from delta.models.image import View, full_view, live_rays, pixel_grid, reach_box, render_image
 from delta.progress import Progress
 from delta.training.run import Trained
+from delta.eval.settings import pick_frames
 
 log = logging.getLogger(__name__)
-SPLITS = {"train": 0, "test_view": 1, "test_pose": 2}
 FACE_REGIONS = (REGION["face"], REGION["eyes"], REGION["mouth"])
-
-
-def pick_frames(split: np.ndarray, names: tuple[str, ...], max_frames: int) -> list[tuple[int, str]]:
-    out = []
-    for name in names:
-        if name not in SPLITS:
-            raise DeltaError(f"evaluation.splits: unknown split '{name}' (expected one of {sorted(SPLITS)})")
-        idx = np.flatnonzero(split == SPLITS[name])
-        if max_frames and len(idx) > max_frames:
-            idx = idx[np.linspace(0, len(idx) - 1, max_frames).round().astype(int)]
-        out += [(int(i), name) for i in idx]
-    return out
 
 
 @torch.no_grad()

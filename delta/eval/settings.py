@@ -5,7 +5,13 @@ from __future__ import annotations
 import dataclasses
 from typing import Optional
 
+import numpy as np
+
+from delta import DeltaError
+
 _f = dataclasses.field
+#: the record's split codes
+SPLITS = {"train": 0, "test_view": 1, "test_pose": 2}
 
 
 @dataclasses.dataclass
@@ -18,7 +24,7 @@ class EvalSettings:
     stage: int = _f(default=2, metadata={"minimum": 1, "maximum": 2})
     """Which training stage's model the workflow evaluates and exports."""
     splits: tuple[str, ...] = _f(
-        default=("test_view", "test_pose"), metadata={"choices": ("train", "test_view", "test_pose"), "min_items": 1}
+        default=("test_view", "test_pose"), metadata={"choices": tuple(SPLITS), "min_items": 1}
     )
     """Which frames are scored (frames of these splits in the record)."""
     max_frames: int = _f(default=0, metadata={"minimum": 0})
@@ -52,3 +58,16 @@ class EvalSettings:
     (the user's files); not given: ST-LPIPS only."""
     perceptual_dir: Optional[str] = _f(default=None, metadata={"config": False})
     """Folder of alex_shift_tolerant.pth (ST-LPIPS); None: no perceptual column."""
+
+
+def pick_frames(split: np.ndarray, names: tuple[str, ...], max_frames: int) -> list[tuple[int, str]]:
+    """(frame, split name) of the frames scored: each split's, at most ``max_frames`` evenly spaced (0: all)."""
+    out = []
+    for name in names:
+        if name not in SPLITS:
+            raise DeltaError(f"evaluation.splits: unknown split '{name}' (expected one of {sorted(SPLITS)})")
+        idx = np.flatnonzero(split == SPLITS[name])
+        if max_frames and len(idx) > max_frames:
+            idx = idx[np.linspace(0, len(idx) - 1, max_frames).round().astype(int)]
+        out += [(int(i), name) for i in idx]
+    return out
