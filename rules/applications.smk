@@ -23,7 +23,7 @@ rule animate:
     threads: 2
     resources:
         mem_mb=lambda w, attempt: _grow(3000, attempt),
-        runtime=lambda w, attempt: 30 * attempt,
+        runtime=application_runtime(at_most(ANIMATE_SETTINGS.max_frames), 30),
     params:
         out=lambda w: PATHS["animate_dir"].format(**w),
         clothing=animate_clothing,
@@ -68,7 +68,9 @@ rule dress:
     threads: 2
     resources:
         mem_mb=lambda w, attempt: _grow(4000, attempt),
-        runtime=lambda w, attempt: 20 * attempt,
+        runtime=application_runtime(
+            shown(DRESS_SETTINGS), 20, scored=show_scored(DRESS_SETTINGS)
+        ),
     params:
         out=lambda w: PATHS["dress_dir"].format(**w),
         truth=truth_args,
@@ -111,7 +113,9 @@ rule reshape:
     threads: 2
     resources:
         mem_mb=lambda w, attempt: _grow(4000, attempt),
-        runtime=lambda w, attempt: 20 * attempt,
+        runtime=application_runtime(
+            shown(RESHAPE_SETTINGS), 20, scored=show_scored(RESHAPE_SETTINGS)
+        ),
     params:
         out=lambda w: PATHS["reshape_dir"].format(**w),
         edit=reshape_args,
@@ -164,7 +168,7 @@ rule tryon:
     threads: 2
     resources:
         mem_mb=lambda w, attempt: _grow(3000, attempt),
-        runtime=lambda w, attempt: 15 * attempt,
+        runtime=application_runtime(shown(TRYON_SETTINGS), 15, model="wearer_model"),
     params:
         out=lambda w: PATHS["tryon_dir"].format(**w),
         frame=TRYON["frame"],
@@ -199,7 +203,7 @@ rule reenact:
     threads: 2
     resources:
         mem_mb=lambda w, attempt: _grow(3000, attempt),
-        runtime=lambda w, attempt: 30 * attempt,
+        runtime=application_runtime(at_most(REENACT["max_frames"]), 30),
     params:
         out=lambda w: PATHS["reenact_dir"].format(**w),
         max_frames=REENACT["max_frames"],

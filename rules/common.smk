@@ -18,7 +18,9 @@ from delta.config import variant_training as _variant_training
 from delta.data import PROVIDES
 from delta.eval.runtime import evaluation_minutes as _evaluation_minutes
 from delta.eval.runtime import read_job as _read_render_job
+from delta.eval.runtime import renders_minutes as _renders_minutes
 from delta.eval.runtime import videos_minutes as _videos_minutes
+from delta.applications.settings import AnimateSettings, ShowSettings
 from delta.eval.settings import EvalSettings
 from delta.export.settings import ExportSettings
 from delta.export.settings import part_settings as _export_part_settings
@@ -642,6 +644,42 @@ def videos_runtime(wildcards, input, attempt):
     return _videos_minutes(render_job(input), EXPORT_SETTINGS, attempt)
 
 
+def application_runtime(renders, fallback, model="model", scored=None):
+    """A resource function of an application job: ``renders(input)`` whole frames at one ray a pixel and
+    ``scored(input)`` (renders, supersample) against a truth; the job's frames and ``model``'s samples.
+    """
+
+    def minutes(wildcards, input, attempt):
+        count = renders(input)  # None: unknown before the job (a motion's whole length)
+        job = _read_render_job(
+            input.record, Path(input[model]).with_name("settings.json")
+        )
+        more, ss = scored(input) if scored is not None else (0, 1)
+        job = job if count is not None else None
+        return _renders_minutes(job, count or 0, attempt, more, ss, fallback)
+
+    return minutes
+
+
+def show_scored(settings):
+    """An edit scored against its truth: each scored frame as trained and edited, supersampled."""
+    return lambda input: (
+        (2 * settings.score_frames, settings.supersample)
+        if "truth" in input.keys()
+        else (0, 1)
+    )
+
+
+def shown(settings):
+    """An edit shown: the frame as trained and edited, and the turntable."""
+    return lambda input: 2 + settings.turntable_frames
+
+
+def at_most(count):
+    """A job rendering ``count`` frames (0: all of a motion, unknown before it runs)."""
+    return lambda input: count or None
+
+
 def export_settings(part):
     """The export settings one part's job reads, as JSON (a change to the others does not rerun it)."""
     return json.dumps(_export_part_settings(EXPORT, part), sort_keys=True)
@@ -725,6 +763,9 @@ def application_score_inputs(wildcards):
 
 
 ANIMATE = config["applications"]["animate"]["settings"]
+ANIMATE_SETTINGS = _from_mapping(
+    AnimateSettings, ANIMATE, "applications.animate.settings"
+)
 
 
 def animate_inputs(wildcards):
@@ -744,6 +785,7 @@ def animate_inputs(wildcards):
 
 
 DRESS = config["applications"]["dress"]["settings"]
+DRESS_SETTINGS = _from_mapping(ShowSettings, DRESS, "applications.dress.settings")
 
 
 def truth_inputs(wildcards, application, name, wearer=None):
@@ -792,6 +834,7 @@ def dress_inputs(wildcards):
 
 
 RESHAPE = config["applications"]["reshape"]["settings"]
+RESHAPE_SETTINGS = _from_mapping(ShowSettings, RESHAPE, "applications.reshape.settings")
 
 
 def reshape_inputs(wildcards):
@@ -816,6 +859,9 @@ def reshape_args(wildcards, input):
 
 
 TRYON = config["applications"]["tryon"]
+TRYON_SETTINGS = _from_mapping(
+    ShowSettings, TRYON["settings"], "applications.tryon.settings"
+)
 
 
 def layer_args(wildcards):

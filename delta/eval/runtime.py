@@ -64,6 +64,15 @@ def _minutes(seconds: float, attempt: int) -> int:
     return int(math.ceil(5 + attempt * MARGIN * seconds / 60))
 
 
+def renders_minutes(job: RenderJob | None, renders: int, attempt: int, supersampled: int = 0, supersample: int = 1,
+                    fallback: int = 20) -> int:  # fmt: skip
+    """A job of ``renders`` whole frames at one ray a pixel and ``supersampled`` more at ``supersample``
+    (an application's turntable and scored frames); ``fallback`` × attempt without a job."""
+    if job is None:
+        return fallback * attempt
+    return _minutes(renders * render_seconds(job) + supersampled * render_seconds(job, supersample), attempt)
+
+
 def videos_minutes(job: RenderJob | None, settings: ExportSettings, attempt: int, fallback: int = 20) -> int:
     """The export's videos part: the side-by-sides (a crop and a whole frame each, one line-up frame at
     least), the turntable and the novel-pose frames (at most ``novel_frames``)."""
@@ -71,7 +80,7 @@ def videos_minutes(job: RenderJob | None, settings: ExportSettings, attempt: int
         return fallback * attempt
     novel = int(np.count_nonzero(job.split == 2)) or len(job.split)
     renders = 2 * max(settings.sidebyside, 1) + settings.turntable_frames + min(novel, settings.novel_frames)
-    return _minutes(renders * render_seconds(job), attempt)
+    return renders_minutes(job, renders, attempt)
 
 
 def evaluation_minutes(job: RenderJob | None, settings: EvalSettings, attempt: int, fallback: int = 30) -> int:

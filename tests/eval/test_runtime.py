@@ -7,9 +7,17 @@ from pathlib import Path
 
 import h5py
 import numpy as np
+import pytest
 
 from delta.eval import runtime
-from delta.eval.runtime import RenderJob, evaluation_minutes, read_job, render_seconds, videos_minutes
+from delta.eval.runtime import (
+    RenderJob,
+    evaluation_minutes,
+    read_job,
+    render_seconds,
+    renders_minutes,
+    videos_minutes,
+)
 from delta.eval.settings import EvalSettings
 from delta.export.settings import ExportSettings
 
@@ -74,3 +82,11 @@ def test_a_render_estimate_is_near_the_measured_renders():
         assert estimate / 1.5 < float(row["seconds"]) < estimate * 1.5, row
         checked += 1
     assert checked == 2 and runtime.MARGIN >= 2
+
+
+def test_an_application_counts_its_renders_and_its_scored_frames():
+    job = RenderJob(512 * 512, 32, np.zeros(3))
+    one, ss2 = render_seconds(job), render_seconds(job, 2)
+    assert ss2 == pytest.approx(one * (1 + 0.3 * 4))
+    assert renders_minutes(job, 14, 1, supersampled=10, supersample=2) == math.ceil(5 + 3 * (14 * one + 10 * ss2) / 60)
+    assert renders_minutes(None, 14, 2, fallback=15) == 30
