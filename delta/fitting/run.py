@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -21,6 +22,7 @@ from delta import DeltaError
 from delta.body.face_points import FacePoints
 from delta.fitting.face import FaceFit, fit_face
 from delta.fitting.fit import FitStart, fit
+from delta.fitting.hold import hold_decision
 from delta.fitting.settings import FitConfig
 from delta.fitting.start import face_start
 from delta.io import atomic_path, save_npz
@@ -176,9 +178,13 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
         exterior = exterior_masks(rec)
         # a novel-pose sequence (split 2) is not the training sequence's continuation
         sequence = torch.from_numpy((rec.h5["split"][:] == 2).astype(np.int64))
+        hold = hold_decision(detected.numpy(), sequence.numpy() == 0, cfg.static_spread, cfg.static_weight,
+                             cfg.conf_threshold)  # fmt: skip
+        log.info("holding the pose near its mean: %s", hold["why"])
+        fit_cfg = cfg if hold["hold"] else dataclasses.replace(cfg, static_weight=0.0)
         fit_map, fit_detected = with_face_points(kp_map, detected, points, face_seen)
         depth = torch.from_numpy(rec.h5["keypoint_depth"][:]) if "keypoint_depth" in rec.h5 else None
-        res = fit(model, fit_map, fit_detected, camera, cfg, knees=knees, masks=masks, start=start,
+        res = fit(model, fit_map, fit_detected, camera, fit_cfg, knees=knees, masks=masks, start=start,
                   exterior=exterior, sequence=sequence, depth=depth)  # fmt: skip
         check_result(rec.path, res, frame_ids)
         face, face_arrays = track_face(model, res, points, face_seen), {}
@@ -214,7 +220,7 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
     summary = {"frames": int(len(frame_ids)), "flagged": int(res.flagged.sum()), "flagged_frames": flagged,
                "started_from": started_from,
                "residual_px_mean": float(np.nanmean(res.residual_px.numpy())),
-               "upright": upright.describe(camera_vertical(res.camera))}  # fmt: skip
+               "upright": upright.describe(camera_vertical(res.camera)), "static_hold": hold}  # fmt: skip
     log.info("init fit: %s", summary)
     return summary
 

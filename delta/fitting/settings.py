@@ -33,6 +33,10 @@ class FitConfig:
     """Holds the body pose (every joint but the root) of the capture's own sequence near its mean
     (``terms.static_pose``): for a subject who keeps one pose while turning. A novel-pose sequence
     (``sequence`` label other than 0) is never held. 0: off (a capture with motion)."""
+    static_spread: float = 0.15
+    """The hold applies only where the capture's subject keeps one pose: its limbs' extent along the
+    torso varies over the frames by at most this many torso lengths (``delta.fitting.hold``; a dancer
+    0.48, a turn in place 0.01-0.05). A large value holds every capture."""
     min_keypoints: int = MIN_KEYPOINTS
     conf_threshold: float = CONF_THRESHOLD
     sil_weight: float = 300.0

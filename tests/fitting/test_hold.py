@@ -1,0 +1,69 @@
+"""Whether a capture's subject keeps one pose, from its keypoints alone (delta.fitting.hold)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from delta.fitting.hold import hold_decision, limb_spread
+
+# a standing body's OpenPose-18 joints in metres (x right, y up, z toward the camera), arms in an A-pose
+BODY = {
+    0: (0.0, 1.62, 0.08), 1: (0.0, 1.45, 0.0), 2: (-0.18, 1.42, 0.0), 3: (-0.3, 1.16, 0.0), 4: (-0.4, 0.92, 0.0),
+    5: (0.18, 1.42, 0.0), 6: (0.3, 1.16, 0.0), 7: (0.4, 0.92, 0.0), 8: (-0.1, 0.92, 0.0), 9: (-0.12, 0.5, 0.0),
+    10: (-0.13, 0.08, 0.0), 11: (0.1, 0.92, 0.0), 12: (0.12, 0.5, 0.0), 13: (0.13, 0.08, 0.0),
+    14: (-0.03, 1.65, 0.07), 15: (0.03, 1.65, 0.07), 16: (-0.07, 1.63, 0.0), 17: (0.07, 1.63, 0.0),
+}  # fmt: skip
+
+
+def _project(joints: np.ndarray, scale: float = 200.0) -> np.ndarray:
+    """(F, 18, 3) orthographic keypoints (u right, v down, confidence 1) of (F, 18, 3) joints."""
+    uv = np.stack([256 + scale * joints[..., 0], 400 - scale * joints[..., 1], np.ones(joints.shape[:2])], -1)
+    return uv
+
+
+def _turn(frames: int) -> np.ndarray:
+    """The body turning a full circle about its vertical in one pose."""
+    pts = np.array([BODY[k] for k in range(18)])
+    out = []
+    for a in np.linspace(0, 2 * math.pi, frames, endpoint=False):
+        c, s = math.cos(a), math.sin(a)
+        rot = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+        out.append(pts @ rot.T)
+    return np.stack(out)
+
+
+def test_a_body_turning_in_one_pose_has_no_spread_and_is_held():
+    kp = _project(_turn(24))
+    assert limb_spread(kp) == pytest.approx(0.0, abs=1e-9)  # a limb's extent along the torso survives the turn
+    decision = hold_decision(kp, np.ones(24, bool), 0.15, 10.0)
+    assert decision["hold"] and decision["limb_spread"] == 0.0 and "keep one pose" in decision["why"]
+
+
+def test_raising_an_arm_spreads_it_by_the_oracles_amount():
+    """Half the frames with the right wrist raised half a torso length above its shoulder: the wrist's
+    extent along the torso takes two values, hanging and raised, equally often, and the standard
+    deviation of two equally frequent values is half their difference."""
+    kp = _project(_turn(1).repeat(10, 0))
+    torso = (400 - 200 * 0.92) - (400 - 200 * 1.45)  # neck to mid-hip, pixels
+    down = (kp[0, 4, 1] - kp[0, 2, 1]) / torso
+    kp[5:, 4, 1] = kp[5:, 2, 1] - 0.5 * torso  # the wrist half a torso above the shoulder
+    kp[5:, 4, 0] = kp[5:, 2, 0]
+    assert limb_spread(kp) == pytest.approx((down + 0.5) / 2, rel=1e-9)
+    decision = hold_decision(kp, np.ones(10, bool), 0.15, 10.0)
+    assert not decision["hold"] and "not held" in decision["why"]
+    # only the held frames count: the raised arm in frames the fit does not hold changes nothing
+    assert hold_decision(kp, np.arange(10) < 5, 0.15, 10.0)["hold"]
+    # a threshold above the spread holds it; no weight holds nothing
+    assert hold_decision(kp, np.ones(10, bool), 10.0, 10.0)["hold"]
+    assert not hold_decision(_project(_turn(5)), np.ones(5, bool), 0.15, 0.0)["hold"]
+
+
+def test_a_capture_without_limbs_and_torso_is_held_as_configured():
+    kp = _project(_turn(8))
+    kp[:, 8:14, 2] = 0.0  # no hips, knees or ankles: a head and shoulders
+    assert limb_spread(kp) is None
+    decision = hold_decision(kp, np.ones(8, bool), 0.15, 10.0)
+    assert decision["hold"] and decision["limb_spread"] is None and "held as configured" in decision["why"]
+    kp = _project(_turn(2))  # too few frames to tell
+    assert limb_spread(kp) is None
