@@ -15,12 +15,12 @@ from delta.config import subject_training as _subject_training
 from delta.config import tracks_face as _tracks_face
 from delta.config import validate_workflow_config
 from delta.config import variant_training as _variant_training
+from delta.applications.settings import AnimateSettings, ShowSettings
 from delta.data import PROVIDES
 from delta.eval.runtime import evaluation_minutes as _evaluation_minutes
 from delta.eval.runtime import read_job as _read_render_job
 from delta.eval.runtime import renders_minutes as _renders_minutes
 from delta.eval.runtime import videos_minutes as _videos_minutes
-from delta.applications.settings import AnimateSettings, ShowSettings
 from delta.eval.settings import EvalSettings
 from delta.export.settings import ExportSettings
 from delta.export.settings import part_settings as _export_part_settings
@@ -651,11 +651,9 @@ def application_runtime(renders, fallback, model="model", scored=None):
 
     def minutes(wildcards, input, attempt):
         count = renders(input)  # None: unknown before the job (a motion's whole length)
-        job = _read_render_job(
-            input.record, Path(input[model]).with_name("settings.json")
-        )
+        settings = Path(input[model]).with_name("settings.json")
+        job = _read_render_job(input.record, settings) if count is not None else None
         more, ss = scored(input) if scored is not None else (0, 1)
-        job = job if count is not None else None
         return _renders_minutes(job, count or 0, attempt, more, ss, fallback)
 
     return minutes

@@ -53,7 +53,7 @@ def test_the_dancer_is_prepared_and_fitted_standing_upright(tmp_path, mediapipe_
     fit = json.loads((out / "summary.json").read_text())
     assert fit["flagged"] == 0 and fit["residual_px_mean"] < 12.0
     # she dances: her limbs do not keep one pose, so no hold would pull them to their mean
-    # (0.48 torso lengths on all 89 training frames; the synthetic turns 0.01-0.05)
+    # (0.48 torso lengths on all 101 held frames; the synthetic turns 0.04-0.06: benchmarks/static_hold.csv)
     assert fit["static_hold"]["limb_spread"] > 0.3 and not fit["static_hold"]["hold"]
     # a level camera: the dancer stands along its vertical (measured 2.2° on all 101 frames)
     assert fit["upright"]["tilt_from_camera_vertical_deg"] < 6.0

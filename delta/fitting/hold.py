@@ -7,7 +7,8 @@ pulled down to her mean pose). The keypoints tell the two apart without a fit: t
 along the torso's axis (shoulder to wrist, shoulder to elbow, hip to ankle), in torso lengths, does
 not change as a body turns about its vertical, and changes by a large part of a torso length when an
 arm is raised or a leg lifted. Its spread over the frames (the standard deviation; the largest over
-the limbs) is the evidence: 0.01 on the synthetic loose turn, 0.05 on tight, 0.48 on the real dancer.
+the limbs) is the evidence: 0.04 on the synthetic loose turn, 0.06 on tight, 0.48 on the real dancer
+(`benchmarks/static_hold.csv`).
 
 Shapes: F frames, 18 OpenPose keypoints (u, v, confidence).
 """

@@ -36,7 +36,7 @@ class FitConfig:
     static_spread: float = 0.15
     """The hold applies only where the capture's subject keeps one pose: its limbs' extent along the
     torso varies over the frames by at most this many torso lengths (``delta.fitting.hold``; a dancer
-    0.48, a turn in place 0.01-0.05). A large value holds every capture."""
+    0.48, a turn in place 0.04-0.06). A large value holds every capture."""
     min_keypoints: int = MIN_KEYPOINTS
     conf_threshold: float = CONF_THRESHOLD
     sil_weight: float = 300.0
