@@ -17,22 +17,23 @@ import json
 from pathlib import Path
 
 import h5py
-import numpy as np
 import pandas as pd
 
 from delta.body.keypoints import OPENPOSE18
-from delta.fitting.hold import LIMBS, hold_decision, limb_spread
+from delta.data import SPLITS
+from delta.fitting.hold import LIMBS, hold_decision, limb_spreads
 from delta.fitting.settings import FitConfig
 
 
 def row(record: Path, fit_summary: Path | None) -> dict:
     with h5py.File(record, "r") as f:
         kp, split = f["keypoints"][:], f["split"][:]
-    held = split != 2
+    held = split != SPLITS.index("test_pose")  # a novel-pose sequence is never held
     cfg = FitConfig()
     out = {"record": str(record), "held_frames": int(held.sum())}
+    spreads = limb_spreads(kp[held], cfg.conf_threshold)
     for a, b in LIMBS:
-        out[f"{OPENPOSE18[a]}-{OPENPOSE18[b]}"] = round(_one_limb(kp[held], a, b, cfg), 4)
+        out[f"{OPENPOSE18[a]}-{OPENPOSE18[b]}"] = round(spreads[(a, b)], 4) if (a, b) in spreads else None
     decision = hold_decision(kp, held, cfg.static_spread, 10.0, cfg.conf_threshold)
     out |= {"limb_spread": decision["limb_spread"], "threshold": cfg.static_spread, "hold": decision["hold"]}
     if fit_summary is not None:
@@ -40,15 +41,6 @@ def row(record: Path, fit_summary: Path | None) -> dict:
         out |= {"fit": str(fit_summary), "fit_held": summary.get("static_hold", {}).get("hold"),
                 "fit_residual_px_mean": round(summary["residual_px_mean"], 3)}  # fmt: skip
     return out
-
-
-def _one_limb(kp: np.ndarray, a: int, b: int, cfg: FitConfig) -> float:
-    """The spread of one limb: the others' confidences set to 0."""
-    only = kp.copy()
-    keep = {1, 8, 11, a, b}
-    only[:, [i for i in range(18) if i not in keep], 2] = 0.0
-    spread = limb_spread(only, cfg.conf_threshold)
-    return float("nan") if spread is None else spread
 
 
 def main() -> None:

@@ -627,11 +627,11 @@ EVAL_SETTINGS = _from_mapping(EvalSettings, EVAL, "evaluation")
 EXPORT_SETTINGS = _from_mapping(ExportSettings, EXPORT, "export")
 
 
-def render_job(input):
-    """What a job renders with (the record's whole frames, the evaluated stage's samples); None in a dry
-    run, before the files exist: Snakemake evaluates the resources again before the job runs.
+def render_job(input, model="model"):
+    """What a job renders with (the record's whole frames, the samples of ``model``'s stage); None in a
+    dry run, before the files exist: Snakemake evaluates the resources again before the job runs.
     """
-    return _read_render_job(input.record, Path(input.model).with_name("settings.json"))
+    return _read_render_job(input.record, Path(input[model]).with_name("settings.json"))
 
 
 def eval_runtime(wildcards, input, attempt):
@@ -651,8 +651,7 @@ def application_runtime(renders, fallback, model="model", scored=None):
 
     def minutes(wildcards, input, attempt):
         count = renders(input)  # None: unknown before the job (a motion's whole length)
-        settings = Path(input[model]).with_name("settings.json")
-        job = _read_render_job(input.record, settings) if count is not None else None
+        job = render_job(input, model) if count is not None else None
         more, ss = scored(input) if scored is not None else (0, 1)
         return _renders_minutes(job, count or 0, attempt, more, ss, fallback)
 

@@ -1,6 +1,9 @@
 """Captures and frame records: dataset adapters, videos, persons, records (torch-free at this level: the
 workflow reads what each dataset kind ships before any job starts)."""
 
+#: a frame record's splits, in the order of their codes (the record's ``split`` column)
+SPLITS = ("train", "test_view", "test_pose")
+
 #: what each dataset kind ships, so the DAG runs only the missing steps
 PROVIDES = {
     "synthetic": ("person", "clothing", "skin", "hair", "keypoints", "face_points"),

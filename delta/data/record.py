@@ -29,9 +29,9 @@ import numpy as np
 import torch
 
 from delta import DeltaError
+from delta.data import SPLITS
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 
-SPLITS = ("train", "test_view", "test_pose")
 MASKS = ("person", "clothing", "skin", "hair")
 
 

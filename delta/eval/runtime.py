@@ -19,7 +19,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from delta.eval.settings import EvalSettings, pick_frames
+from delta.eval.settings import SPLITS, EvalSettings, pick_frames
 from delta.export.settings import ExportSettings
 
 SECONDS_PER_SAMPLE = 2.5e-6
@@ -78,7 +78,7 @@ def videos_minutes(job: RenderJob | None, settings: ExportSettings, attempt: int
     least), the turntable and the novel-pose frames (at most ``novel_frames``)."""
     if job is None:
         return fallback * attempt
-    novel = int(np.count_nonzero(job.split == 2)) or len(job.split)
+    novel = int(np.count_nonzero(job.split == SPLITS["test_pose"])) or len(job.split)
     renders = 2 * max(settings.sidebyside, 1) + settings.turntable_frames + min(novel, settings.novel_frames)
     return renders_minutes(job, renders, attempt)
 

@@ -8,10 +8,11 @@ from typing import Optional
 import numpy as np
 
 from delta import DeltaError
+from delta.data import SPLITS as _SPLITS
 
 _f = dataclasses.field
-#: the record's split codes
-SPLITS = {"train": 0, "test_view": 1, "test_pose": 2}
+#: each split's code in a frame record
+SPLITS = {name: code for code, name in enumerate(_SPLITS)}
 
 
 @dataclasses.dataclass

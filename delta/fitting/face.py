@@ -209,17 +209,19 @@ def fit_face(
                 expression.clamp_(0.0, 1.0)
         expression.requires_grad_(True)
 
-    def residuals() -> torch.Tensor:
+    def settled():
+        """The fit as it stands: the posed points and each frame's median residual (F,)."""
         with torch.no_grad():
-            err = (fitted_points()[1] - target).norm(dim=-1)
-            return err.masked_fill(~usable, math.nan).nanmedian(1).values
+            out, uv = fitted_points()
+            err = (uv - target).norm(dim=-1)
+            return out, err.masked_fill(~usable, math.nan).nanmedian(1).values
 
     def far_off(residual: torch.Tensor) -> torch.Tensor:
         typical = float(residual[fitted].median())
         return fitted & (residual > max(cfg.outlier_factor * typical, cfg.outlier_px))
 
     optimise(cfg.iterations, cfg.iterations // 3)
-    residual = residuals()
+    out, residual = settled()
     off = far_off(residual)
     if off.any() and cfg.restart_iterations > 0 and int(fitted.sum()) > int(off.sum()):
         log.info("face tracking: %d frame(s) far from their points (%s); fitted again from their neighbours",
@@ -235,12 +237,11 @@ def fit_face(
             T0[off] = (T0 + place.detach() @ axes)[near]
             head[off], place[off] = 0.0, 0.0
         optimise(cfg.restart_iterations, cfg.restart_iterations // 3)
-        residual = residuals()
+        out, residual = settled()
         off = far_off(residual)
     flags = [f or ("poor fit" if off[i] else "") for i, f in enumerate(flags)]
 
     with torch.no_grad():
-        out = fitted_points()[0]
         head_j = model.joint_names.index("head") if "head" in model.joint_names else joints[-1]
         turn = face_turn_deg(out.joint_transforms, head_j, camera, out.joints[:, head_j])
         flags = [f or ("turned away" if turn[i] > cfg.max_turn_deg else "") for i, f in enumerate(flags)]

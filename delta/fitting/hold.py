@@ -23,23 +23,27 @@ _NECK, _HIPS = 1, (8, 11)
 MIN_FRAMES = 3
 
 
-def limb_spread(keypoints: np.ndarray, conf: float = 0.5) -> float | None:
-    """The largest over the limbs of the standard deviation across frames of the limb's extent along
-    the torso (neck to mid-hip), in torso lengths; None where no limb is seen with the torso in at least
-    ``MIN_FRAMES`` frames (a head-and-shoulders capture)."""
+def limb_spreads(keypoints: np.ndarray, conf: float = 0.5) -> dict[tuple[int, int], float]:
+    """Each limb's standard deviation across frames of its extent along the torso (neck to mid-hip), in
+    torso lengths, for the limbs seen with the torso in at least ``MIN_FRAMES`` frames."""
     kp = np.asarray(keypoints, dtype=np.float64)
     xy, c = kp[..., :2], kp[..., 2]
     axis = (xy[:, _HIPS[0]] + xy[:, _HIPS[1]]) / 2 - xy[:, _NECK]
     length = np.linalg.norm(axis, axis=1)
     torso = (c[:, _NECK] >= conf) & (c[:, _HIPS[0]] >= conf) & (c[:, _HIPS[1]] >= conf) & (length > 1e-6)
-    spreads = []
+    spreads = {}
     for a, b in LIMBS:
         seen = torso & (c[:, a] >= conf) & (c[:, b] >= conf)
-        if seen.sum() < MIN_FRAMES:
-            continue
-        along = ((xy[seen, b] - xy[seen, a]) * axis[seen]).sum(1) / length[seen] ** 2
-        spreads.append(float(along.std()))
-    return max(spreads) if spreads else None
+        if seen.sum() >= MIN_FRAMES:
+            along = ((xy[seen, b] - xy[seen, a]) * axis[seen]).sum(1) / length[seen] ** 2
+            spreads[(a, b)] = float(along.std())
+    return spreads
+
+
+def limb_spread(keypoints: np.ndarray, conf: float = 0.5) -> float | None:
+    """The largest of :func:`limb_spreads`; None where no limb is seen with the torso often enough (a
+    head-and-shoulders capture)."""
+    return max(limb_spreads(keypoints, conf).values(), default=None)
 
 
 def hold_decision(keypoints: np.ndarray, held: np.ndarray, threshold: float, weight: float, conf: float = 0.5) -> dict:
