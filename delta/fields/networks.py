@@ -55,10 +55,16 @@ class NeRFField(nn.Module):
     read separate grids and heads: the density's gradients (exp activation, mask losses) are orders
     of magnitude larger than the colour's and would otherwise swamp Adam's shared second moments,
     leaving the colour nearly constant.
+
+    ``bounded``: no density outside the box (σ = 0 there): the exterior of a capture that frames part of
+    the body lives where the capture shows it (a grid's features fade to zero outside its box, which
+    would leave the head's constant response there: haze around the parts the capture never framed).
     """
 
-    def __init__(self, spec: FieldSpec, bounds: torch.Tensor, density_bias: float = -2.0):
+    def __init__(self, spec: FieldSpec, bounds: torch.Tensor, density_bias: float = -2.0, bounded: bool = False):
         super().__init__()
+        self.bounded = bool(bounded)
+        self.register_buffer("box", bounds.float().clone(), persistent=False)
         self.split = spec.encoding == "grid"
         self.encoding, self.head = _encoder_and_head(spec, bounds, 1 if self.split else 4)
         if self.split:
@@ -87,7 +93,14 @@ class NeRFField(nn.Module):
         """(N, 3) -> rgb (N, 3), sigma (N,)."""
         out = self.head(self.encoding(x))
         color = self.color_head(self.color_encoding(x)) if self.split else out[:, :3]
-        return torch.sigmoid(color), self._sigma(out[:, -1], noisy=True)
+        return torch.sigmoid(color), self._in_box(x, self._sigma(out[:, -1], noisy=True))
+
+    def _in_box(self, x: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
+        """``sigma`` (N,), zero at points outside the box when the field is ``bounded``."""
+        if not self.bounded:
+            return sigma
+        inside = ((x >= self.box[0]) & (x <= self.box[1])).all(-1)
+        return torch.where(inside, sigma, torch.zeros_like(sigma))
 
     def color_cell(self) -> float:
         """The finest detail of the colour's encoding (world units)."""
@@ -99,7 +112,7 @@ class NeRFField(nn.Module):
 
     def density(self, x: torch.Tensor) -> torch.Tensor:
         """(N, 3) -> sigma (N,) alone, never noisy."""
-        return self._sigma(self.raw_density(x), noisy=False)
+        return self._in_box(x, self._sigma(self.raw_density(x), noisy=False))
 
 
 class LayeredNeRF(nn.Module):
@@ -113,13 +126,13 @@ class LayeredNeRF(nn.Module):
     """
 
     def __init__(self, spec: FieldSpec, bounds: torch.Tensor, names: tuple[str, ...] = LAYERS,
-                 density_bias: float = -2.0):  # fmt: skip
+                 density_bias: float = -2.0, bounded: bool = False):  # fmt: skip
         super().__init__()
         unknown = sorted(set(names) - set(LAYERS))
         if unknown or len(set(names)) != len(names) or not names:
             raise ValueError(f"exterior layers {list(names)}: each one of {list(LAYERS)}, at most once")
         self.names = tuple(names)
-        self.layers = nn.ModuleDict({n: NeRFField(spec, bounds, density_bias) for n in self.names})
+        self.layers = nn.ModuleDict({n: NeRFField(spec, bounds, density_bias, bounded) for n in self.names})
 
     @classmethod
     def of(cls, layers: dict[str, NeRFField]) -> "LayeredNeRF":

@@ -59,7 +59,10 @@ def _box(points: torch.Tensor, margin: float) -> torch.Tensor:
 
 class HybridAvatar(nn.Module):
     def __init__(self, body: BodyModel, spec: AvatarSpec, init: InitParams, skin_color: torch.Tensor,
-                 background: torch.Tensor, resolution: int, frame_time: Optional[torch.Tensor] = None):  # fmt: skip
+                 background: torch.Tensor, resolution: int, frame_time: Optional[torch.Tensor] = None,
+                 framed: Optional[torch.Tensor] = None):  # fmt: skip
+        """``framed``: (V,) bool, the vertices the capture frames (:func:`delta.scene.framing.framed_vertices`);
+        the fields' boxes hold the modelled vertices among them (None: every modelled vertex)."""
         super().__init__()
         self.body, self.spec, self.resolution = body, spec, resolution
         self.register_buffer("background", background.float().clone())
@@ -97,15 +100,26 @@ class HybridAvatar(nn.Module):
         cano = lbs(body, torch.zeros(1, 1), body.canonical_pose[None].float())
         self.register_buffer("canonical_T", cano.vertex_transforms_3x4[0].clone())
         self.register_buffer("canonical_vertices", cano.vertices[0].clone())
-        tbox = _box(template, 0.05)
+        if framed is not None and tuple(framed.shape) != tuple(modelled.shape):
+            raise ValueError(
+                f"framed: {tuple(framed.shape)} vertices, the body model '{body.name}' has {len(modelled)}"
+            )
+        region = modelled if framed is None else modelled & framed.to(device=template.device, dtype=torch.bool)
+        if not region.any():
+            raise ValueError("the capture frames none of the modelled vertices (framed and modelled do not meet)")
+        # (V,) bool: the vertices the fields' boxes hold (what the capture frames of what it models)
+        self.register_buffer("framed", region, persistent=False)
+        tbox = _box(template[region], 0.05)
         nv = body.num_vertices
         self.offset_field = VertexField(spec.offsets, tbox, "offset", spec.offset_scale, num_vertices=nv)
         self.albedo_field = VertexField(spec.albedo, tbox, "albedo", init=skin_color, num_vertices=nv)
         # the canonical fields' box holds the exterior's whole room (a decided max_dist may exceed the margin)
-        nbox = _box(self.canonical_vertices[modelled], room_margin(spec.nerf_margin, spec.render.max_dist))
+        nbox = _box(self.canonical_vertices[region], room_margin(spec.nerf_margin, spec.render.max_dist))
         self.nerf = None
         if spec.nerf is not None:
-            self.nerf = LayeredNeRF(spec.nerf, nbox, tuple(spec.layers)) if spec.layers else NeRFField(spec.nerf, nbox)
+            part = bool((modelled & ~region).any())  # no exterior beyond the box around what is framed
+            self.nerf = (LayeredNeRF(spec.nerf, nbox, tuple(spec.layers), bounded=part) if spec.layers
+                         else NeRFField(spec.nerf, nbox, bounded=part))  # fmt: skip
         self.deformation = None
         if spec.deformation is not None:
             self.deformation = DeformationField(spec.deformation, nbox, spec.deformation_scale,

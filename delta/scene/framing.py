@@ -28,6 +28,18 @@ def frame_camera(camera, frame: int, n: int):
     return OrthographicCamera(camera.scale[frame], camera.trans[frame], n, n)
 
 
+def _in_image(body: BodyModel, betas, poses, transl, camera, frame: int, n: int) -> torch.Tensor:
+    """(V,) bool: the posed vertices of one frame that project inside the n×n image (in front of a
+    pinhole camera), seen or hidden behind the body alike."""
+    k = int(frame)
+    out = lbs(body, betas[None].float(), poses[k : k + 1].float(), transl=transl[k : k + 1].float())
+    uv, depth = frame_camera(camera, k, n).project(out.vertices[0])
+    inside = ((uv >= 0) & (uv < n)).all(-1)
+    if isinstance(camera, PinholeCamera):
+        inside &= depth > 0
+    return inside
+
+
 @torch.no_grad()
 def lower_body_in_view(
     body: BodyModel, betas, poses, transl, camera, frames, n: int, max_frames: int = 8
@@ -38,16 +50,22 @@ def lower_body_in_view(
     if not lower.any():
         return None
     frames = np.asarray(frames)[:: max(1, len(frames) // max_frames)]
-    seen, total = 0, 0
+    seen = sum(int(_in_image(body, betas, poses, transl, camera, k, n)[lower].sum()) for k in frames)
+    return seen / max(len(frames) * int(lower.sum()), 1)
+
+
+@torch.no_grad()
+def framed_vertices(
+    body: BodyModel, betas, poses, transl, camera, frames, n: int, max_frames: int = 64
+) -> torch.Tensor:
+    """(V,) bool: the vertices inside the n×n image in at least one of (up to ``max_frames`` of) ``frames``:
+    what the capture frames, seen or hidden behind the body (the back of a head that never turns is
+    framed). A full-body capture frames every vertex; a head-and-shoulders one its upper chest up."""
+    frames = np.asarray(frames)[:: max(1, -(-len(frames) // max_frames))]
+    framed = torch.zeros(body.num_vertices, dtype=torch.bool)
     for k in frames:
-        k = int(k)
-        out = lbs(body, betas[None].float(), poses[k : k + 1].float(), transl=transl[k : k + 1].float())
-        uv, depth = frame_camera(camera, k, n).project(out.vertices[0, lower])
-        inside = ((uv >= 0) & (uv < n)).all(-1)
-        if isinstance(camera, PinholeCamera):
-            inside &= depth > 0
-        seen, total = seen + int(inside.sum()), total + len(uv)
-    return seen / max(total, 1)
+        framed |= _in_image(body, betas, poses, transl, camera, k, n).cpu()
+    return framed
 
 
 def detect_capture(body: BodyModel, betas, poses, transl, camera, frames, n: int, max_frames: int = 8) -> str:

@@ -26,7 +26,7 @@ from delta.models.init import load_init
 from delta.render.settings import OccupancySettings
 from delta.scene.analysis import MIN_EXTERIOR_FRACTION
 from delta.scene.settings import scene_settings
-from delta.scene.framing import detect_capture
+from delta.scene.framing import detect_capture, framed_vertices
 from delta.training.presets import TrainSettings, deep_merge, resolve
 from delta.training.scope import frozen_joints
 from delta.training.trainer import file_digest, train_stage
@@ -69,8 +69,8 @@ def exterior_layers(st: TrainSettings, data: FrameData) -> tuple[str, ...]:
 
 
 def resolve_scope(body, st: TrainSettings, init: InitParams, data: FrameData) -> dict:
-    """What this capture needs modelled: ``capture`` (full/upper), ``frozen_joints`` (logged) and the
-    exterior's ``layers``."""
+    """What this capture needs modelled: ``capture`` (full/upper), ``frozen_joints`` (logged), the
+    exterior's ``layers`` and the ``framed`` vertices (V,) bool, which the fields' boxes hold."""
     capture = st.capture
     if capture == "auto":
         capture = detect_capture(body, init.betas, init.poses, init.transl, init.camera, data.train, data.resolution)
@@ -80,7 +80,10 @@ def resolve_scope(body, st: TrainSettings, init: InitParams, data: FrameData) ->
         log.info("frozen joints (%d): %s", len(frozen), ", ".join(names[:12]) + (" ..." if len(names) > 12 else ""))
     if capture == "upper":
         log.info("capture 'upper': the lower body is not modelled (no skinning samples or NeRF box there)")
-    return {"capture": capture, "frozen_joints": frozen, "layers": exterior_layers(st, data)}
+    framed = framed_vertices(body, init.betas, init.poses, init.transl, init.camera, data.train, data.resolution)
+    log.info("the training frames frame %d of the body's %d vertices: the fields' boxes hold those modelled",
+             int(framed.sum()), len(framed))  # fmt: skip
+    return {"capture": capture, "frozen_joints": frozen, "layers": exterior_layers(st, data), "framed": framed}
 
 
 def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, stage: int, device,
@@ -97,7 +100,7 @@ def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, sta
     bg = torch.tensor(st.background, dtype=torch.float32)
     torch.manual_seed(st.seed)  # network initialisation
     return HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution,
-                        frame_times(data.frame_ids, data.train, data.split)).to(device)  # fmt: skip
+                        frame_times(data.frame_ids, data.train, data.split), scope.get("framed")).to(device)  # fmt: skip
 
 
 def semantic_loss(st: TrainSettings, weights_dir: str | None, device):
@@ -174,7 +177,8 @@ def save_model(path: str | Path, model: HybridAvatar, stage: int, preset: str, s
     final = {"format": MODEL_FORMAT, "model": model.state_dict(), "stage": stage, "preset": preset, "settings": st.raw,
              "nerf": model.nerf is not None, "deformation": model.deformation is not None,
              "pinhole": model.pinhole, "steps": steps, "capture": model.spec.capture,
-             "frozen_joints": list(model.spec.frozen_joints), "layers": list(model.spec.layers)}  # fmt: skip
+             "frozen_joints": list(model.spec.frozen_joints), "layers": list(model.spec.layers),
+             "framed": model.framed.cpu().clone()}  # fmt: skip
     with atomic_path(path) as tmp:
         torch.save(final, tmp)
 
@@ -208,9 +212,11 @@ def migrate_model(state: dict, path: str | Path) -> dict:
 
 
 def _scope(state: dict) -> dict:
-    """The capture, frozen joints and exterior layers a (migrated) model.pt was trained with."""
+    """The capture, frozen joints, exterior layers and framed vertices a (migrated) model.pt was trained
+    with; a file written before the framed vertices were kept has its boxes around every modelled vertex."""
+    framed = state.get("framed")
     return {"capture": state["capture"], "frozen_joints": list(state["frozen_joints"]),
-            "layers": list(state.get("layers", []))}  # fmt: skip
+            "layers": list(state.get("layers", [])), "framed": None if framed is None else framed.cpu().bool()}  # fmt: skip
 
 
 def load_init_from_state(state: dict, data: FrameData) -> InitParams:
@@ -258,7 +264,7 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
         raise DeltaError(f"{model_path}: trained on {expected} frames but {record} has {frames}; "
                          "not the record this model was trained on")  # fmt: skip
     model = HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution,
-                         frame_times(data.frame_ids, data.train, data.split)).to(dev)  # fmt: skip
+                         frame_times(data.frame_ids, data.train, data.split), scope["framed"]).to(dev)  # fmt: skip
     try:
         model.load_state_dict(state["model"])
     except RuntimeError as e:
