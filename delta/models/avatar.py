@@ -109,7 +109,8 @@ class HybridAvatar(nn.Module):
             raise ValueError("the capture frames none of the modelled vertices (framed and modelled do not meet)")
         # (V,) bool: the vertices the fields' boxes hold (what the capture frames of what it models)
         self.register_buffer("framed", region, persistent=False)
-        tbox = _box(template[region], 0.05)
+        # without the framed vertices (a file from before them) the vertex fields' box is the whole template's
+        tbox = _box(template if framed is None else template[region], 0.05)
         nv = body.num_vertices
         self.offset_field = VertexField(spec.offsets, tbox, "offset", spec.offset_scale, num_vertices=nv)
         self.albedo_field = VertexField(spec.albedo, tbox, "albedo", init=skin_color, num_vertices=nv)

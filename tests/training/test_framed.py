@@ -126,3 +126,6 @@ def test_model_pt_keeps_the_framed_vertices(tiny_training, tmp_path):
     torch.save(state, tmp_path / "old.pt")
     back = load_trained(tmp_path / "old.pt", inputs["record"], inputs["body"]).model
     assert torch.equal(back.framed, back.modelled) and not back.nerf.bounded
+    template = body.v_template.float()  # its vertex fields over the whole template, as such files were trained
+    assert torch.allclose(back.albedo_field.encoding.lo, template.amin(0) - 0.05)
+    assert torch.allclose(back.nerf.encoding.lo, back.canonical_vertices[back.modelled].amin(0) - st.avatar.nerf_margin)
