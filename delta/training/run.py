@@ -148,7 +148,7 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
     else:
         prev = migrate_model(load_state(start, map_location=dev), start)
         init = load_init_from_state(prev["model"], data)
-        model = build_avatar(body, st, init, data, 2, dev, _scope(prev))
+        model = build_avatar(body, st, init, data, 2, dev, _scope(prev, start, body.num_vertices))
         missing, unexpected = model.load_state_dict(prev["model"], strict=False)
         if unexpected or any(not k.startswith("deformation.") for k in missing):
             raise DeltaError(f"{start}: does not match this preset's stage-2 model "
@@ -211,12 +211,21 @@ def migrate_model(state: dict, path: str | Path) -> dict:
     return state
 
 
-def _scope(state: dict) -> dict:
+def _scope(state: dict, path: str | Path = "model.pt", num_vertices: int | None = None) -> dict:
     """The capture, frozen joints, exterior layers and framed vertices a (migrated) model.pt was trained
-    with; a file written before the framed vertices were kept has its boxes around every modelled vertex."""
+    with; a file written before the framed vertices were kept has its boxes as they were trained (the
+    vertex fields' around the whole template, the exterior's around every modelled vertex).
+    ``num_vertices``: the body model's, which the framed vertices must match."""
     framed = state.get("framed")
+    if framed is not None:
+        if not torch.is_tensor(framed) or framed.dim() != 1:
+            raise DeltaError(f"{path}: 'framed' is not a per-vertex mask (a model.pt written by 'delta train'?)")
+        if num_vertices is not None and len(framed) != num_vertices:
+            raise DeltaError(f"{path}: trained on a body model of {len(framed)} vertices, the body model given has "
+                             f"{num_vertices}")  # fmt: skip
+        framed = framed.cpu().bool()
     return {"capture": state["capture"], "frozen_joints": list(state["frozen_joints"]),
-            "layers": list(state.get("layers", [])), "framed": None if framed is None else framed.cpu().bool()}  # fmt: skip
+            "layers": list(state.get("layers", [])), "framed": framed}  # fmt: skip
 
 
 def load_init_from_state(state: dict, data: FrameData) -> InitParams:
@@ -251,13 +260,13 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
     st = resolve(state["preset"], state["settings"])
     data = load_frames(record, st.resolution, st.background, st.box_margin, hair=st.layers == "split")
     spec = st.avatar if state.get("nerf", True) else dataclasses.replace(st.avatar, nerf=None)
-    scope = _scope(state)
+    body = load_body_model(body_path)  # on the CPU: the avatar's .to(dev) moves it
+    scope = _scope(state, model_path, body.num_vertices)
     spec = dataclasses.replace(spec, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]),
                                layers=tuple(scope["layers"]))  # fmt: skip
     if state.get("deformation"):
         spec = dataclasses.replace(spec, deformation=st.deformation)
     bg = torch.tensor(st.background, dtype=torch.float32)
-    body = load_body_model(body_path)  # on the CPU: the avatar's .to(dev) moves it
     init = load_init_from_state(state["model"], data)
     frames, expected = len(data.frame_ids), int(init.poses.shape[0])
     if frames != expected:

@@ -6,6 +6,7 @@ import dataclasses
 import pytest
 import torch
 
+from delta import DeltaError
 from delta.body.lbs import lbs
 from delta.body.model import load_body_model
 from delta.data.frames import load_frames
@@ -118,6 +119,13 @@ def test_model_pt_keeps_the_framed_vertices(tiny_training, tmp_path):
     back = load_trained(tmp_path / "model.pt", inputs["record"], inputs["body"]).model
     assert torch.equal(back.framed, model.framed) and back.nerf.bounded
     assert torch.equal(back.nerf.encoding.lo, model.nerf.encoding.lo)
+    # a mask that is not the body model's, or not a mask at all: the file is named
+    for bad, what in ((model.framed[:-5].clone(), "vertices"), ([1, 0], "per-vertex mask")):
+        state = load_state(tmp_path / "model.pt")
+        state["framed"] = bad
+        torch.save(state, tmp_path / "bad.pt")
+        with pytest.raises(DeltaError, match=f"bad.pt.*{what}"):
+            load_trained(tmp_path / "bad.pt", inputs["record"], inputs["body"])
     # a file from before the framed vertices were kept: its boxes hold every modelled vertex
     old = build_avatar(body, st, low, data, 1, "cpu", dict(scope, framed=None))
     save_model(tmp_path / "old.pt", old, 1, "fast", st, 0)
