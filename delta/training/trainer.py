@@ -98,12 +98,15 @@ def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
     return float(10 * np.log10(1.0 / max(mse, 1e-10)))
 
 
-def fingerprint(stage: int, st: TrainSettings, data: FrameData, origin: str = "") -> str:
+def fingerprint(stage: int, st: TrainSettings, data: FrameData, origin: str = "", model=None) -> str:
     """What a checkpoint must have been trained with to be resumed: the stage, the settings it reads
-    (:func:`stage_view`), the frames and, for stage 2, ``origin`` (a digest of the stage-1 model it starts
-    from)."""
+    (:func:`stage_view`), the frames, for stage 2 ``origin`` (a digest of the stage-1 model it starts
+    from) and, given the ``model``, the shapes of its state (the same settings build other grids where
+    the fields' boxes differ: a checkpoint of another version's boxes is not resumed, not half loaded)."""
+    shapes = {} if model is None else {k: list(v.shape) for k, v in model.state_dict().items()}
     key = json.dumps({"stage": stage, "settings": stage_view(st.raw, stage), "frames": np.asarray(data.frame_ids).tolist(),
-                      "resolution": data.resolution, "origin": origin}, sort_keys=True, default=str)  # fmt: skip
+                      "resolution": data.resolution, "origin": origin, **({"shapes": shapes} if shapes else {})},
+                     sort_keys=True, default=str)  # fmt: skip
     return hashlib.sha256(key.encode()).hexdigest()[:16]
 
 
@@ -218,7 +221,7 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
     base_lr = [g["lr"] for g in optimizer.param_groups]  # before a resume loads the decayed ones
     start, rows = 0, []
     ckpt = out_dir / CHECKPOINT
-    key = fingerprint(stage, st, data, origin)
+    key = fingerprint(stage, st, data, origin, model)
     state = load_checkpoint(out_dir, key, stage, device)
     if state is not None:
         model.load_state_dict(state["model"])

@@ -1,6 +1,7 @@
 """Checkpoints and model files: finished work is not redone, corrupt or crafted files are set aside
 or refused (never run), and a stage's fingerprint covers what that stage reads and nothing else."""
 
+import copy
 import os
 
 import pytest
@@ -89,6 +90,12 @@ def test_a_stage_fingerprint_covers_what_the_stage_reads(tiny_training):
         2, st, data
     )
     assert fingerprint(2, st, data, origin="a") != fingerprint(2, st, data, origin="b")
+    # the model's state shapes: the same settings over other boxes build other grids
+    model = _model(tiny_training["tight"], st)[0]
+    other = copy.deepcopy(model)
+    other.albedo_field.encoding.grids[-1] = torch.nn.Parameter(torch.zeros(1, 2, 3, 3, 3))
+    assert fingerprint(1, st, data, model=model) == fingerprint(1, st, data, model=copy.deepcopy(model))
+    assert fingerprint(1, st, data, model=model) != fingerprint(1, st, data, model=other)
     # a stage's view resolves to the same settings for everything that stage reads
     view = resolve("fast", stage_view(only2.raw, 1))
     assert stage_view(view.raw, 1) == stage_view(only2.raw, 1) and view.stage1 == only2.stage1
