@@ -64,7 +64,6 @@ class NeRFField(nn.Module):
     def __init__(self, spec: FieldSpec, bounds: torch.Tensor, density_bias: float = -2.0, bounded: bool = False):
         super().__init__()
         self.bounded = bool(bounded)
-        self.register_buffer("box", bounds.float().clone(), persistent=False)
         self.split = spec.encoding == "grid"
         self.encoding, self.head = _encoder_and_head(spec, bounds, 1 if self.split else 4)
         if self.split:
@@ -96,10 +95,10 @@ class NeRFField(nn.Module):
         return torch.sigmoid(color), self._in_box(x, self._sigma(out[:, -1], noisy=True))
 
     def _in_box(self, x: torch.Tensor, sigma: torch.Tensor) -> torch.Tensor:
-        """``sigma`` (N,), zero at points outside the box when the field is ``bounded``."""
+        """``sigma`` (N,), zero at points outside the box (the encoding's) when the field is ``bounded``."""
         if not self.bounded:
             return sigma
-        inside = ((x >= self.box[0]) & (x <= self.box[1])).all(-1)
+        inside = ((x >= self.encoding.lo) & (x <= self.encoding.hi)).all(-1)
         return torch.where(inside, sigma, torch.zeros_like(sigma))
 
     def color_cell(self) -> float:
