@@ -103,6 +103,8 @@ def main() -> None:
             "seconds": float(losses["seconds"].iloc[-1]),
             "train_psnr": float(smooth(losses["psnr"].to_numpy(), PSNR_WINDOW)[-1]),
             **{f"held_out_{k}": scores.get(k, float("nan")) for k in ("psnr", "ssim", "stlpips_alex", "nerf_iou")},
+            # where the image is wrong: the ground truth's regions (face, hair, clothing, skin)
+            **{f"held_out_{k}": v for k, v in scores.items() if k.startswith("psnr_") or k == "outline_error_share"},
         }
         # the finished run's clock at this step, and how closely the rerun follows it (the same settings only)
         if run is not None and not override:

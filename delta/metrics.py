@@ -11,6 +11,9 @@ Images are (H, W, 3) tensors in [0, 1] (data range 1). Conventions:
   mean of the SSIM map with the 5-pixel border left out (as scikit-image does); a masked
   score is the mean of the map over the mask's pixels.
 * L1 = mean absolute difference over pixels and channels (inside the mask when given).
+* The outline band of a mask: the pixels within a few of its outline, on either side, where an
+  error of the silhouette (a pose, a shape) shows; ``error_share`` says how much of an image's
+  squared error lies there.
 """
 
 from __future__ import annotations
@@ -113,3 +116,24 @@ def iou(a: torch.Tensor, b: torch.Tensor) -> float:
     a, b = a.bool(), b.bool()
     union = (a | b).sum()
     return float("nan") if union == 0 else float((a & b).sum() / union)
+
+
+def outline_band(mask: torch.Tensor, width: int) -> torch.Tensor:
+    """(H, W) bool: the pixels within ``width`` pixels (a square's reach, Chebyshev distance) of the
+    mask's outline, on either side: those the mask's dilation by ``width`` holds and its erosion does not.
+    An image border is not an outline (the mask is extended past it)."""
+    if width < 1:
+        raise ValueError(f"outline band width {width}: expected at least 1 pixel")
+    m = mask.bool()[None, None].float()
+    k = 2 * width + 1
+    grown = F.max_pool2d(F.pad(m, (width,) * 4, mode="replicate"), k, stride=1)
+    shrunk = -F.max_pool2d(F.pad(-m, (width,) * 4, mode="replicate"), k, stride=1)
+    return (grown > 0.5)[0, 0] & ~(shrunk > 0.5)[0, 0]
+
+
+def error_share(a: torch.Tensor, b: torch.Tensor, mask: torch.Tensor) -> float:
+    """The share of the image's squared error that lies inside ``mask`` (nan for identical images)."""
+    _check(a, b, mask)
+    e = ((a.double() - b.double()) ** 2).sum(-1)
+    total = float(e.sum())
+    return float("nan") if total == 0 else float(e[mask.bool().to(e.device)].sum()) / total

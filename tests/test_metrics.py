@@ -86,3 +86,35 @@ def test_iou():
     b[1:3] = True  # 8 pixels, 4 shared
     assert M.iou(a, b) == pytest.approx(4 / 12)
     assert math.isnan(M.iou(a & False, b & False))
+
+
+def test_outline_band_is_the_pixels_near_the_outline_by_distance():
+    """The band against a distance computed pixel by pixel: a pixel is in it when a pixel of the other
+    side lies within ``width`` (Chebyshev) of it."""
+    rng = np.random.default_rng(3)
+    mask = np.zeros((40, 50), bool)
+    mask[8:30, 10:38] = True
+    mask[15:20, 20:26] = False  # a hole has an outline too
+    mask |= rng.random(mask.shape) < 0.01  # and stray pixels
+    for width in (1, 2, 4):
+        band = M.outline_band(torch.from_numpy(mask), width).numpy()
+        expect = np.zeros_like(mask)
+        for y, x in np.ndindex(mask.shape):
+            ys, xs = slice(max(0, y - width), y + width + 1), slice(max(0, x - width), x + width + 1)
+            expect[y, x] = (mask[ys, xs] != mask[y, x]).any()
+        np.testing.assert_array_equal(band, expect)
+    assert not M.outline_band(torch.ones(6, 6, dtype=torch.bool), 2).any()  # the image border is no outline
+    with pytest.raises(ValueError, match="width 0"):
+        M.outline_band(torch.from_numpy(mask), 0)
+
+
+def test_error_share_splits_the_squared_error():
+    a = torch.zeros(4, 5, 3)
+    b = torch.zeros(4, 5, 3)
+    b[0, 0] = 0.5  # squared error 0.75
+    b[3, 4, 1] = 0.5  # squared error 0.25
+    inside = torch.zeros(4, 5, dtype=torch.bool)
+    inside[0, 0] = True
+    assert M.error_share(a, b, inside) == pytest.approx(0.75)
+    assert M.error_share(a, b, ~inside) == pytest.approx(0.25)
+    assert np.isnan(M.error_share(a, a, inside))

@@ -96,6 +96,16 @@ def score_image(img: dict, gt: torch.Tensor, masks: dict[str, torch.Tensor], per
     return row
 
 
+#: the outline band's half-width as a share of the scored image's longer side: 2 pixels at 512², where a
+#: full body's pixel is 4 mm, so the band holds what a few millimetres of pose or shape error move
+OUTLINE_SHARE = 1 / 256
+
+
+def outline_width(size: tuple[int, int]) -> int:
+    """The outline band's half-width in pixels for an image of ``size`` (W, H): at least one pixel."""
+    return max(1, round(max(size) * OUTLINE_SHARE))
+
+
 def head_region(person: torch.Tensor, clothing: torch.Tensor) -> torch.Tensor:
     """(H, W) bool: a head-and-shoulders capture's face, hair and neck: the person less its clothing (the
     region DELTA and NHA score head avatars on, which leaves out the torso's clothes)."""
@@ -179,6 +189,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
             body = full.interior[k] > 0.5
             masks = {"body": body, "face": face_pixels(model, f, mesh.vertices, view) & body}
             masks |= {name: m[k] for name, m in full.parts.items()}
+            masks["outline"] = M.outline_band(full.person[k] > 0.5, outline_width(full.size))
             if model.spec.capture == "upper" and "clothing" in full.parts:
                 masks["head"] = head_region(full.person[k], full.parts["clothing"][k])
             row = {"subject": subject, "frame": f, "frame_id": int(data.frame_ids[f]), "split": split,
@@ -190,6 +201,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
                 row |= {"refine_loss_start": fit.loss_start, "refine_loss_end": fit.loss_end,
                         "refine_converged": fit.converged, "refine_kept_step": fit.kept}  # fmt: skip
             row |= score_image(img, full.images[k], masks, perceptual, ("head",), trained.settings.background)
+            row["outline_error_share"] = M.error_share(img["rgb"].clamp(0, 1), full.images[k], masks["outline"])
             row["nerf_iou"] = (
                 M.iou(img["nerf_mask"] > 0.5, full.exterior[k] > 0.5) if model.nerf is not None else np.nan
             )
