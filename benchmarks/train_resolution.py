@@ -12,8 +12,8 @@ workflow evaluates, or by ``--eval``); and a table of each variant's means.
         --settings '{"stage1": {"fine_from": 0.5}}' --eval '{"splits": ["test_view"], "refine_steps": 0, \\
         "max_frames": 5, "supersample": 2, "stage": 1, "worst": 0}' --work /tmp/tight_fine
 
-Each row: subject, variant, held-out split, refined or not, the means of PSNR, SSIM, ST-LPIPS, the region PSNRs and the
-NeRF-mask IoU over the held-out frames.
+Each row: subject, variant, held-out split, refined or not, the means of PSNR, SSIM, ST-LPIPS, the region PSNRs, the
+NeRF-mask IoU and the outline band's PSNR and error share over the held-out frames.
 """
 
 from __future__ import annotations
@@ -32,7 +32,18 @@ from table import save_table  # noqa: E402
 from delta.training.presets import deep_merge  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-SCORES = ["psnr", "ssim", "stlpips_alex", "psnr_face", "psnr_hair", "psnr_clothing", "psnr_body", "nerf_iou"]
+SCORES = [
+    "psnr",
+    "ssim",
+    "stlpips_alex",
+    "psnr_face",
+    "psnr_hair",
+    "psnr_clothing",
+    "psnr_body",
+    "nerf_iou",
+    "psnr_outline",
+    "outline_error_share",
+]
 EVAL = {"max_frames": 5, "refine_lr": 0.0005, "refine_rays": 4096, "refine_steps": 30, "refine_tol": 0.0,
         "report_unrefined": True, "splits": ["test_view", "test_pose"], "stage": 2, "supersample": 2, "worst": 0}  # fmt: skip
 

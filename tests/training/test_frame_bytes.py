@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from delta.data.frames import ByteFrames, load_frames
+from delta.data.frames import ByteFrames, claim_fringe, load_frames
 
 STEP = 1.0 / 255.0
 
@@ -39,8 +39,10 @@ def test_loaded_frames_are_the_float_frames_to_half_a_step(tiny_training, backgr
         for f in (0, len(data.split) // 2, len(data.split) - 1):
             a = h5["person"][f].astype(np.float32) / 255.0
             img = h5["images"][f].astype(np.float32) / 255.0 * a[..., None] + bg * (1 - a[..., None])
-            ext = np.minimum(np.minimum(sum(h5[m][f].astype(np.float32) for m in masks), 1.0), a)
-            hair = np.minimum(np.minimum(h5["hair"][f].astype(np.float32), 1.0), a)
+            # the parts with the person's unlabelled fringe claimed (tests/training/test_fringe.py checks that)
+            parts = claim_fringe(h5["person"][f], {m: h5[m][f] > 0 for m in masks + ["skin"]})
+            ext = np.minimum(np.any([parts[m] for m in masks], 0).astype(np.float32), a)
+            hair = np.minimum(parts["hair"].astype(np.float32), a)
             for got, want in ((data.images[f], img), (data.person[f], a), (data.exterior[f], ext),
                               (data.interior[f], np.clip(a - ext, 0, 1)), (data.hair[f], hair)):  # fmt: skip
                 assert got.dtype == torch.float32
