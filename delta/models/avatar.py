@@ -276,7 +276,7 @@ class HybridAvatar(nn.Module):
 
     def param_groups(self, lr: dict) -> list[dict]:
         """Optimiser groups, each ``name``d: networks, shape, per-frame pose, per-frame camera (lr keys: fields,
-        nerf, pose, camera, shape, trajectory)."""
+        nerf, deformation (default: nerf's), pose, camera, shape, trajectory)."""
         groups = [
             {
                 "params": list(self.offset_field.parameters()) + list(self.albedo_field.parameters()),
@@ -293,7 +293,8 @@ class HybridAvatar(nn.Module):
         if self.nerf is not None:
             groups.append({"params": list(self.nerf.parameters()), "lr": lr["nerf"], "name": "nerf"})
         if self.deformation is not None:
-            groups.append({"params": list(self.deformation.parameters()), "lr": lr["nerf"], "name": "deformation"})
+            rate = lr.get("deformation", lr["nerf"])
+            groups.append({"params": list(self.deformation.parameters()), "lr": rate, "name": "deformation"})
         if not self.pinhole:
             groups.append({"params": [self.ortho_scale, self.ortho_trans], "lr": lr["camera"], "name": "camera"})
         if self.trajectory is not None:

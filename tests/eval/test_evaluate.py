@@ -205,12 +205,15 @@ def test_whole_frames_are_scored_at_the_capture_size_as_an_independent_scorer_wo
         # the outline band: pixels within one pixel (1/256 of the side, at least 1) of the true person's
         # outline at 0.5, by a 3x3 dilation and erosion of its own (scipy's)
         person = full.person[k].numpy() > 0.5
-        band = ndimage.binary_dilation(person, np.ones((3, 3)), border_value=0) & ~ndimage.binary_erosion(
-            np.pad(person, 1, mode="edge"), np.ones((3, 3))
-        )[1:-1, 1:-1]
+        band = (
+            ndimage.binary_dilation(person, np.ones((3, 3)), border_value=0)
+            & ~ndimage.binary_erosion(np.pad(person, 1, mode="edge"), np.ones((3, 3)))[1:-1, 1:-1]
+        )
         sq = ((render - gt) ** 2).sum(-1)
         assert row.outline_error_share == pytest.approx(sq[band].sum() / sq.sum(), abs=1e-6)
-        assert row.psnr_outline == pytest.approx(peak_signal_noise_ratio(gt[band], render[band], data_range=1.0), abs=1e-4)
+        assert row.psnr_outline == pytest.approx(
+            peak_signal_noise_ratio(gt[band], render[band], data_range=1.0), abs=1e-4
+        )
     src.close()
 
 

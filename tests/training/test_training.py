@@ -315,3 +315,17 @@ def test_init_fit_from_another_record_is_refused(tiny_training, tmp_path):
     save_npz(tmp_path / "init.npz", **{**z, "frame_ids": z["frame_ids"][:-1], "poses": z["poses"][:-1]})
     with pytest.raises(DeltaError, match="differ from the frame record's"):
         load_init(tmp_path / "init.npz", data)
+
+
+def test_stage_two_goes_on_at_the_rates_stage_one_ended_at(tiny_training):
+    """`fast`'s stage 2 starts its fields and NeRF at stage 1's base rates times its decay (where stage 1 ended),
+    its new deformation at the NeRF's full rate; an lr table without ``deformation`` gives F_e the NeRF's."""
+    st = resolve("fast", TINY)
+    model, _ = _model(tiny_training["loose"], st, stage=2)
+    groups = {g["name"]: g["lr"] for g in model.param_groups(st.stage2.lr)}
+    one = st.stage1
+    assert groups["fields"] == pytest.approx(one.lr["fields"] * one.lr_final)
+    assert groups["nerf"] == pytest.approx(one.lr["nerf"] * one.lr_final)
+    assert groups["deformation"] == pytest.approx(one.lr["nerf"])
+    plain = {k: v for k, v in st.stage2.lr.items() if k != "deformation"}
+    assert {g["name"]: g["lr"] for g in model.param_groups(plain)}["deformation"] == plain["nerf"]
