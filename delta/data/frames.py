@@ -86,19 +86,23 @@ FRINGE_REACH = 3.0
 
 
 def claim_fringe(alpha: np.ndarray, parts: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """The (H, W) bool part masks with the person's unlabelled pixels given to the nearest part.
+    """The (H, W) bool part masks with the person's unlabelled fringe given to the nearest part.
 
-    A part label says what a pixel's centre sees, while the person's alpha also covers the pixels of its
-    outline whose centre missed the person (an edge pixel a third covered) and a matting model's soft
-    fringe. Left unclaimed, no part of the avatar is asked to cover them: the exterior's target is zero
-    there and the body lies further in, so the avatar's outline settled a third of a pixel inside the
-    person's all round, and that band held 70 % of a held-out frame's squared error (tight at 512²:
-    docs/evaluation.md). Each such pixel (alpha > 0, no part) within ``FRINGE_REACH`` pixels of a part goes
-    to the nearest part (ties to the first named)."""
+    A part label says what a pixel's centre sees, while the person's alpha (H, W, 0-255) also covers the
+    pixels of its outline whose centre missed the person (an edge pixel a third covered) and a matting
+    model's soft fringe. Left unclaimed, no part of the avatar is asked to cover them: the exterior's target
+    is zero there and the body lies further in, so the avatar's outline settled a third of a pixel inside
+    the person's all round, and that band held 70 % of a held-out frame's squared error (tight at 512²:
+    docs/method.md). Each pixel of the person that no part labels and that lies within ``FRINGE_REACH``
+    pixels of where the person is not (the fringe: not a patch of skin a parser left unlabelled inside the
+    person) goes to the nearest part within that reach (ties to the first named)."""
     labelled = np.zeros(alpha.shape, bool)
     for m in parts.values():
         labelled |= m
-    free = (alpha > 0) & ~labelled
+    person = alpha > 0
+    free = person & ~labelled
+    if free.any():  # distance of each person pixel to the nearest pixel without the person
+        free &= cv2.distanceTransform(person.astype(np.uint8), cv2.DIST_L2, 5) <= FRINGE_REACH
     if not free.any():
         return parts
     nearest = np.full(alpha.shape, np.inf, np.float32)

@@ -38,9 +38,12 @@ def test_unlabelled_pixels_go_to_the_nearest_part_within_reach():
         claimed = out["clothing"] | out["skin"]
         assert not (out["clothing"] & out["skin"]).any()
         nearest = np.minimum(d["clothing"], d["skin"])
-        # a free pixel clearly within reach is claimed, one clearly beyond is not
-        assert claimed[free & (nearest <= FRINGE_REACH * 0.97)].all()
+        outside = exact_distance(alpha == 0)  # the fringe: near where the person is not
+        fringe = free & (outside <= FRINGE_REACH * 0.97)
+        # a fringe pixel clearly within reach of a part is claimed; one clearly beyond, or inside the person, is not
+        assert claimed[fringe & (nearest <= FRINGE_REACH * 0.97)].all()
         assert not claimed[free & (nearest > FRINGE_REACH * 1.03)].any()
+        assert not claimed[free & (outside > FRINGE_REACH * 1.03)].any()
 
 
 def disc(n: int, radius: float, sub: int = 8):
@@ -76,3 +79,17 @@ def test_nothing_to_claim_leaves_the_parts_as_they_are():
     far = np.zeros((32, 32), np.uint8)
     far[0, 0] = 200  # unlabelled and far from every part: nobody's
     assert not claim_fringe(far, {"clothing": centre})["clothing"][0, 0]
+
+
+def test_an_unlabelled_patch_inside_the_person_stays_unlabelled():
+    """A parser that labels clothing and not skin leaves the arms unlabelled: only their fringe at the
+    outline is claimed, not the skin beside a sleeve inside the person."""
+    alpha = np.zeros((40, 40), np.uint8)
+    alpha[5:35, 5:35] = 255  # the person, its outline 5 px in from the image's
+    sleeve = np.zeros((40, 40), bool)
+    sleeve[5:35, 5:20] = True  # clothing on the left half; the right half unlabelled skin
+    alpha[4, 5:35] = alpha[35, 5:35] = 80  # a fringe row above and below
+    out = claim_fringe(alpha, {"clothing": sleeve})["clothing"]
+    assert out[4, 5:20].all() and out[35, 5:20].all()  # the fringe beside the sleeve: the sleeve's
+    assert not out[4, 24:35].any()  # the fringe beyond reach of the sleeve: nobody's
+    assert not out[15:25, 20:23].any()  # skin beside the sleeve deep inside the person: not claimed
