@@ -70,13 +70,15 @@ def test_occupancy_skips_samples_after_warmup_and_resumes_exactly(tiny_training,
 
 def test_stage2_starts_from_stage1s_grid_grown_by_fe_reach(tiny_training, tmp_path):
     inputs = tiny_training["loose"]
-    model1, data, st = _model(inputs)
+    # cells fine enough that stage 1's set, grown by F_e's reach, leaves part of the tiny box empty (1 %)
+    fine = {"render": {"occupancy": {"resolution": 32}}}
+    model1, data, st = _model(inputs, fine)
     train_stage(1, model1, data, st, tmp_path / "s1")
     assert bool(model1.occupancy.active) and model1.occupancy.fraction() < 1
     stage2 = {"stage2": {"iterations": 2, "rays": 128, "checkpoint_every": 2, "preview_every": 0, "log_every": 100}}
     runs = {}
     for carry in (True, False):
-        st2, data, body, init = _setup(inputs, stage2, {"render": {"occupancy": {"carry": carry}}})
+        st2, data, body, init = _setup(inputs, stage2, fine, {"render": {"occupancy": {"carry": carry}}})
         model2 = build_avatar(body, st2, init, data, 2, torch.device("cpu"))
         missing, _ = model2.load_state_dict(model1.state_dict(), strict=False)
         assert all(k.startswith("deformation.") for k in missing)
