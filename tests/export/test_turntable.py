@@ -48,8 +48,10 @@ def test_the_turntable_is_the_same_film_in_a_tilted_world(tiny_trained):
     assert angle_deg(tilted_up, Q @ up.double()) < 1e-3  # the estimate turns with the world
     tilted = list(turntable(model, 0, frames))
     for k, (a, b) in enumerate(zip(straight, tilted)):
-        diff = np.abs(a.astype(int) - b.astype(int))
-        assert diff.max() <= 3, (k, diff.max())
+        diff = np.abs(a.astype(int) - b.astype(int)).max(-1)
+        # the same film to the rounding of a rotated frame: a ray grazing an edge may land on the other
+        # side of it in one film, so a pixel or two may differ more; the rest agree to 3 levels of 255
+        assert (diff > 3).sum() <= 2 and diff.mean() < 0.5, (k, diff.max(), (diff > 3).sum(), diff.mean())
     assert np.abs(straight[0].astype(int) - straight[frames // 2].astype(int)).mean() > 1.0  # it turns
     # turning about the world's y axis instead, which is no longer up, sweeps the body's axis round a cone
     y = torch.tensor([0.0, 1.0, 0.0], dtype=D)
