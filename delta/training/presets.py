@@ -24,6 +24,10 @@ _GRID_NERF = {"encoding": "grid", "levels": 5, "features": 2, "base_res": 12, "m
 _GRID_OFFSETS = {"encoding": "grid", "levels": 3, "features": 2, "base_res": 8, "max_res": 32, "depth": 1, "width": 32}
 _GRID_ALBEDO = {"encoding": "grid", "levels": 5, "features": 2, "base_res": 12, "max_res": 96, "depth": 1, "width": 64}
 _PE_DEFORM = {"encoding": "pe", "num_freqs": 6, "depth": 3, "width": 64}
+# stage 2 goes on from stage 1's fields at the rates a grid preset's stage 1 ends at (the default rates
+# times its lr_final 0.1: a fresh Adam at the full rates shook the trained grids, tight's held-out views
+# lost 0.45 dB in stage 2), while its new F_e learns at the full NeRF rate (benchmarks/stage2_rates.csv)
+_STAGE2_LR = {"nerf": 1e-3, "fields": 5e-4, "deformation": 1e-2}
 
 PRESETS: dict[str, dict] = {
     "fast": {
@@ -37,15 +41,12 @@ PRESETS: dict[str, dict] = {
         # stage 1 stops once its training-ray PSNR has flattened (benchmarks/plateau_stop.csv, at 512²:
         # upper 580 steps, +0.1 dB and -20 %; loose 680, -0.1 dB and -8 %; tight never flattened)
         "stage1": {"iterations": 800, "rays": 4096, "lr_final": 0.1, "plateau_window": 100},
-        # stage 2 goes on from stage 1's fields at the rates stage 1 ended at (a fresh Adam at the full rates
-        # shook the trained grids: tight's held-out views lost 0.45 dB in stage 2), while its new F_e
-        # learns at the full NeRF rate (benchmarks/stage2_rates.csv)
         "stage2": {
             "iterations": 300,
             "rays": 2048,
             "patch": 32,
             "lr_final": 0.1,
-            "lr": {"nerf": 1e-3, "fields": 5e-4, "deformation": 1e-2},
+            "lr": _STAGE2_LR,
         },
         "dynamics": {"time_freqs": 6},
     },
@@ -62,8 +63,8 @@ PRESETS: dict[str, dict] = {
             "rays": 2048,
             "patch": 48,
             "lr_final": 0.1,
-            "lr": {"nerf": 1e-3, "fields": 5e-4, "deformation": 1e-2},
-        },  # as fast's, measured alike
+            "lr": _STAGE2_LR,
+        },
         "dynamics": {"time_freqs": 6},
     },
     "paper": {
