@@ -8,7 +8,11 @@ blurs along its own direction and leaves the others (a striped shirt moved along
 sharp as ever). A frame far below the capture's median is blurred.
 
 A person runs off the image at an edge their mask crosses; a sliver of contact (the tip of a heel on
-the last row, a fingertip) cuts off nothing the avatar needs and does not count.
+the last row, a fingertip) cuts off nothing the avatar needs and does not count. Contact is looked for in
+a thin band along each edge, not on its outermost row alone: a matte made at a model's resolution and
+brought up to the frame's fades out over the last few pixels (MediaPipe's 256-pixel mask over a
+1080-pixel frame: 70, 122, 174, 226 of 255 on the four outermost columns under a hand that crosses
+the edge), so its last row alone says little about what crosses it.
 """
 
 from __future__ import annotations
@@ -25,6 +29,8 @@ EDGE_MARGIN = 0.03
 EDGES = ("left", "top", "right", "bottom")
 #: a mask runs off an edge where its contact there spans at least this share of the person's long side
 CUT_CONTACT = 0.015
+#: the band along an edge where contact is looked for, as a share of the image's long side (4 px at 1080)
+CUT_BAND = 0.004
 
 
 _DIRECTIONS = tuple(
@@ -74,13 +80,15 @@ def blurred(scores: dict[int, float], ratio: float = BLUR_RATIO) -> list[int]:
     return sorted(i for i, s in scores.items() if np.isfinite(s) and s < floor)
 
 
-def cut_edges(mask: np.ndarray, contact: float = CUT_CONTACT) -> tuple[str, ...]:
+def cut_edges(mask: np.ndarray, contact: float = CUT_CONTACT, band: float = CUT_BAND) -> tuple[str, ...]:
     """The image edges the (H, W) person mask (0-255) runs off: those it touches over at least ``contact``
-    of the long side of its box (at least one pixel)."""
+    of the long side of its box (at least one pixel), a row or column touching where the mask is on within
+    ``band`` of the image's long side (at least one pixel) of that edge."""
     on = np.asarray(mask) > 127
     rows, cols = np.flatnonzero(on.any(1)), np.flatnonzero(on.any(0))
     if not rows.size:
         return ()
     floor = max(1.0, contact * max(rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1))
-    touch = (on[:, 0].sum(), on[0].sum(), on[:, -1].sum(), on[-1].sum())
+    b = max(1, round(band * max(on.shape)))
+    touch = (on[:, :b].any(1).sum(), on[:b].any(0).sum(), on[:, -b:].any(1).sum(), on[-b:].any(0).sum())
     return tuple(e for e, t in zip(EDGES, touch) if t >= floor)
