@@ -81,13 +81,14 @@ def profile(args) -> pd.DataFrame:
     if not model.pinhole:
         trained |= {"scale": model.ortho_scale.detach().clone(), "trans": model.ortho_trans.detach().clone()}
     offsets = model.offsets
+    with torch.no_grad():
+        zero = torch.zeros_like(offsets())
     rows = []
     for f in frames:
         person, interior = data.person[f].numpy(), data.interior[f].numpy()
         bands = skin_bands(person, interior, data.exterior[f].numpy())
         bodies = {"trained": mesh_coverage(model, f)}
-        zero = torch.zeros_like(offsets())
-        model.offsets = lambda z=zero: z
+        model.offsets = lambda: zero  # the init fit's and the true body carry no learnt offsets
         if init is not None:
             cam = (init["ortho_scale"][f], init["ortho_trans"][f]) if "ortho_scale" in init.files else None
             set_body(model, f, init["betas"], init["poses"][f], init["transl"][f], cam)
@@ -101,13 +102,11 @@ def profile(args) -> pd.DataFrame:
         cam = None if model.pinhole else (float(trained["scale"][f]), trained["trans"][f])
         set_body(model, f, trained["betas"], trained["poses"][f], trained["transl"][f], cam)
         for body, cover in bodies.items():
-            for band, m in bands.items():
-                rows.append({"subject": args.subject, "frame_id": int(data.frame_ids[f]), "body": body,
-                             "band_px": band, "pixels": int(m.sum()), "mask": round(float(person[m].mean()), 4),
-                             "mesh": round(float(cover[m].mean()), 4)})  # fmt: skip
-        print(f"frame {f}: " + "; ".join(
-            f"{b} " + " ".join(f"{r['mesh']:.2f}" for r in rows if r["frame_id"] == int(data.frame_ids[f])
-                               and r["body"] == b) for b in bodies), flush=True)  # fmt: skip
+            means = {band: float(cover[m].mean()) for band, m in bands.items()}
+            rows += [{"subject": args.subject, "frame_id": int(data.frame_ids[f]), "body": body, "band_px": band,
+                      "pixels": int(m.sum()), "mask": round(float(person[m].mean()), 4),
+                      "mesh": round(means[band], 4)} for band, m in bands.items()]  # fmt: skip
+            print(f"frame {int(data.frame_ids[f])} {body}: " + " ".join(f"{v:.2f}" for v in means.values()), flush=True)
     return pd.DataFrame(rows)
 
 
