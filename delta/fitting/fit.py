@@ -22,14 +22,13 @@ from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 from delta.body.keypoints import KeypointMap
 from delta.body.lbs import batch_rodrigues, rigid_transforms, skin
 from delta.body.model import BodyModel
-from delta.cameras.models import OrthographicCamera, PinholeCamera, camera_vertical
+from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.fitting import silhouette as sil
 from delta.fitting import terms
 from delta.fitting.limits import forward_directions, joint_limits
 from delta.fitting.settings import FitConfig
 from delta.fitting.visibility import LIMB_ENDS, SEEN, hidden_seen
 from delta.fitting.start import FACE, TORSO, facing_orientation, init_ortho_scale, init_translation, interpolate
-from delta.fitting.torso import lean_into_spine, spine_chain
 from delta.progress import Progress
 
 
@@ -254,10 +253,6 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     progress = Progress(f"fit ({pose.shape[0]} frames)", sum(steps for _, steps in todo))
     done = 0
     for stage, steps in todo:
-        if stage == 2 and start is None and cfg.iterations[1] > 0:  # a leaning torso: bent at the root or the spine
-            free = torch.ones(F, dtype=torch.bool) if cfg.static_weight <= 0 else ~held if held is not None else None
-            _lean_by_cost(points, model, pinhole, camera, detected, betas, pose, transl, cam_params, cfg, prior,
-                          free)  # fmt: skip
         params = [transl] * pinhole + cam_params + [pose] + [betas] * (stage > 1)
         # steps scale with the body's distance: what moves a far body a little throws a close-up's face off
         scale = distance_scale(camera, points(betas, pose, transl)[0]) if pinhole else 1.0
@@ -391,17 +386,23 @@ def choose_start(hidden: torch.Tensor, cost: torch.Tensor) -> torch.Tensor:
     return torch.where(hidden[:, 0] == 0, torch.zeros_like(cheapest), cheapest)
 
 
-def _pose_stage_from(points: PosedPoints, pinhole: bool, camera, detected: torch.Tensor, betas: torch.Tensor,
-                     P: torch.Tensor, transl: torch.Tensor, cam_params: list[torch.Tensor], cfg: FitConfig,
-                     prior: PosePrior, H: int) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor], torch.Tensor]:  # fmt: skip
-    """The body-pose stage from H starts a frame at once: ``P`` (F * H, J, 3), each frame's H starts together
-    (F x H problems in one batch: the stage ties no frames together). Returns the poses reached, their
-    translations and cameras (F * H rows) and each start's cost (F, H): keypoints and priors."""
-    F = detected.shape[0]
-    P = P.detach().clone().requires_grad_()
+def _limbs_by_visibility(points: PosedPoints, seen_by: tuple, pinhole: bool, detected: torch.Tensor,
+                         ends: torch.Tensor, betas: torch.Tensor, pose: torch.Tensor, transl: torch.Tensor,
+                         cam_params: list[torch.Tensor], cfg: FitConfig, prior: PosePrior,
+                         starts: torch.Tensor) -> None:  # fmt: skip
+    """The body-pose stage, in place, from each of ``starts`` (H, J, 3; rest first) a frame at once (F x H
+    problems in one batch: the stage ties no frames together; a rest start's steps are the plain stage's).
+    A frame keeps the pose from rest unless it hides seen limb keypoints (``ends`` (K,) bool) behind the body
+    (``seen_by``: posed points with the coarse mesh's vertices, its faces, the camera) and another start hides
+    fewer; among those with the fewest, the one whose keypoints and priors cost least.
+    A limb swung toward the camera or away from it fits the keypoints alike: their costs differ by the local
+    minima reached, not by the side, so cost alone does not choose."""
+    F, H = pose.shape[0], len(starts)
+    P = (pose.repeat_interleave(H, 0) + starts.repeat(F, 1, 1)).requires_grad_()
     tr, cams = _copies(transl, H), [_copies(c, H) for c in cam_params]
     det = detected.repeat_interleave(H, 0)
-    scale = distance_scale(camera, points(betas, P[::H], transl)[0]) if pinhole else 1.0
+    mesh_points, faces, camera = seen_by
+    scale = distance_scale(camera, points(betas, pose, transl)[0]) if pinhole else 1.0
     params = [tr] * pinhole + cams + [P]
     opt = torch.optim.Adam(params, lr=cfg.lr * scale)
 
@@ -416,63 +417,11 @@ def _pose_stage_from(points: PosedPoints, pinhole: bool, camera, detected: torch
             torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
         opt.step()
     with torch.no_grad():
-        return P.detach(), tr.detach(), [c.detach() for c in cams], cost().reshape(F, H)
-
-
-def _limbs_by_visibility(points: PosedPoints, seen_by: tuple, pinhole: bool, detected: torch.Tensor,
-                         ends: torch.Tensor, betas: torch.Tensor, pose: torch.Tensor, transl: torch.Tensor,
-                         cam_params: list[torch.Tensor], cfg: FitConfig, prior: PosePrior,
-                         starts: torch.Tensor) -> None:  # fmt: skip
-    """The body-pose stage, in place, from each of ``starts`` (H, J, 3; rest first) a frame at once (a rest
-    start's steps are the plain stage's).
-    A frame keeps the pose from rest unless it hides seen limb keypoints (``ends`` (K,) bool) behind the body
-    (``seen_by``: posed points with the coarse mesh's vertices, its faces, the camera) and another start hides
-    fewer; among those with the fewest, the one whose keypoints and priors cost least.
-    A limb swung toward the camera or away from it fits the keypoints alike: their costs differ by the local
-    minima reached, not by the side, so cost alone does not choose."""
-    F, H = pose.shape[0], len(starts)
-    mesh_points, faces, camera = seen_by
-    P = pose.repeat_interleave(H, 0) + starts.repeat(F, 1, 1)
-    P, tr, cams, cost = _pose_stage_from(points, pinhole, camera, detected, betas, P, transl, cam_params, cfg,
-                                         prior, H)  # fmt: skip
-    with torch.no_grad():
         kp3d, verts = mesh_points(betas, P, tr)
-        det = detected.repeat_interleave(H, 0)
         hidden = hidden_seen(verts, faces, kp3d, (det[..., 2] >= SEEN) & ends, camera).reshape(F, H)
-        best = torch.arange(F) * H + choose_start(hidden, cost)
-        pose.copy_(P[best])
+        best = torch.arange(F) * H + choose_start(hidden, cost().reshape(F, H))
+        pose.copy_(P.detach()[best])
         _keep(best, transl, cam_params, tr, cams)
-
-
-def _lean_by_cost(points: PosedPoints, model: BodyModel, pinhole: bool, camera, detected: torch.Tensor,
-                  betas: torch.Tensor, pose: torch.Tensor, transl: torch.Tensor, cam_params: list[torch.Tensor],
-                  cfg: FitConfig, prior: PosePrior, free: torch.Tensor | None) -> torch.Tensor:  # fmt: skip
-    """In place, for the ``free`` (F,) frames (None: none): the body-pose stage again from the pose reached and from that
-    pose with the root's lean moved into the spine by each of ``cfg.lean_starts`` (``torso.lean_into_spine``);
-    each frame keeps the start whose keypoints and priors cost least. Returns (F,) the kept start (0: as it was)."""
-    spine, others = spine_chain(model)
-    kept = torch.zeros(pose.shape[0], dtype=torch.long)
-    if not spine or not cfg.lean_starts or free is None or not bool(free.any()):
-        return kept
-    idx = torch.nonzero(free).squeeze(1)
-    H = 1 + len(cfg.lean_starts)
-    with torch.no_grad():
-        base = pose.detach()[idx]
-        up = camera_vertical(camera)
-        starts = [base] + [lean_into_spine(base, up, k, spine, others) for k in cfg.lean_starts]
-        P = torch.stack(starts, 1).reshape(len(idx) * H, *base.shape[1:])
-    sub = [c.detach()[idx] for c in cam_params]
-    P, tr, cams, cost = _pose_stage_from(points, pinhole, camera, detected[idx], betas.detach(), P,
-                                         transl.detach()[idx], sub, cfg, prior, H)  # fmt: skip
-    with torch.no_grad():
-        choice = cost.nan_to_num(torch.inf).argmin(1)
-        best = torch.arange(len(idx)) * H + choice
-        pose[idx] = P[best]
-        transl[idx] = tr[best]
-        for c, many in zip(cam_params, cams):
-            c[idx] = many[best]
-    kept[idx] = choice
-    return kept
 
 
 def _result(points, betas, pose, transl, camera, cam_params, detected, few, empty) -> FitResult:

@@ -65,11 +65,6 @@ class FitConfig:
     forearm fitted behind the torso) and another start hides fewer; then the fewest, the cheapest of those.
     0 (the default): from rest only; on tight it cost the capture's frames more than it gained
     (docs/fitting.md)."""
-    lean_starts: tuple[float, ...] = (0.0, 0.5)
-    """Before the last stage, each frame not held (``static_weight``) runs the body-pose stage again from its
-    pose and from that pose with its root keeping only these shares of its tilt from the capture's vertical,
-    the rest moved into the spine (``delta.fitting.torso``), and keeps the start whose keypoints and priors
-    cost least: a body bent at the waist is otherwise fitted as a pelvis tipped over. Empty: off."""
     depth_weight: float = 0.3
     """The detector's relative depths (``terms.depth_term`` over ``DEPTH_BONES``), where the record has
     them, against the keypoint term's bound: 1 weighs every bone wholly on the wrong side like every
@@ -103,11 +98,6 @@ def fit_config(*overrides: dict, where: str = "fitting") -> FitConfig:
                         and all(isinstance(v, int) and v >= 0 for v in value)):  # fmt: skip
                     raise DeltaError(f"{where}: 'iterations' must be three step counts >= 0, got {value!r}")
                 value = tuple(value)
-            elif key == "lean_starts":
-                if not (isinstance(value, (list, tuple)) and all(
-                        isinstance(v, (int, float)) and not isinstance(v, bool) and 0 <= v <= 1 for v in value)):  # fmt: skip
-                    raise DeltaError(f"{where}: 'lean_starts' must be a list of shares in [0, 1], got {value!r}")
-                value = tuple(float(v) for v in value)
             elif isinstance(default, int) and not isinstance(default, bool):
                 if not isinstance(value, int) or isinstance(value, bool):
                     raise DeltaError(f"{where}: '{key}' must be an integer, got {value!r}")
