@@ -1,0 +1,111 @@
+"""Where a synthetic avatar's held-out poses lose to its held-out views: the pose fit or the avatar.
+
+A held-out pose is scored with the init fit's pose of that frame, refined with the model frozen
+(``delta/eval/heldout.py``). Its gap to the held-out views has two causes that the workflow's
+score mixes: the fit's pose is wrong (the novel segment is fitted free: no hold, unusual poses), and
+the avatar itself renders a pose it never saw worse (its exterior carried by the body into a new
+configuration). This scores the same frames of one trained avatar twice by the workflow's evaluation:
+with the fitted poses, and with the generator's true poses put in their place (every joint, the root
+and the translation: the truth's, shifted by the mean difference between the avatar's and the truth's
+translation over the training frames, which carries the fitted shape's root joint), refined the same way.
+The difference is what the pose fit costs; what remains against the views is the avatar's own.
+
+Rows: one per (frame, poses, refined): PSNR overall and in the regions the evaluation scores, body
+vertex error, and the fitted pose's error against the truth (root and joints, degrees; the largest
+joint named).
+
+    PYTHONPATH=$PWD python3 benchmarks/pose_gap.py --model results/synthetic/tight/stage2/model.pt \\
+        --record results/synthetic/tight/frames.h5 --body resources/body/anny_sub1.npz --subject tight \\
+        --truth data/synthetic/tight/gt --perceptual-dir "" --csv benchmarks/pose_gap.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from delta.body.lbs import batch_rodrigues
+from delta.eval.evaluate import evaluate
+from delta.eval.settings import SPLITS, EvalSettings
+from delta.training.run import load_trained
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table import device_name, save_table, trained_model_arguments  # noqa: E402
+
+SCORES = ("psnr", "psnr_body", "psnr_face", "psnr_clothing", "psnr_hair", "psnr_outline", "outline_error_share",
+          "nerf_iou", "mesh_iou", "body_err_mm", "body_err_pa_mm", "refine_kept_step")  # fmt: skip
+
+
+def angles_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """(..., 3) axis-angle pairs -> (...) the angle of the rotation between them, in degrees."""
+    ra, rb = batch_rodrigues(a.reshape(-1, 3)), batch_rodrigues(b.reshape(-1, 3))
+    cos = ((ra.transpose(1, 2) @ rb).diagonal(dim1=1, dim2=2).sum(-1) - 1) / 2
+    return torch.rad2deg(torch.arccos(cos.clamp(-1.0, 1.0))).reshape(a.shape[:-1])
+
+
+def pose_errors(fitted: torch.Tensor, truth: torch.Tensor, names) -> list[dict]:
+    """Per frame of (F, J, 3) fitted and true poses: the root's error, the joints' mean and largest (named)."""
+    err = angles_deg(fitted.double(), truth.double())
+    rows = []
+    for e in err:
+        worst = int(e[1:].argmax()) + 1
+        rows.append({"root_err_deg": float(e[0]), "joint_err_mean_deg": float(e[1:].mean()),
+                     "joint_err_max_deg": float(e[worst]), "joint_err_max_name": str(names[worst])})  # fmt: skip
+    return rows
+
+
+@torch.no_grad()
+def put_true_poses(model, frames: np.ndarray, frame_ids: np.ndarray, train: np.ndarray, truth) -> None:
+    """In place: ``frames``' pose and translation become the generator's; the translation is shifted by the
+    mean (avatar - truth) over the ``train`` frames (the fitted shape puts its root joint elsewhere)."""
+    poses, transl = model.poses, model.transl
+    true_t = torch.as_tensor(truth["transl"], dtype=transl.dtype, device=transl.device)
+    shift = (transl[train] - true_t[frame_ids[train]]).mean(0)
+    for f in frames:
+        poses[f] = torch.as_tensor(truth["poses"][frame_ids[f]], dtype=poses.dtype, device=poses.device)
+        transl[f] = true_t[frame_ids[f]] + shift
+
+
+def main(argv=None) -> None:
+    ap = trained_model_arguments(argparse.ArgumentParser(description=__doc__.split("\n\n")[0]))
+    ap.add_argument("--truth", required=True, help="the subject's gt folder (params.npz, meshes.h5)")
+    ap.add_argument("--refine-steps", type=int, default=EvalSettings.refine_steps)
+    ap.add_argument("--csv", required=True)
+    ap.add_argument("--append", action="store_true")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(2)
+    truth = np.load(Path(a.truth) / "params.npz")
+    st = EvalSettings(splits=tuple(a.splits), max_frames=a.max_frames, refine_steps=a.refine_steps,
+                      supersample=a.supersample, worst=0, perceptual_dir=a.perceptual_dir or None)  # fmt: skip
+    tables = []
+    for poses in ("fitted", "true"):
+        trained = load_trained(a.model, a.record, a.body, device=a.device)  # fresh: refinement moves the poses
+        model, data = trained.model, trained.data
+        ids, split = np.asarray(data.frame_ids), np.asarray(data.split)
+        scored = np.flatnonzero(np.isin(split, [SPLITS[s] for s in a.splits]))
+        errors = pose_errors(model.poses.detach()[scored].cpu(), torch.as_tensor(truth["poses"][ids[scored]]),
+                             truth["joint_names"])  # fmt: skip
+        if poses == "true":
+            put_true_poses(model, scored, ids, np.flatnonzero(split == SPLITS["train"]), truth)
+        t0 = time.perf_counter()
+        df = evaluate(trained, a.record, st, gt_meshes=Path(a.truth) / "meshes.h5", subject=a.subject)
+        err = pd.DataFrame(errors, index=scored)
+        df = df[["subject", "frame", "frame_id", "split", "refined", *[c for c in SCORES if c in df]]]
+        df = df.join(err, on="frame").assign(poses=poses, eval_wall_s=round(time.perf_counter() - t0, 1),
+                                             device=device_name(a.device, torch.get_num_threads()))  # fmt: skip
+        tables.append(df)
+        print(df.drop(columns=["subject", "device"]).round(2).to_string(), flush=True)
+    table = pd.concat(tables, ignore_index=True)
+    save_table(table, a.csv, a.append)
+    means = table.groupby(["split", "poses", "refined"])[["psnr", "psnr_outline", "psnr_clothing", "body_err_mm"]]
+    print(means.mean().round(2).to_string())
+
+
+if __name__ == "__main__":
+    main()
