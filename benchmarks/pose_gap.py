@@ -7,7 +7,8 @@ the avatar itself renders a pose it never saw worse (its exterior carried by the
 configuration). This scores the same frames of one trained avatar twice by the workflow's evaluation:
 with the fitted poses, and with the generator's true poses put in their place (every joint, the root
 and the translation: the truth's, shifted by the mean difference between the avatar's and the truth's
-translation over the training frames, which carries the fitted shape's root joint), refined the same way.
+translation over the training frames, which carries the fitted shape's root joint; an orthographic
+capture keeps its fitted per-frame camera, which the refinement moves), refined the same way.
 The difference is what the pose fit costs; what remains against the views is the avatar's own.
 
 Rows: one per (frame, poses, refined): PSNR overall and in the regions the evaluation scores, body
