@@ -18,10 +18,14 @@ generator's shape and poses under the record's camera): the last tells how far t
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table import save_table  # noqa: E402
 
 BANDS = ((-3, -2), (-2, -1), (0, 1), (1, 2), (2, 3))
 
@@ -49,11 +53,12 @@ def mesh_coverage(model, frame: int) -> np.ndarray:
 
 
 def set_body(model, frame: int, betas, pose, transl, camera=None) -> None:
-    """The avatar's shape and one frame's pose (and orthographic camera), offsets off."""
+    """The avatar's shape (None: kept) and one frame's pose and translation (and orthographic camera)."""
     import torch
 
     with torch.no_grad():
-        model.betas.copy_(torch.as_tensor(betas, dtype=model.betas.dtype))
+        if betas is not None:
+            model.betas.copy_(torch.as_tensor(betas, dtype=model.betas.dtype))
         model.poses[frame] = torch.as_tensor(pose, dtype=model.poses.dtype)
         model.transl[frame] = torch.as_tensor(transl, dtype=model.transl.dtype)
         if camera is not None and not model.pinhole:
@@ -123,11 +128,7 @@ def main(argv=None) -> None:
     ap.add_argument("--out", required=True)
     ap.add_argument("--append", action="store_true")
     args = ap.parse_args(argv)
-    df = profile(args)
-    out = Path(args.out)
-    if args.append and out.exists():
-        df = pd.concat([pd.read_csv(out), df], ignore_index=True)
-    df.to_csv(out, index=False)
+    df = save_table(profile(args), args.out, args.append)
     summary = df.groupby(["subject", "body", "band_px"], sort=False)[["mask", "mesh"]].mean().round(3)
     print(summary.to_string())
 

@@ -37,6 +37,7 @@ from delta.eval.settings import SPLITS, EvalSettings
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from edge_profile import set_body  # noqa: E402
 from table import device_name, save_table, trained_model_arguments  # noqa: E402
 
 SCORES = ("psnr", "psnr_body", "psnr_face", "psnr_clothing", "psnr_hair", "psnr_outline", "outline_error_share",
@@ -65,12 +66,9 @@ def pose_errors(fitted: torch.Tensor, truth: torch.Tensor, names) -> list[dict]:
 def put_true_poses(model, frames: np.ndarray, frame_ids: np.ndarray, train: np.ndarray, truth) -> None:
     """In place: ``frames``' pose and translation become the generator's; the translation is shifted by the
     mean (avatar - truth) over the ``train`` frames (the fitted shape puts its root joint elsewhere)."""
-    poses, transl = model.poses, model.transl
-    true_t = torch.as_tensor(truth["transl"], dtype=transl.dtype, device=transl.device)
-    shift = (transl[train] - true_t[frame_ids[train]]).mean(0)
+    shift = (model.transl[train].cpu().numpy() - truth["transl"][frame_ids[train]]).mean(0)
     for f in frames:
-        poses[f] = torch.as_tensor(truth["poses"][frame_ids[f]], dtype=poses.dtype, device=poses.device)
-        transl[f] = true_t[frame_ids[f]] + shift
+        set_body(model, f, None, truth["poses"][frame_ids[f]], truth["transl"][frame_ids[f]] + shift)
 
 
 def main(argv=None) -> None:
