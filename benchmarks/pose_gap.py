@@ -10,6 +10,9 @@ and the translation: the truth's, shifted by the mean difference between the ava
 translation over the training frames, which carries the fitted shape's root joint; an orthographic
 capture keeps its fitted per-frame camera, which the refinement moves), refined the same way.
 The difference is what the pose fit costs; what remains against the views is the avatar's own.
+``--poses`` also takes another init fit's ``params.npz`` of the same record (a fit with other settings):
+its poses and translations (and orthographic cameras) of the scored frames, scored on the same avatar,
+tell whether a change to the fit would show in the renders. ``--frames`` scores chosen held-out frames.
 
 Rows: one per (frame, poses, refined): PSNR overall and in the regions the evaluation scores, body
 vertex error, and the fitted pose's error against the truth (root and joints, degrees; the largest
@@ -71,23 +74,50 @@ def put_true_poses(model, frames: np.ndarray, frame_ids: np.ndarray, train: np.n
         set_body(model, f, None, truth["poses"][frame_ids[f]], truth["transl"][frame_ids[f]] + shift)
 
 
+@torch.no_grad()
+def put_fitted_poses(model, frames: np.ndarray, frame_ids: np.ndarray, path: str) -> None:
+    """In place: ``frames``' pose, translation (and orthographic camera) become those another init fit's
+    ``params.npz`` at ``path`` gives the same frame ids; the avatar keeps its shape."""
+    fit = np.load(path)
+    row = {int(i): r for r, i in enumerate(fit["frame_ids"])}
+    missing = [int(frame_ids[f]) for f in frames if int(frame_ids[f]) not in row]
+    if missing or fit["poses"].shape[1:] != tuple(model.poses.shape[1:]):
+        raise SystemExit(f"{path}: not a fit of this avatar's record (frames {missing[:5]} missing, or poses "
+                         f"{fit['poses'].shape[1:]} against {tuple(model.poses.shape[1:])})")  # fmt: skip
+    for f in frames:
+        r = row[int(frame_ids[f])]
+        camera = (fit["ortho_scale"][r], fit["ortho_trans"][r]) if "ortho_scale" in fit else None
+        set_body(model, f, None, fit["poses"][r], fit["transl"][r], camera)
+
+
 def main(argv=None) -> None:
     ap = trained_model_arguments(argparse.ArgumentParser(description=__doc__.split("\n\n")[0]))
     ap.add_argument("--truth", required=True, help="the subject's gt folder (params.npz, meshes.h5)")
     ap.add_argument("--refine-steps", type=int, default=EvalSettings.refine_steps)
     ap.add_argument("--csv", required=True)
     ap.add_argument("--append", action="store_true")
+    ap.add_argument("--poses", nargs="+", default=["fitted", "true"],
+                    help="passes: 'fitted' (the avatar's own), 'true' (the generator's), or another init fit's "
+                    "params.npz (labelled by its folder's name)")  # fmt: skip
+    ap.add_argument("--frames", type=int, nargs="+", help="score these held-out frame ids (all of them, in --splits)")
     a = ap.parse_args(argv)
     torch.set_num_threads(2)
     truth = np.load(Path(a.truth) / "params.npz")
-    st = EvalSettings(splits=tuple(a.splits), max_frames=a.max_frames, refine_steps=a.refine_steps,
+    st = EvalSettings(splits=tuple(a.splits), max_frames=0 if a.frames else a.max_frames, refine_steps=a.refine_steps,
                       supersample=a.supersample, worst=0, perceptual_dir=a.perceptual_dir or None)  # fmt: skip
     tables = []
-    for poses in ("fitted", "true"):
+    for poses in a.poses:
         trained = load_trained(a.model, a.record, a.body, device=a.device)  # fresh: refinement moves the poses
         model, data = trained.model, trained.data
         ids, split = np.asarray(data.frame_ids), np.asarray(data.split)
+        if a.frames:  # the other held-out frames leave the scored splits (for a label that is none)
+            leave = np.isin(split, [SPLITS[s] for s in a.splits]) & ~np.isin(ids, a.frames)
+            data.split = split = np.where(leave, max(SPLITS.values()) + 1, split)
         scored = np.flatnonzero(np.isin(split, [SPLITS[s] for s in a.splits]))
+        if poses not in ("fitted", "true"):
+            put_fitted_poses(model, scored, ids, poses)
+            poses = Path(poses).parent.name
+        # the errors of the poses the avatar was given by a fit (a 'true' pass carries the workflow fit's)
         errors = pose_errors(model.poses.detach()[scored].cpu(), torch.as_tensor(truth["poses"][ids[scored]]),
                              truth["joint_names"])  # fmt: skip
         if poses == "true":

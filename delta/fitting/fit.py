@@ -71,6 +71,8 @@ class FitResult:
     """(F,) bool: the person mask is empty (all False without masks)."""
     residual_px: torch.Tensor
     """(F,) mean reprojection error over confident keypoints (nan when flagged)."""
+    neighbour_starts: list[tuple[int, int]] = dataclasses.field(default_factory=list)
+    """(frame, the frame whose pose it took) for each swap of the sweeps of neighbour starts, in order."""
 
 
 class PosedPoints:
@@ -219,16 +221,31 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     links = None if seq is None else seq[1:] == seq[:-1]
     held = None if seq is None else seq == 0
 
-    def loss(stage: int) -> torch.Tensor:
-        kp3d, verts = points(betas, pose, transl)
-        kp2d = _project(camera, pinhole, cam_params, kp3d)
-        # stages 2 and 3 (stage 1 is _best_heading)
-        total = (terms.keypoint_term(kp2d, detected, cfg.sigma_px) + prior(pose)).sum()
+    every = torch.arange(F)
+
+    def frame_cost(P: torch.Tensor, tr: torch.Tensor, cams: list[torch.Tensor], rows: torch.Tensor,
+                   stage: int) -> torch.Tensor:  # fmt: skip
+        """(N,) each problem's own cost (keypoints, pose priors, depth; silhouette in stage 3) for the
+        (N, J, 3) poses, (N, 3) translations and (N, ...) cameras of the frames ``rows`` (N,)."""
+        kp3d, verts = points(betas, P, tr)
+        det = detected[rows]
+        cost = terms.keypoint_term(_project(camera, pinhole, cams, kp3d), det, cfg.sigma_px) + prior(P)
         if use_depth:
             along = camera.project(kp3d)[1]  # depth along the viewing axis (an orthographic camera's too)
-            limbs = terms.depth_term(along, depth, detected[..., 2], bones, cfg.depth_sigma, cfg.depth_margin)
-            turn = terms.depth_term(along, depth, detected[..., 2], pairs, cfg.depth_sigma, cfg.depth_pair_margin)
-            total = total + cfg.depth_weight * cfg.sigma_px**2 * (limbs + turn).sum()
+            limbs = terms.depth_term(along, depth[rows], det[..., 2], bones, cfg.depth_sigma, cfg.depth_margin)
+            turn = terms.depth_term(along, depth[rows], det[..., 2], pairs, cfg.depth_sigma, cfg.depth_pair_margin)
+            cost = cost + cfg.depth_weight * cfg.sigma_px**2 * (limbs + turn)
+        if stage > 1 and use_sil:
+            uv = _project(camera, pinhole, cams, verts)
+            rendered = sil.frames_silhouette(uv, coarse.faces, cfg.sil_size, image_size, cfg.sil_sigma,
+                                             masks=small[rows], supersample=cfg.sil_supersample)  # fmt: skip
+            weights = fill[rows] if torch.is_tensor(fill) else fill
+            cost = cost + cfg.sil_weight * sil_w[rows] * sil.silhouette_term(rendered, small[rows], weights)
+        return cost
+
+    def loss(stage: int) -> torch.Tensor:
+        # stages 2 and 3 (stage 1 is _best_heading)
+        total = frame_cost(pose, transl, cam_params, every, stage).sum()
         if stage > 1:
             total = total + cfg.shape_weight * terms.shape_prior(betas) * F * cfg.sigma_px
             smooth = terms.rotation_smoothness(pose[:, 0], links) + terms.smoothness(pose[:, 1:], links)
@@ -241,23 +258,30 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
                 total = total + cfg.accel_weight * cfg.sigma_px * accel
             if cfg.static_weight > 0:
                 total = total + cfg.static_weight * cfg.sigma_px * terms.static_pose(pose[:, 1:], held)
-            if use_sil:
-                uv = _project(camera, pinhole, cam_params, verts)
-                rendered = sil.frames_silhouette(uv, coarse.faces, cfg.sil_size, image_size, cfg.sil_sigma,
-                                                 masks=small, supersample=cfg.sil_supersample)  # fmt: skip
-                total = total + cfg.sil_weight * (sil_w * sil.silhouette_term(rendered, small, fill)).sum()
         return total
 
     stages = list(enumerate(cfg.iterations))
     todo = stages[2:] if start is not None or limbs_done else stages[1:]
-    progress = Progress(f"fit ({pose.shape[0]} frames)", sum(steps for _, steps in todo))
-    done = 0
-    for stage, steps in todo:
+    free = ~held if held is not None and cfg.static_weight > 0 else torch.ones(F, dtype=torch.bool)
+    rows, sources = neighbour_sources(free & ~flagged, links, cfg.neighbour_reach)
+    sweeps = cfg.neighbour_sweeps if len(rows) > int((free & ~flagged).sum()) and todo else 0
+    # the sweeps of neighbour starts, evenly spaced through the last stage (its optimiser goes on after each)
+    last = todo[-1][1] if todo else 0
+    sweep_at = {round(last * k / (sweeps + 1)) for k in range(1, sweeps + 1)} if sweeps else set()
+    progress = Progress(f"fit ({pose.shape[0]} frames)", sum(steps for _, steps in todo) + sweeps * cfg.neighbour_steps)
+    done, swaps = 0, []
+    for i, (stage, steps) in enumerate(todo):
         params = [transl] * pinhole + cam_params + [pose] + [betas] * (stage > 1)
         # steps scale with the body's distance: what moves a far body a little throws a close-up's face off
         scale = distance_scale(camera, points(betas, pose, transl)[0]) if pinhole else 1.0
         opt = torch.optim.Adam(params, lr=cfg.lr * scale)
-        for _ in range(steps):
+        for step in range(steps):
+            if i == len(todo) - 1 and step in sweep_at:
+                with torch.no_grad():
+                    swaps += _keep_cheapest(frame_cost, rows, sources, pose, transl, cam_params, pinhole, stage,
+                                            cfg.neighbour_steps, cfg.lr * scale)  # fmt: skip
+                done += cfg.neighbour_steps
+                progress.report(done, "fit: neighbour starts")
             opt.zero_grad()
             value = loss(stage)
             value.backward()
@@ -267,7 +291,9 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
             done += 1
             if done % PROGRESS_EVERY == 0 or done == progress.total:
                 progress.report(done, f"fit stage {stage + 1}")
-    return _result(points, betas, pose, transl, camera, cam_params, detected, few, empty)
+    res = _result(points, betas, pose, transl, camera, cam_params, detected, few, empty)
+    res.neighbour_starts = swaps
+    return res
 
 
 #: the distance (m) at which the fit steps at ``FitConfig.lr``; a nearer body takes proportionally smaller steps
@@ -279,6 +305,80 @@ def distance_scale(camera, keypoints: torch.Tensor) -> float:
     with torch.no_grad():
         depth = camera.project(keypoints.detach().reshape(-1, 3))[1]
     return float((depth.median() / REFERENCE_DISTANCE).clamp(0.02, 1.0))
+
+
+def neighbour_sources(free: torch.Tensor, links: torch.Tensor | None, reach: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(N,) frames and (N,) the frames whose pose each of them starts from in a sweep of neighbour starts:
+    every ``free`` (F,) frame from its own pose and from those of the free frames up to ``reach`` before and
+    after it in its sequence (``links`` (F-1,): frame i and i+1 are one sequence; None: all are), own first."""
+    F = free.shape[0]
+    same = torch.ones(max(F - 1, 0), dtype=torch.bool) if links is None else links.to(torch.bool)
+    # run[i]: index of frame i's sequence, so that two frames are neighbours only within one
+    run = torch.cat([torch.zeros(1, dtype=torch.long), (~same).long().cumsum(0)]) if F else torch.zeros(0)
+    rows, sources = [torch.nonzero(free).squeeze(1)], [torch.nonzero(free).squeeze(1)]
+    for offset in [o for r in range(1, reach + 1) for o in (-r, r)]:
+        frame = torch.arange(F)
+        other = frame + offset
+        inside = (other >= 0) & (other < F)
+        ok = free & inside
+        ok[inside] &= free[other[inside]] & (run[other[inside]] == run[inside])
+        rows.append(frame[ok])
+        sources.append(other[ok])
+    return torch.cat(rows), torch.cat(sources)
+
+
+#: how much more a frame's own pose must cost than a neighbour's for the neighbour's to replace it: a fraction of
+#: its own cost, and at least ``KEEP_FLOOR`` (the keypoint term costs about a keypoint's squared pixel error, so
+#: 0.25 is half a pixel; where every copy fits to a rounding, as noiseless keypoints allow, none is swapped)
+KEEP_MARGIN = 0.2
+KEEP_FLOOR = 0.25
+
+
+def _keep_cheapest(frame_cost, rows: torch.Tensor, sources: torch.Tensor, pose: torch.Tensor, transl: torch.Tensor,
+                   cam_params: list[torch.Tensor], pinhole: bool, stage: int, steps: int,
+                   lr: float) -> list[tuple[int, int]]:  # fmt: skip
+    """In place: the pose of ``sources`` (N,) given to the frames ``rows`` (N,) with their own translation and
+    camera, each copy fitted ``steps`` steps to its own frame alone (``frame_cost``), and each frame keeping
+    its cheapest copy (its own pose, refitted alike, among them). Another's must cost ``KEEP_MARGIN`` of the
+    own copy's cost (at least ``KEEP_FLOOR``) less; where none does, the frame keeps its pose as it was
+    (copies of one basin end at costs a little apart, and a swap there only stirs the fit). A frame left in
+    a local minimum by the joint fit (an arm folded the wrong way) takes the basin a neighbour found.
+    Returns (frame, its pose's source) of each swap."""
+    with torch.enable_grad():
+        P = pose.detach()[sources].clone().requires_grad_()
+        tr = transl.detach()[rows].clone().requires_grad_()
+        cams = [c.detach()[rows].clone().requires_grad_() for c in cam_params]
+        params = [tr] * pinhole + cams + [P]
+        opt = torch.optim.Adam(params, lr=lr)
+        # from the stage's rate down to a tenth of it: every copy settles before the costs are compared
+        fall = torch.optim.lr_scheduler.ExponentialLR(opt, 0.1 ** (1 / max(steps - 1, 1)))
+        for _ in range(steps):
+            opt.zero_grad()
+            frame_cost(P, tr, cams, rows, stage).sum().backward()
+            for p in params:
+                torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
+            opt.step()
+            fall.step()
+    cost = frame_cost(P, tr, cams, rows, stage).nan_to_num(torch.inf)
+    own = rows == sources
+    own_cost = torch.full((int(rows.max()) + 1,), torch.inf, dtype=cost.dtype)
+    own_cost[rows[own]] = cost[own]
+    # a frame whose own copy is not finite takes any finite neighbour's
+    margin = torch.where(own_cost[rows].isfinite(), KEEP_MARGIN * own_cost[rows], 0.0).clamp_min(KEEP_FLOOR)
+    cost = torch.where(own, cost, cost + margin)
+    order = cost.argsort()
+    order = order[rows[order].argsort(stable=True)]  # by frame, the cheapest first
+    first = torch.ones_like(order, dtype=torch.bool)
+    first[1:] = rows[order][1:] != rows[order][:-1]
+    best = order[first]
+    best = best[rows[best] != sources[best]]  # a frame that keeps its own pose keeps it as it was
+    frames = rows[best]
+    pose[frames] = P.detach()[best]
+    if pinhole:
+        transl[frames] = tr.detach()[best]
+    for c, copies in zip(cam_params, cams):
+        c[frames] = copies.detach()[best]
+    return list(zip(frames.tolist(), sources[best].tolist()))
 
 
 def _copies(t: torch.Tensor, H: int) -> torch.Tensor:

@@ -220,7 +220,10 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
     summary = {"frames": int(len(frame_ids)), "flagged": int(res.flagged.sum()), "flagged_frames": flagged,
                "started_from": started_from,
                "residual_px_mean": float(np.nanmean(res.residual_px.numpy())),
-               "upright": upright.describe(camera_vertical(res.camera)), "static_hold": hold}  # fmt: skip
+               "upright": upright.describe(camera_vertical(res.camera)), "static_hold": hold,
+               "neighbour_starts": {"sweeps": fit_cfg.neighbour_sweeps if fit_cfg.neighbour_reach else 0,
+                                    "frames_from": [[int(frame_ids[f]), int(frame_ids[s])]
+                                                    for f, s in res.neighbour_starts]}}  # fmt: skip
     log.info("init fit: %s", summary)
     return summary
 

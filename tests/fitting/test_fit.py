@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 from delta.cameras.models import OrthographicCamera, PinholeCamera, look_at
@@ -44,7 +45,8 @@ def true_motion(model, frames, seed=0):
     return pose
 
 
-def test_recovers_pinhole_pose_and_position_from_noiseless_keypoints(body):
+@pytest.mark.parametrize("reach", [0, 1], ids=["joint", "neighbour-starts"])
+def test_recovers_pinhole_pose_and_position_from_noiseless_keypoints(body, reach):
     model, kp_map = body
     R, t = look_at(torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64), torch.zeros(3, dtype=torch.float64),
                    torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64))  # fmt: skip
@@ -55,7 +57,8 @@ def test_recovers_pinhole_pose_and_position_from_noiseless_keypoints(body):
     kp3d = KeypointModel(model, kp_map)(torch.zeros(model.num_shape, dtype=torch.float64), pose, transl)
     uv, _ = cam.project(kp3d)
     detected = torch.cat([uv, torch.ones_like(uv[..., :1])], -1)
-    res = fit(model, kp_map, detected, cam, FitConfig(iterations=(100, 200, 50), shape_weight=10.0))
+    cfg = FitConfig(iterations=(100, 200, 50), shape_weight=10.0, neighbour_reach=reach)
+    res = fit(model, kp_map, detected, cam, cfg)
     assert not res.flagged.any() and res.residual_px.max() < 1.5
     fitted = KeypointModel(model, kp_map)(res.betas, res.pose, res.transl)
     hips = [8, 11]
