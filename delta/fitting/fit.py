@@ -73,6 +73,8 @@ class FitResult:
     """(F,) mean reprojection error over confident keypoints (nan when flagged)."""
     neighbour_starts: list[tuple[int, int]] = dataclasses.field(default_factory=list)
     """(frame, the frame whose pose it took) for each swap of the sweeps of neighbour starts, in order."""
+    neighbour_refits: list[int] = dataclasses.field(default_factory=list)
+    """The frames the sweeps refitted from their neighbours' poses (a neighbour cost less), in order."""
 
 
 class PosedPoints:
@@ -269,7 +271,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     last = todo[-1][1] if todo else 0
     sweep_at = {round(last * k / (sweeps + 1)) for k in range(1, sweeps + 1)} if sweeps else set()
     progress = Progress(f"fit ({pose.shape[0]} frames)", sum(steps for _, steps in todo) + sweeps * cfg.neighbour_steps)
-    done, swaps = 0, []
+    done, swaps, refits = 0, [], []
     for i, (stage, steps) in enumerate(todo):
         params = [transl] * pinhole + cam_params + [pose] + [betas] * (stage > 1)
         # steps scale with the body's distance: what moves a far body a little throws a close-up's face off
@@ -278,8 +280,9 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
         for step in range(steps):
             if i == len(todo) - 1 and step in sweep_at:
                 with torch.no_grad():
-                    swaps += _keep_cheapest(frame_cost, rows, sources, pose, transl, cam_params, pinhole, stage,
-                                            cfg.neighbour_steps, cfg.lr * scale)  # fmt: skip
+                    swapped, refitted = _keep_cheapest(frame_cost, rows, sources, pose, transl, cam_params, pinhole,
+                                                       stage, cfg.neighbour_steps, cfg.lr * scale)  # fmt: skip
+                swaps, refits = swaps + swapped, refits + refitted
                 done += cfg.neighbour_steps
                 progress.report(done, "fit: neighbour starts")
             opt.zero_grad()
@@ -292,7 +295,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
             if done % PROGRESS_EVERY == 0 or done == progress.total:
                 progress.report(done, f"fit stage {stage + 1}")
     res = _result(points, betas, pose, transl, camera, cam_params, detected, few, empty)
-    res.neighbour_starts = swaps
+    res.neighbour_starts, res.neighbour_refits = swaps, refits
     return res
 
 
@@ -334,16 +337,30 @@ KEEP_MARGIN = 0.2
 KEEP_FLOOR = 0.25
 
 
+def worse_by_margin(cost: torch.Tensor, than: torch.Tensor) -> torch.Tensor:
+    """Where ``cost`` exceeds a finite ``than`` by ``KEEP_MARGIN`` of itself, at least ``KEEP_FLOOR`` (a
+    non-finite ``cost`` exceeds any finite ``than``)."""
+    margin = torch.where(cost.isfinite(), KEEP_MARGIN * cost, 0.0).clamp_min(KEEP_FLOOR)
+    return than.isfinite() & (cost - margin > than)
+
+
 def _keep_cheapest(frame_cost, rows: torch.Tensor, sources: torch.Tensor, pose: torch.Tensor, transl: torch.Tensor,
                    cam_params: list[torch.Tensor], pinhole: bool, stage: int, steps: int,
-                   lr: float) -> list[tuple[int, int]]:  # fmt: skip
-    """In place: the pose of ``sources`` (N,) given to the frames ``rows`` (N,) with their own translation and
-    camera, each copy fitted ``steps`` steps to its own frame alone (``frame_cost``), and each frame keeping
-    its cheapest copy (its own pose, refitted alike, among them). Another's must cost ``KEEP_MARGIN`` of the
-    own copy's cost (at least ``KEEP_FLOOR``) less; where none does, the frame keeps its pose as it was
-    (copies of one basin end at costs a little apart, and a swap there only stirs the fit). A frame left in
-    a local minimum by the joint fit (an arm folded the wrong way) takes the basin a neighbour found.
-    Returns (frame, its pose's source) of each swap."""
+                   lr: float) -> tuple[list[tuple[int, int]], list[int]]:  # fmt: skip
+    """In place: where a frame of ``rows`` (N,) costs ``worse_by_margin`` than one of its ``sources`` (N,)
+    costs on its own frame (a local minimum its neighbour escaped: an arm folded the wrong way), the poses of
+    its sources (its own among them) given to it with its own translation and camera, each copy fitted
+    ``steps`` steps to its frame alone (``frame_cost``), and the cheapest neighbour's copy taken where the
+    frame's own copy, refitted alike, costs ``worse_by_margin`` than it. Every other frame keeps its pose as
+    it was (copies of one basin end at costs a little apart, and a swap there only stirs the fit).
+    Returns (frame, its pose's source) of each swap, and the frames refitted."""
+    with torch.no_grad():
+        now = frame_cost(pose, transl, cam_params, torch.arange(pose.shape[0]), stage).nan_to_num(torch.inf)
+    suspect = torch.zeros(pose.shape[0], dtype=torch.bool)
+    suspect[rows[(rows != sources) & worse_by_margin(now[rows], now[sources])]] = True
+    rows, sources = rows[suspect[rows]], sources[suspect[rows]]
+    if len(rows) == 0:
+        return [], []
     with torch.enable_grad():
         P = pose.detach()[sources].clone().requires_grad_()
         tr = transl.detach()[rows].clone().requires_grad_()
@@ -361,24 +378,21 @@ def _keep_cheapest(frame_cost, rows: torch.Tensor, sources: torch.Tensor, pose: 
             fall.step()
     cost = frame_cost(P, tr, cams, rows, stage).nan_to_num(torch.inf)
     own = rows == sources
-    own_cost = torch.full((int(rows.max()) + 1,), torch.inf, dtype=cost.dtype)
+    own_cost = torch.full((pose.shape[0],), torch.inf, dtype=cost.dtype)
     own_cost[rows[own]] = cost[own]
-    # a frame whose own copy is not finite takes any finite neighbour's
-    margin = torch.where(own_cost[rows].isfinite(), KEEP_MARGIN * own_cost[rows], 0.0).clamp_min(KEEP_FLOOR)
-    cost = torch.where(own, cost, cost + margin)
-    order = cost.argsort()
+    wins = torch.nonzero(~own & worse_by_margin(own_cost[rows], cost)).squeeze(1)
+    order = wins[cost[wins].argsort()]
     order = order[rows[order].argsort(stable=True)]  # by frame, the cheapest first
     first = torch.ones_like(order, dtype=torch.bool)
     first[1:] = rows[order][1:] != rows[order][:-1]
     best = order[first]
-    best = best[rows[best] != sources[best]]  # a frame that keeps its own pose keeps it as it was
     frames = rows[best]
     pose[frames] = P.detach()[best]
     if pinhole:
         transl[frames] = tr.detach()[best]
     for c, copies in zip(cam_params, cams):
         c[frames] = copies.detach()[best]
-    return list(zip(frames.tolist(), sources[best].tolist()))
+    return list(zip(frames.tolist(), sources[best].tolist())), torch.nonzero(suspect).squeeze(1).tolist()
 
 
 def _copies(t: torch.Tensor, H: int) -> torch.Tensor:

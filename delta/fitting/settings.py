@@ -66,14 +66,14 @@ class FitConfig:
     0 (the default): from rest only; on tight it cost the capture's frames more than it gained
     (docs/fitting.md)."""
     neighbour_reach: int = 1
-    """``neighbour_sweeps`` times during the last stage (evenly spaced) each frame that is not held
-    (``static_weight``) also starts from the poses of the frames up to this many before and after it in its
-    sequence: every copy is fitted ``neighbour_steps`` steps to its own frame alone, and a neighbour's
-    replaces the frame's pose where the frame's own, refitted alike, costs ``fit.KEEP_MARGIN`` (a fifth) more;
-    then the joint stage goes on. Across a motion a local minimum (an arm folded the wrong way) is
-    seldom every frame's, so a neighbour's basin gets a frame out of its own. On tight's novel segment: the
-    fit's objective 86.8 -> 76.8, one frame's arms out of a wrong fold (+2.5 dB), body error 65 -> 55 mm
-    (docs/fitting.md). 0: off."""
+    """``neighbour_sweeps`` times during the last stage (evenly spaced), a frame that is not held
+    (``static_weight``) and costs a fifth more (``fit.KEEP_MARGIN``, at least ``fit.KEEP_FLOOR``) than one of
+    the frames up to this many before and after it in its sequence costs on its own frame also starts from
+    their poses: every copy, its own among them, is fitted ``neighbour_steps`` steps to its frame alone, and a
+    neighbour's replaces the frame's pose where the frame's own copy costs a fifth more; then the joint stage
+    goes on. Across a motion a local minimum (an arm folded the wrong way) is seldom every frame's, so a
+    neighbour's basin gets a frame out of its own. On tight's novel segment: the fit's objective 86.8 -> 76.8,
+    one frame's arms out of a wrong fold (+2 dB), body error 65 -> 55 mm (docs/fitting.md). 0: off."""
     neighbour_sweeps: int = 1
     neighbour_steps: int = 100
     """Steps each copy of a sweep is fitted (its rate falls from the stage's to a tenth of it)."""

@@ -10,7 +10,7 @@ from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 
 from delta.body.lbs import batch_rodrigues
 from delta.cameras.models import PinholeCamera, look_at
-from delta.fitting.fit import FitStart, KeypointModel, _keep_cheapest, fit, neighbour_sources
+from delta.fitting.fit import FitStart, KeypointModel, _keep_cheapest, fit, neighbour_sources, worse_by_margin
 from delta.fitting.settings import FitConfig
 
 D = torch.float64
@@ -36,6 +36,14 @@ def test_sources_stay_within_a_sequence_and_among_free_frames():
     assert pairs(*neighbour_sources(free, links, 0)) == {(f, f) for f in (0, 1, 2, 3, 5, 6)}
 
 
+def test_worse_by_a_fifth_of_itself_and_at_least_a_quarter():
+    inf = float("inf")
+    cost = torch.tensor([1.6, 1.2, 0.3, 0.2, inf, 5.0, inf, 1.0], dtype=D)
+    than = torch.tensor([1.0, 1.0, 0.0, 0.0, 5.0, inf, inf, 1.0], dtype=D)
+    # 1.6 - 0.32 > 1; 1.2 - 0.25 < 1; 0.3 - 0.25 > 0; 0.2 - 0.25 < 0; any finite beats a non-finite cost
+    assert worse_by_margin(cost, than).tolist() == [True, False, True, False, True, False, False, False]
+
+
 def double_well(targets: torch.Tensor):
     """Each frame's cost of the first pose angle x: a deep well at its target t (depth 1) and a shallow one
     at t - 2 (depth 0.4), a ridge between: gradient steps from x < t - 1 stay in the shallow one."""
@@ -57,7 +65,16 @@ def test_a_frame_in_the_shallow_well_takes_its_neighbours_basin_and_the_others_k
     cost = double_well(targets)
     stuck = float(cost(pose, transl, [], torch.arange(4), 3)[2])
     rows, sources = neighbour_sources(torch.ones(4, dtype=torch.bool), None, 1)
-    swaps = _keep_cheapest(cost, rows, sources, pose, transl, [], True, 3, steps=200, lr=0.02)
+    refitted = []
+
+    def recorded(P, tr, cams, rows, stage):
+        if P.requires_grad:
+            refitted.append(rows.tolist())
+        return cost(P, tr, cams, rows, stage)
+
+    swaps, refits = _keep_cheapest(recorded, rows, sources, pose, transl, [], True, 3, steps=200, lr=0.02)
+    assert refits == [2]
+    assert refitted[0] == [2, 2, 2]  # only the frame its neighbours beat is refitted: from its own and both
     assert swaps in ([(2, 1)], [(2, 3)])
     after = cost(pose, transl, [], torch.arange(4), 3)
     assert stuck > 1.5 and float(after[2]) < 1.01  # the deep well's floor is 1
@@ -81,7 +98,7 @@ def test_a_non_finite_copy_never_wins_and_an_orthographic_camera_moves_with_its_
     pose[1, 0, 0], pose[1, 1, 0], pose[2, 1, 0] = -2.0, 1.0, 5.0  # frame 1 in its shallow well
     scale = torch.tensor([0.0, -0.2, 0.0], dtype=D)
     rows, sources = neighbour_sources(torch.ones(3, dtype=torch.bool), None, 1)
-    swaps = _keep_cheapest(cost, rows, sources, pose, torch.zeros(3, 3, dtype=D), [scale], False, 3, 200, 0.02)
+    swaps = _keep_cheapest(cost, rows, sources, pose, torch.zeros(3, 3, dtype=D), [scale], False, 3, 200, 0.02)[0]
     assert swaps == [(1, 0)]
     assert pose[1, 1, 0] == 0.0 and pose[1, 0, 0].abs() < 0.02  # frame 0's pose, not frame 2's
     assert scale[1].abs() < 0.01  # its camera fitted on from its own
@@ -99,7 +116,10 @@ def test_a_frame_whose_own_copy_is_not_finite_takes_a_finite_neighbour():
     pose = torch.zeros(2, 2, 3, dtype=D)
     pose[1, 1, 0] = 1.0
     rows, sources = neighbour_sources(torch.ones(2, dtype=torch.bool), None, 1)
-    assert _keep_cheapest(cost, rows, sources, pose, torch.zeros(2, 3, dtype=D), [], True, 3, 50, 0.02) == [(0, 1)]
+    assert _keep_cheapest(cost, rows, sources, pose, torch.zeros(2, 3, dtype=D), [], True, 3, 50, 0.02) == (
+        [(0, 1)],
+        [0],
+    )
     assert pose[0, 1, 0] == 1.0
 
 
@@ -127,5 +147,5 @@ def test_a_fit_turns_a_frame_facing_away_back_from_its_neighbours(body):
     runs = {reach: fit(model, kp_map, detected, cam, FitConfig(iterations=(0, 0, 100), neighbour_reach=reach),
                        start=FitStart(betas, start, transl)) for reach in (0, 1)}  # fmt: skip
     assert runs[0].residual_px[2] > 1.5 and runs[0].neighbour_starts == []
-    assert runs[1].residual_px.max() < 0.5
+    assert runs[1].residual_px.max() < 0.5 and 2 in runs[1].neighbour_refits
     assert (2, 1) in runs[1].neighbour_starts or (2, 3) in runs[1].neighbour_starts
