@@ -5,7 +5,9 @@ scaled-orthographic camera to the torso keypoints, from several headings a frame
 (the best-fitting one is kept: a subject facing away is not a mirror image); stage 2 adds the body pose
 with its priors (per-joint pose prior, knee bend prior, joint-angle limits);
 stage 3 adds the shared shape, temporal smoothness and, when masks are given,
-the silhouette of a coarse body mesh. Frames with too few confident keypoints
+the silhouette of a coarse body mesh; midway through it, a free frame that costs clearly more than a
+neighbour costs on its own frame is refitted from their poses too and takes one where clearly cheaper
+(``neighbour_reach``: a local minimum its neighbours escaped). Frames with too few confident keypoints
 or an empty mask are flagged and take their neighbours' parameters. All frames
 are optimised together (no per-frame Python loop). With a ``FitStart`` (body
 parameters a dataset provides for the same model) only stage 3 runs, from them.
