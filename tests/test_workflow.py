@@ -572,8 +572,8 @@ def test_a_video_subjects_framing_is_checked_before_any_job(tmp_path):
 
 
 def test_a_layer_of_an_exterior_is_worn_alone(tmp_path):
-    """config/layers.yaml: loose trains in layers, tight wears its hair alone and its dress alone, each scored
-    against a generated truth that takes only that layer (tight's own garments under loose's hair)."""
+    """config/layers.yaml: loose and tight train in layers, tight wears loose's hair alone and its dress alone,
+    each scored against a generated truth that takes only that layer (tight's own garments under loose's hair)."""
     work = workflow_copy(tmp_path)
     targets = [f"results/synthetic/tight/dress/{e}/dress.json" for e in ("loose-hair", "loose-dress-only")]
     res = snakemake(work, *targets, "--configfile", "config/config.yaml", "config/layers.yaml", "--dry-run",
@@ -587,6 +587,9 @@ def test_a_layer_of_an_exterior_is_worn_alone(tmp_path):
     assert "delta synthesize" in out and "tight.wears.loose-hair" in out
     layers = re.findall(r"delta train [^\n]*loose[^\n]*", out)
     assert layers and all('"layers": "split"' in line for line in layers)
+    # the wearer in layers too: it keeps its own clothing under loose's hair, as the truth does
+    wearer = re.findall(r"delta train [^\n]*results/synthetic/tight/stage[^\n]*", out)
+    assert wearer and all('"layers": "split"' in line for line in wearer)
     cfg = yaml.safe_load((work / "config/layers.yaml").read_text())
     cfg["training"] = {}  # loose trained as one NeRF: its hair cannot be taken alone
     (work / "one.yaml").write_text(yaml.safe_dump(cfg))
