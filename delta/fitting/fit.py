@@ -267,8 +267,9 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     stages = list(enumerate(cfg.iterations))
     todo = stages[2:] if start is not None or limbs_done else stages[1:]
     free = ~held if held is not None and cfg.static_weight > 0 else torch.ones(F, dtype=torch.bool)
-    rows, sources = neighbour_sources(free & ~flagged, links, cfg.neighbour_reach)
-    sweeps = cfg.neighbour_sweeps if len(rows) > int((free & ~flagged).sum()) and todo else 0
+    movable = free & ~flagged
+    rows, sources = neighbour_sources(movable, links, cfg.neighbour_reach)
+    sweeps = cfg.neighbour_sweeps if len(rows) > int(movable.sum()) and todo else 0
     # the sweeps of neighbour starts, evenly spaced through the last stage (its optimiser goes on after each)
     last = todo[-1][1] if todo else 0
     sweep_at = {round(last * k / (sweeps + 1)) for k in range(1, sweeps + 1)} if sweeps else set()
@@ -281,9 +282,8 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
         opt = torch.optim.Adam(params, lr=cfg.lr * scale)
         for step in range(steps):
             if i == len(todo) - 1 and step in sweep_at:
-                with torch.no_grad():
-                    swapped, refitted = _keep_cheapest(frame_cost, rows, sources, pose, transl, cam_params, pinhole,
-                                                       stage, cfg.neighbour_steps, cfg.lr * scale)  # fmt: skip
+                swapped, refitted = _keep_cheapest(frame_cost, rows, sources, pose, transl, cam_params, pinhole,
+                                                   stage, cfg.neighbour_steps, cfg.lr * scale)  # fmt: skip
                 swaps, refits = swaps + swapped, refits + refitted
                 done += cfg.neighbour_steps
                 progress.report(done, "fit: neighbour starts")
@@ -346,6 +346,7 @@ def worse_by_margin(cost: torch.Tensor, than: torch.Tensor) -> torch.Tensor:
     return than.isfinite() & (cost - margin > than)
 
 
+@torch.no_grad()  # the copies' own fits enable it
 def _keep_cheapest(frame_cost, rows: torch.Tensor, sources: torch.Tensor, pose: torch.Tensor, transl: torch.Tensor,
                    cam_params: list[torch.Tensor], pinhole: bool, stage: int, steps: int,
                    lr: float) -> tuple[list[tuple[int, int]], list[int]]:  # fmt: skip
@@ -356,8 +357,7 @@ def _keep_cheapest(frame_cost, rows: torch.Tensor, sources: torch.Tensor, pose: 
     frame's own copy, refitted alike, costs ``worse_by_margin`` than it. Every other frame keeps its pose as
     it was (copies of one basin end at costs a little apart, and a swap there only stirs the fit).
     Returns (frame, its pose's source) of each swap, and the frames refitted."""
-    with torch.no_grad():
-        now = frame_cost(pose, transl, cam_params, torch.arange(pose.shape[0]), stage).nan_to_num(torch.inf)
+    now = frame_cost(pose, transl, cam_params, torch.arange(pose.shape[0]), stage).nan_to_num(torch.inf)
     suspect = torch.zeros(pose.shape[0], dtype=torch.bool)
     suspect[rows[(rows != sources) & worse_by_margin(now[rows], now[sources])]] = True
     rows, sources = rows[suspect[rows]], sources[suspect[rows]]

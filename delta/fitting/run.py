@@ -221,7 +221,7 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
                "started_from": started_from,
                "residual_px_mean": float(np.nanmean(res.residual_px.numpy())),
                "upright": upright.describe(camera_vertical(res.camera)), "static_hold": hold,
-               "neighbour_starts": {"sweeps": fit_cfg.neighbour_sweeps if fit_cfg.neighbour_reach else 0,
+               "neighbour_starts": {"reach": fit_cfg.neighbour_reach,
                                     "refitted": [int(frame_ids[f]) for f in res.neighbour_refits],
                                     "frames_from": [[int(frame_ids[f]), int(frame_ids[s])]
                                                     for f, s in res.neighbour_starts]}}  # fmt: skip
