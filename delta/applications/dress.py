@@ -13,7 +13,9 @@ A layer alone (an avatar trained with ``training.layers: split``: clothing and h
 moves the same way: B wearing A's hair keeps its own clothing layer (and the reverse). The two layers
 then come from two trainings, so neither avatar's F_e (fitted to its own exterior as a whole) nor its
 occupancy grid is kept: the mixed exterior is rendered rigidly skinned, every sample evaluated. A body
-avatar whose exterior is one NeRF has no layer to keep: it wears the given layers alone.
+avatar whose exterior is one NeRF has no layer to keep: it wears the given layers alone. A layer given
+alone is first confined to where A's own training frames see it (:func:`confine`): behind the other
+layer's surface it may hold density no image ever showed (hair grown inside a skirt).
 
 What can be carried: A's exterior must lie within what B models. An upper-body capture's exterior
 (hair, a shirt) goes onto a full body; a full-body exterior onto an upper-body avatar is refused (its
@@ -25,19 +27,23 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from delta import DeltaError
 from delta.applications.settings import ShowSettings
 from delta.applications.show import show_edit
+from delta.export.meshes import LAYER_MESH, MeshPart, read_mesh, write_mesh
 from delta.fields.networks import LayeredNeRF
 from delta.io import require_files, save_json
 from delta.models.avatar import HybridAvatar
-from delta.training.run import load_trained
+from delta.models.layer_support import confine_layers
+from delta.training.run import Trained, load_trained
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +71,12 @@ def check_wearable(body: HybridAvatar, wearer: HybridAvatar, layers: Sequence[st
         raise DeltaError(f"the wearer's exterior covers a '{wearer.spec.capture}' capture, the body models only "
                          f"'{body.spec.capture}': {int(uncovered.sum())} body vertices the exterior follows are not "
                          "modelled on it (an upper-body exterior goes onto a full body, not the reverse)")  # fmt: skip
+
+
+def confine(wearer: Trained, layers: Sequence[str]) -> None:
+    """Confine the wearer's ``layers`` to where its own training frames see them, in place
+    (:func:`delta.models.layer_support.confine_layers`)."""
+    confine_layers(wearer.model, wearer.data.train, layers)
 
 
 def put_on(body: HybridAvatar, wearer: HybridAvatar, layers: Sequence[str] = ()) -> None:
@@ -112,6 +124,26 @@ def _wear(body: HybridAvatar, wearer: HybridAvatar, nerf) -> None:
     body.frame_time.fill_(float("nan"))
 
 
+def worn_surface(clothing: str | Path | None, wearer_clothing: str | Path | None, layers: Sequence[str],
+                 kept: Sequence[str], out: Path) -> str | Path | None:  # fmt: skip
+    """The exterior's surface once dressed, for the garment distances: the wearer's whole exterior
+    (``wearer_clothing``), or with ``layers`` given, the wearer's meshes of those layers and the body's own
+    of the ``kept`` ones (each ``layer_{layer}_nerf_space.ply`` beside the exports' clothing_nerf_space.ply; a
+    layer with no mesh adds nothing), written to ``out``. None where an export is not given."""
+    if not layers or wearer_clothing is None or (kept and clothing is None):
+        return wearer_clothing
+    parts = [Path(wearer_clothing).with_name(LAYER_MESH.format(layer=n, space="nerf_space")) for n in layers]
+    parts += [Path(clothing).with_name(LAYER_MESH.format(layer=n, space="nerf_space")) for n in kept]
+    meshes = [read_mesh(p) for p in parts if p.is_file()]
+    if not meshes:
+        return None
+    starts = np.cumsum([0] + [len(m.vertices) for m in meshes[:-1]])
+    write_mesh(out, MeshPart(np.concatenate([m.vertices for m in meshes]),
+                             np.concatenate([m.faces + k for m, k in zip(meshes, starts)]),
+                             np.concatenate([m.colors for m in meshes])))  # fmt: skip
+    return out
+
+
 def dress_avatar(body_model: str | Path, body_record: str | Path, wearer_model: str | Path,
                  wearer_record: str | Path, body_path: str | Path, out_dir: str | Path,
                  settings: ShowSettings | None = None, truth: str | Path | None = None,
@@ -132,9 +164,13 @@ def dress_avatar(body_model: str | Path, body_record: str | Path, wearer_model: 
     body = load_trained(body_model, body_record, body_path, device)
     wearer = load_trained(wearer_model, wearer_record, wearer_body or body_path, device)
     check_wearable(body.model, wearer.model, layers)
+    confine(wearer, layers)
     about = {"application": "dress", "model": str(body_model), "wearer": str(wearer_model), "layers": list(layers)}
-    shown = show_edit(body, body_record, Path(out_dir), "dressed", lambda: put_on(body.model, wearer.model, layers),
-                      settings, about, truth, perceptual_dir, (clothing, wearer_clothing))  # fmt: skip
+    kept = [n for n in getattr(body.model.nerf, "names", ()) if n not in layers]
+    with tempfile.TemporaryDirectory() as tmp:
+        dressed = worn_surface(clothing, wearer_clothing, layers, kept, Path(tmp) / "worn_nerf_space.ply")
+        shown = show_edit(body, body_record, Path(out_dir), "dressed", lambda: put_on(body.model, wearer.model, layers),
+                          settings, about, truth, perceptual_dir, (clothing, dressed))  # fmt: skip
     summary = {"body_model": str(body_model), "wearer_model": str(wearer_model), **shown,
                "body_capture": body.model.spec.capture, "wearer_capture": wearer.model.spec.capture,
                "seconds": round(time.perf_counter() - t_start, 2)}  # fmt: skip

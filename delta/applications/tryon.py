@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from delta import DeltaError
-from delta.applications.dress import put_on
+from delta.applications.dress import check_wearable, confine, put_on
 from delta.applications.settings import ShowSettings
 from delta.body.model import load_body_model
 from delta.data.frames import load_frames, load_full_frames
@@ -64,6 +64,8 @@ def try_on(record: str | Path, init_params: str | Path, body_path: str | Path, w
     model = build_avatar(body, dataclasses.replace(st, layers="one"), load_init(init_params, data), data, 1,
                          pick_device(device))  # fmt: skip
     model.eval()
+    check_wearable(model, wearer.model, layers)
+    confine(wearer, layers)
     put_on(model, wearer.model, layers)
     full = load_full_frames(record, [frame], st.background)
     view = full_view(full, model.resolution)

@@ -30,6 +30,11 @@ from delta.io import atomic_path
 from delta.models.avatar import HybridAvatar
 
 
+#: the file of one exterior layer's mesh (``space``: nerf_space or canonical), beside the whole exterior's
+#: clothing_{space}.ply (a layer named clothing must not overwrite it)
+LAYER_MESH = "layer_{layer}_{space}.ply"
+
+
 @dataclasses.dataclass
 class MeshPart:
     """One exported mesh (V vertices, F faces)."""

@@ -16,6 +16,7 @@ from delta.body.lbs import posed_joints
 from delta.body.upright import Upright
 from delta.export.animated import INFLUENCES, world_transform, write_animated_glb
 from delta.export.meshes import (
+    LAYER_MESH,
     MeshPart,
     body_mesh,
     edge_lengths,
@@ -37,6 +38,7 @@ from delta.cameras.models import camera_vertical, metres_per_pixel
 from delta.data.frames import load_full_frames
 from delta.models.image import View, full_view, pixel_grid, render_image
 from delta.progress import Progress
+from delta.models.layer_support import confine_layers
 from delta.training.run import Trained, load_trained
 
 log = logging.getLogger(__name__)
@@ -258,16 +260,17 @@ def export_meshes(tr: Trained, out: Path, settings: ExportSettings, about: dict 
         if clothing.empty:
             log.warning("the NeRF's density never reaches %.3g: the clothing mesh is empty", settings.threshold)
         layers = getattr(model.nerf, "names", ())
-        if layers:  # each layer on its own as well; the GLB holds them apart
+        if layers:  # each layer on its own as well (where its frames see it); the GLB holds them apart
             del parts["clothing"]
+            confine_layers(model, data.train, layers)
         for name in layers:
             own = clothing_nerf_space(model, settings, longest, name)
             summary.setdefault("layers", {})[name] = {"vertices": len(own.vertices), "faces": len(own.faces)}
             if own.empty:
                 continue
-            write_mesh(out / f"{name}_nerf_space.ply", own)
+            write_mesh(out / LAYER_MESH.format(layer=name, space="nerf_space"), own)
             parts[name] = pose_clothing(model, own, cano_out)
-            write_mesh(out / f"{name}_canonical.ply", parts[name])
+            write_mesh(out / LAYER_MESH.format(layer=name, space="canonical"), parts[name])
         times["clothing"] = time.perf_counter() - t
     write_glb(out / "avatar.glb", parts)
     t = time.perf_counter()

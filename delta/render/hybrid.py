@@ -59,6 +59,10 @@ class RayRender:
     layer_masks: Optional[torch.Tensor] = None
     """(R, L) each exterior layer's opacity (a layered NeRF: the ray's weights times the layer's share
     of the density; they sum to ``nerf_mask``), None for one NeRF."""
+    layer_depths: Optional[torch.Tensor] = None
+    """(R, L) where along the ray each layer is seen: the depth t of its opacity's weighted mean
+    Σ_k w_k (σ_l,k / σ_k) t_k / S_l (the far bound where the layer has no opacity; not differentiated),
+    None for one NeRF."""
 
 
 #: cells the occupied set grows by for the early cull: the rough canonical point lies within 3 cm of
@@ -115,11 +119,15 @@ def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixe
     sigma, rgb, layer_sigma, n = _query(mesh, origins, dirs, t, settings, nerf, nonrigid, occupied)
     out = composite(t, sigma, rgb, background.expand_as(mesh_rgb) if through_mesh else mesh_rgb)
     nerf_rgb = (out.weights[:, :-1, None] * rgb).sum(1) + (1 - out.nerf_mask[:, None]) * background
-    layer_masks = None
+    layer_masks = layer_depths = None
     if layer_sigma is not None:
         share = layer_sigma / sigma.clamp_min(torch.finfo(sigma.dtype).tiny)[..., None]
-        layer_masks = (out.weights[:, :-1, None] * share).sum(1)
-    return RayRender(out.rgb, out.nerf_mask, nerf_rgb, mesh_rgb, hits.hit, sil, n, layer_masks)
+        seen = out.weights[:, :-1, None] * share  # (R, S - 1, L)
+        layer_masks = seen.sum(1)
+        with torch.no_grad():  # a readout: where the layer lies, nothing to differentiate
+            at = (seen * t[:, :-1, None]).sum(1) / layer_masks.clamp_min(torch.finfo(t.dtype).tiny)
+            layer_depths = torch.where(layer_masks > 0, at, t[:, -1:])
+    return RayRender(out.rgb, out.nerf_mask, nerf_rgb, mesh_rgb, hits.hit, sil, n, layer_masks, layer_depths)
 
 
 @torch.no_grad()

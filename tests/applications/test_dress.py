@@ -10,13 +10,13 @@ import torch
 import trimesh
 
 from delta import DeltaError
-from delta.applications.dress import check_wearable, put_on
+from delta.applications.dress import check_wearable, confine, put_on
 from delta.body.lbs import lbs
 from delta.cli import main
 from delta.export import lineup
 from delta.models.image import View, render_image
 from delta.training.run import load_trained
-from tests.export.test_export import SHELL, ShellNeRF, layered
+from tests.export.test_export import SHELL, Part, ShellNeRF, layered
 
 pytestmark = pytest.mark.slow
 
@@ -141,3 +141,77 @@ def test_a_layer_on_an_avatar_of_one_nerf_is_worn_alone(tiny_trained):
     assert body.model.nerf.names == ("hair",) and body.model.nerf.layers["hair"] is wearer.model.nerf.layers["hair"]
     with pytest.raises(DeltaError, match=r"has the layers \['hair'\], not \['clothing'\]"):
         check_wearable(load(tiny_trained["tight"]).model, body.model, ["clothing"])
+
+
+class HiddenHair(Part):
+    """Hair above the neck, and a hair band within ``SHELL`` / 2 of the body below it: inside the clothing
+    shell, which hides it from every camera (hair grown inside a skirt)."""
+
+    def forward(self, x):
+        colour, above = super().forward(x)
+        d, _ = self.tree.query(x.detach().cpu().numpy(), k=1)
+        band = torch.from_numpy(d < SHELL / 2).to(x) * (x[:, 1] <= self.neck).to(x) * 4000.0
+        return colour, above + band
+
+
+def test_a_layer_worn_alone_leaves_behind_what_its_capture_never_showed(tiny_trained):
+    """The wearer's hair layer also fills a band inside its clothing, below the neck, that no training frame
+    sees. Confined to where its own frames see it, the hair rendered alone keeps every pixel where the
+    avatar shows its hair and has nothing left in the band: on the body below the neck and in the images."""
+    from delta.fields.networks import LayeredNeRF
+
+    wearer = load(tiny_trained["tight"])
+    neck = layered(wearer.model, (0.9, 0.1, 0.1), (0.1, 0.8, 0.2))
+    m = wearer.model
+    cano = (m.canonical_T[..., :3] @ m.body.v_template[..., None]).squeeze(-1) + m.canonical_T[..., 3]
+    m.nerf.layers["hair"] = HiddenHair(cano, (0.1, 0.8, 0.2), neck, True)
+    whole, hair = m.nerf, m.nerf.layers["hair"]
+    torso = cano[(cano[:, 1] < neck - 0.15) & (cano[:, 1] > neck - 0.5)]  # on the body: in the hidden band
+    assert float(hair(torso)[1].min()) == 4000.0
+    frames = [int(f) for f in wearer.data.train]
+
+    def hair_alone(frame):
+        m.nerf = LayeredNeRF.of({"hair": whole.layers["hair"]})
+        try:
+            return render_image(m, frame, soft_silhouette=False)["nerf_mask"]
+        finally:
+            m.nerf = whole
+
+    with torch.no_grad():
+        shown = {f: render_image(m, f, soft_silhouette=False)["layer_hair"] > 0.5 for f in frames}
+        before = {f: hair_alone(f) > 0.5 for f in frames}
+        confine(wearer, ["hair"])
+        after = {f: hair_alone(f) > 0.5 for f in frames}
+    assert whole.layers["hair"] is not hair and float(whole.layers["hair"](torso)[1].max()) == 0.0
+    for f in frames:
+        assert int(shown[f].sum()) > 0 and int((shown[f] & ~after[f]).sum()) <= 0.1 * int(shown[f].sum())  # kept
+        assert int(before[f].sum()) > 3 * int(shown[f].sum())  # alone, the band came out ...
+        assert int((after[f] & ~shown[f]).sum()) <= 0.5 * int(shown[f].sum())  # ... and now hardly any
+
+
+def test_the_worn_surface_is_the_given_layers_and_the_kept_ones(tmp_path):
+    """Scored garments of a layer worn alone: the wearer's mesh of that layer and the body's own of the layer it
+    keeps, not the wearer's whole exterior; a layer without a mesh adds nothing."""
+    from delta.applications.dress import worn_surface
+    from delta.export.meshes import MeshPart, read_mesh, write_mesh
+
+    def tri(x, n=1):
+        v = np.array([[x, 0, 0], [x + 1, 0, 0], [x, 1, 0]] * n, float)
+        return MeshPart(v, np.arange(3 * n).reshape(-1, 3), np.full((3 * n, 3), 0.5))
+
+    (tmp_path / "body").mkdir()
+    (tmp_path / "wearer").mkdir()
+    write_mesh(tmp_path / "body" / "clothing_nerf_space.ply", tri(9.0, 6))  # the whole exteriors
+    write_mesh(tmp_path / "wearer" / "clothing_nerf_space.ply", tri(9.0, 9))
+    write_mesh(tmp_path / "body" / "layer_clothing_nerf_space.ply", tri(0.0, 5))
+    write_mesh(tmp_path / "body" / "layer_hair_nerf_space.ply", tri(1.0))
+    write_mesh(tmp_path / "wearer" / "layer_clothing_nerf_space.ply", tri(2.0, 7))
+    write_mesh(tmp_path / "wearer" / "layer_hair_nerf_space.ply", tri(3.0, 2))
+    body, wearer = tmp_path / "body" / "clothing_nerf_space.ply", tmp_path / "wearer" / "clothing_nerf_space.ply"
+    assert worn_surface(body, wearer, [], [], tmp_path / "w.ply") == wearer  # the whole exterior
+    out = worn_surface(body, wearer, ["hair"], ["clothing"], tmp_path / "w.ply")
+    mesh = read_mesh(out)
+    assert len(mesh.faces) == 2 + 5 and set(np.round(mesh.vertices[:, 0]).astype(int)) == {0, 1, 3, 4}  # no 9s
+    assert int(mesh.faces.max()) == len(mesh.vertices) - 1
+    (tmp_path / "body" / "layer_clothing_nerf_space.ply").unlink()  # an empty layer: no mesh
+    assert len(read_mesh(worn_surface(body, wearer, ["hair"], ["clothing"], tmp_path / "v.ply")).faces) == 2

@@ -326,3 +326,17 @@ def test_each_layer_of_a_layered_exterior_is_its_own_mesh(tiny_model):
     np.testing.assert_allclose(parts["clothing"].colors, np.tile([0.9, 0.1, 0.1], (len(parts["clothing"].colors), 1)))
     area = {k: v.to_trimesh().area for k, v in parts.items()}
     assert min(area.values()) > 0.05 and sum(area.values()) == pytest.approx(whole.to_trimesh().area, rel=0.05)
+
+
+def test_a_layered_exports_files_keep_the_whole_exterior_apart_from_each_layer(tiny_model, tmp_path):
+    """clothing_nerf_space.ply stays the whole exterior (what the evaluation scores), each layer is its own
+    layer_{name}_*.ply: the clothing layer's file does not overwrite the whole one."""
+    tr = load_trained(tiny_model["model"], tiny_model["record"], tiny_model["body"])
+    layered(tr.model, (0.9, 0.1, 0.1), (0.1, 0.8, 0.2))
+    st = dataclasses.replace(SETTINGS, decimate=0, smooth=0)
+    summary = export_trained(tr, tmp_path, st, {"model": "tiny"}, part="meshes")
+    area = {k: trimesh.load(tmp_path / f"layer_{k}_nerf_space.ply", process=False).area for k in ("clothing", "hair")}
+    whole = trimesh.load(tmp_path / "clothing_nerf_space.ply", process=False)
+    assert len(whole.vertices) == summary["clothing"]["vertices"] > summary["layers"]["clothing"]["vertices"]
+    assert whole.area > max(area.values()) and min(area.values()) > 0.05
+    assert (tmp_path / "layer_hair_canonical.ply").is_file() and (tmp_path / "clothing_canonical.ply").is_file()

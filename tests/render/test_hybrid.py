@@ -177,6 +177,20 @@ def test_layers_render_as_one_medium_and_each_layer_gets_its_share_of_the_opacit
     torch.testing.assert_close(clothing[2], hair[2])
 
 
+def test_a_layer_is_seen_where_its_opacity_gathers():
+    """A ray through the clothing shell alone (σ = 40, missing the body) sees the clothing at the opacity's
+    weighted mean depth, t_in + 1/σ for a chord of optical depth 15 (analytic, to e^-15); the hair, absent
+    on it, at the far bound."""
+    mesh = sphere_avatar()
+    o, d = torch.tensor([[0.0, -0.33, 2.0]]), torch.tensor([[0.0, 0.0, -1.0]])
+    st = RenderSettings(samples=256, box_margin=0.3, max_dist=0.1, perturb=False)
+    out = render_rays(mesh, o, d, o[:, :2] * 100, BG, st, TwoLayers(40.0))
+    t_in = 2.0 - (0.38**2 - 0.33**2) ** 0.5
+    assert float(out.layer_masks[0, 0]) > 0.99 and float(out.layer_masks[0, 1]) == 0.0
+    assert abs(float(out.layer_depths[0, 0]) - (t_in + 1 / 40.0)) < 0.004
+    assert float(out.layer_depths[0, 1]) > 2.0  # past the shell: the far bound
+
+
 def test_empty_layers_give_zero_opacity_and_finite_gradients():
     mesh = sphere_avatar()
     o = torch.tensor([[0.0, -0.33, 2.0], [0.0, 0.0, 2.0]])
