@@ -115,6 +115,9 @@ def layer_supports(model, frames, names, stride: int = 2) -> dict[str, Support]:
             points[name].append(seen[name])
     out = {name: support_of(torch.cat(p)) for name, p in points.items()}
     for name, sup in out.items():
+        if not sum(len(p) for p in points[name]):
+            log.warning("layer %s is seen in none of %d training frames: alone, it has no density left", name,
+                        len(frames))  # fmt: skip
         log.info("layer %s: seen at %d points in %d frames, %.3f m³ of canonical space with the grown margin "
                  "(%.1f s)", name, sum(len(p) for p in points[name]), len(frames), float(sup.cells.sum()) * sup.cell**3,
                  time.perf_counter() - t0)  # fmt: skip
@@ -161,4 +164,4 @@ def confine_layers(model, train, layers) -> None:
     supports = layer_supports(model, frames, layers)
     for name in layers:
         if not isinstance(nerf.layers[name], Confined):
-            nerf.layers[name] = Confined(nerf.layers[name], supports[name])
+            nerf.layers[name] = Confined(nerf.layers[name], supports[name]).to(model.background.device)
