@@ -7,7 +7,7 @@ skirt) that no training image sees, and that comes out when the layer is worn al
 and crop), and counts, per layer, the pixels where the layer alone is
 opaque (> 0.5) though neither its own mask nor the mask of a layer that may cover it (hair may cover
 clothing) is set, against the layer's own mask's pixels. ``--confine``: each layer first confined to where
-the avatar's own training frames see it, as ``delta dress --layers`` does (``delta.models.layer_support.confine_layers``:
+the avatar's own training frames see it, as ``delta dress --layers`` does (``delta.models.layer_support.confined_layers``:
 8 training frames, evenly spread; mostly other frames than the scored ones).
 
     PYTHONPATH=$PWD python3 benchmarks/layers_alone.py --model results/synthetic/loose/stage2/model.pt \\
@@ -28,6 +28,7 @@ import torch
 
 from delta.applications.dress import confine
 from delta.fields.networks import LayeredNeRF
+from delta.losses import layer_targets
 from delta.models.image import render_image
 from delta.training.run import load_trained
 
@@ -37,12 +38,6 @@ from table import device_name, save_table  # noqa: E402
 
 #: the layers that may lie over each layer (long hair falls over the clothing; nothing is worn over hair)
 COVERED_BY = {"clothing": ("hair",), "hair": ()}
-
-
-def layer_masks(data, i: int) -> dict[str, torch.Tensor]:
-    """Frame ``i``'s (n, n) mask of each layer: hair, and the rest of the exterior as clothing."""
-    hair, exterior = data.hair[i].float(), data.exterior[i].float()
-    return {"hair": hair, "clothing": (exterior - hair).clamp_min(0.0)}
 
 
 def main(argv=None) -> None:
@@ -69,7 +64,7 @@ def main(argv=None) -> None:
     picks = train[np.linspace(0, len(train) - 1, min(a.frames, len(train))).round().astype(int)]
     rows, t0 = [], time.perf_counter()
     for i in picks:
-        masks = layer_masks(data, int(i))
+        masks = layer_targets(data.exterior[i].float(), data.hair[i].float())
         for name in whole.names:
             model.nerf = LayeredNeRF.of({name: whole.layers[name]})
             alone = render_image(model, int(i))["nerf_mask"]

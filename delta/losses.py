@@ -38,8 +38,13 @@ def exterior_layers(layer_masks: torch.Tensor, names: tuple[str, ...], exterior_
     clothing layer's against the rest of the exterior mask (R rays, ``layer_masks`` (R, L))."""
     if hair_mask is None:
         raise ValueError("an exterior in layers needs the hair mask (load the frames with hair=True)")
-    targets = {"hair": hair_mask, "clothing": (exterior_mask - hair_mask).clamp_min(0.0)}
+    targets = layer_targets(exterior_mask, hair_mask)
     return torch.stack([exterior(layer_masks[:, k], targets[n]) for k, n in enumerate(names)]).mean()
+
+
+def layer_targets(exterior_mask: torch.Tensor, hair_mask: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Each exterior layer's mask: the hair mask, and the rest of the exterior as clothing."""
+    return {"hair": hair_mask, "clothing": (exterior_mask - hair_mask).clamp_min(0.0)}
 
 
 def silhouette(mesh_sil: torch.Tensor, person: torch.Tensor, delta: float = 0.1) -> torch.Tensor:

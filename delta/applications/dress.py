@@ -42,7 +42,7 @@ from delta.export.meshes import LAYER_MESH, MeshPart, read_mesh, write_mesh
 from delta.fields.networks import LayeredNeRF
 from delta.io import require_files, save_json
 from delta.models.avatar import HybridAvatar
-from delta.models.layer_support import confine_layers
+from delta.models.layer_support import confined_layers
 from delta.training.run import Trained, load_trained
 
 log = logging.getLogger(__name__)
@@ -75,8 +75,10 @@ def check_wearable(body: HybridAvatar, wearer: HybridAvatar, layers: Sequence[st
 
 def confine(wearer: Trained, layers: Sequence[str]) -> None:
     """Confine the wearer's ``layers`` to where its own training frames see them, in place
-    (:func:`delta.models.layer_support.confine_layers`)."""
-    confine_layers(wearer.model, wearer.data.train, layers)
+    (:func:`delta.models.layer_support.confined_layers`)."""
+    confined = confined_layers(wearer.model, wearer.data.train, layers)
+    if confined:  # (none for an exterior of one NeRF or one layer)
+        wearer.model.nerf.layers.update(confined)
 
 
 def put_on(body: HybridAvatar, wearer: HybridAvatar, layers: Sequence[str] = ()) -> None:

@@ -38,7 +38,7 @@ from delta.cameras.models import camera_vertical, metres_per_pixel
 from delta.data.frames import load_full_frames
 from delta.models.image import View, full_view, pixel_grid, render_image
 from delta.progress import Progress
-from delta.models.layer_support import confine_layers
+from delta.models.layer_support import confined_layers
 from delta.training.run import Trained, load_trained
 
 log = logging.getLogger(__name__)
@@ -262,15 +262,20 @@ def export_meshes(tr: Trained, out: Path, settings: ExportSettings, about: dict 
         layers = getattr(model.nerf, "names", ())
         if layers:  # each layer on its own as well (where its frames see it); the GLB holds them apart
             del parts["clothing"]
-            confine_layers(model, data.train, layers)
-        for name in layers:
-            own = clothing_nerf_space(model, settings, longest, name)
-            summary.setdefault("layers", {})[name] = {"vertices": len(own.vertices), "faces": len(own.faces)}
-            if own.empty:
-                continue
-            write_mesh(out / LAYER_MESH.format(layer=name, space="nerf_space"), own)
-            parts[name] = pose_clothing(model, own, cano_out)
-            write_mesh(out / LAYER_MESH.format(layer=name, space="canonical"), parts[name])
+            as_trained = dict(model.nerf.layers)
+            model.nerf.layers.update(confined_layers(model, data.train, layers))
+        try:
+            for name in layers:
+                own = clothing_nerf_space(model, settings, longest, name)
+                summary.setdefault("layers", {})[name] = {"vertices": len(own.vertices), "faces": len(own.faces)}
+                if own.empty:
+                    continue
+                write_mesh(out / LAYER_MESH.format(layer=name, space="nerf_space"), own)
+                parts[name] = pose_clothing(model, own, cano_out)
+                write_mesh(out / LAYER_MESH.format(layer=name, space="canonical"), parts[name])
+        finally:  # the videos render the avatar as trained
+            if layers:
+                model.nerf.layers.update(as_trained)
         times["clothing"] = time.perf_counter() - t
     write_glb(out / "avatar.glb", parts)
     t = time.perf_counter()

@@ -25,7 +25,7 @@ import torch
 from torch import nn
 
 from delta.deformers import knn as deformer
-from delta.models.image import pixel_grid
+from delta.models.image import live_rays, pixel_grid, reach_box
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +85,7 @@ def seen_points(model, frame: int, stride: int = 2, chunk: int = 16384) -> dict[
     n = model.resolution
     pixels = pixel_grid(n, device=model.background.device).view(n, n, 2)[::stride, ::stride].reshape(-1, 2)
     mesh = model.posed_mesh(frame)[0]
+    pixels = pixels[live_rays(pixels, reach_box(model, frame, mesh.vertices))]  # the others meet nothing
     rs = model.spec.render
     perturb, rs.perturb = rs.perturb, False
     found = {name: [] for name in model.nerf.names}
@@ -152,16 +153,15 @@ class Confined(nn.Module):
         return self.field.color_cell()
 
 
-def confine_layers(model, train, layers) -> None:
-    """Confine ``layers`` of ``model``'s layered exterior, in place, to where ``SUPPORT_FRAMES`` of its
-    training frames ``train`` (indices, evenly spread) see them; nothing to do for one NeRF or one layer
-    (nothing hides behind another)."""
+def confined_layers(model, train, layers) -> dict[str, Confined]:
+    """``layers`` of ``model``'s layered exterior, each confined to where ``SUPPORT_FRAMES`` of its training
+    frames ``train`` (indices, evenly spread) see it (the model is left as it is); none for one NeRF or one
+    layer (nothing hides behind another)."""
     nerf = model.nerf
     if not layers or len(getattr(nerf, "names", ())) < 2:
-        return
+        return {}
     train = np.asarray(train)
     frames = train[np.linspace(0, len(train) - 1, min(SUPPORT_FRAMES, len(train))).round().astype(int)]
     supports = layer_supports(model, frames, layers)
-    for name in layers:
-        if not isinstance(nerf.layers[name], Confined):
-            nerf.layers[name] = Confined(nerf.layers[name], supports[name]).to(model.background.device)
+    dev = model.background.device
+    return {name: Confined(nerf.layers[name], supports[name]).to(dev) for name in layers}

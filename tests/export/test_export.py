@@ -340,3 +340,4 @@ def test_a_layered_exports_files_keep_the_whole_exterior_apart_from_each_layer(t
     assert len(whole.vertices) == summary["clothing"]["vertices"] > summary["layers"]["clothing"]["vertices"]
     assert whole.area > max(area.values()) and min(area.values()) > 0.05
     assert (tmp_path / "layer_hair_canonical.ply").is_file() and (tmp_path / "clothing_canonical.ply").is_file()
+    assert all(type(layer).__name__ == "Part" for layer in tr.model.nerf.layers.values())  # the videos: as trained
