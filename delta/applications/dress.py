@@ -76,7 +76,7 @@ def check_wearable(body: HybridAvatar, wearer: HybridAvatar, layers: Sequence[st
 def confine(wearer: Trained, layers: Sequence[str]) -> None:
     """Confine the wearer's ``layers`` to where its own training frames see them, in place
     (:func:`delta.models.layer_support.confined_layers`)."""
-    confined = confined_layers(wearer.model, wearer.data.train, layers)
+    confined = confined_layers(wearer.model, wearer.data, layers)
     if confined:  # (none for an exterior of one NeRF or one layer)
         wearer.model.nerf.layers.update(confined)
 

@@ -263,7 +263,7 @@ def export_meshes(tr: Trained, out: Path, settings: ExportSettings, about: dict 
         if layers:  # each layer on its own as well (where its frames see it); the GLB holds them apart
             del parts["clothing"]
             as_trained = dict(model.nerf.layers)
-            model.nerf.layers.update(confined_layers(model, data.train, layers))
+            model.nerf.layers.update(confined_layers(model, data, layers))
         try:
             for name in layers:
                 own = clothing_nerf_space(model, settings, longest, name)

@@ -11,6 +11,10 @@ Each training frame is rendered with every layer (pixels every ``stride``); wher
 opacity over ``SEEN``) the point at its depth along the ray is taken back to the canonical space (the
 kNN blend, as the renderer does), and the cells of a ``cell``-metre grid that hold such points, grown by
 ``grow`` cells (the layer's thickness behind its seen surface, F_e's reach), are the layer's support.
+A layer is never worn under another one (``NEVER_UNDER``: hair is not worn under clothing): where that
+other layer is seen and this one is not, the cells from the other's surface to the body leave this
+layer's grown margin; its seen cells stay. Loose's hair layer held
+the dress's red 1-5 cm behind the dress's surface beside the hair, inside the margin.
 :class:`Confined` is the layer with no density outside it.
 """
 
@@ -24,8 +28,11 @@ import numpy as np
 import torch
 from torch import nn
 
+from delta.cameras.models import metres_per_pixel
 from delta.deformers import knn as deformer
-from delta.models.image import live_rays, pixel_grid, reach_box
+from delta.geometry.raymesh import ray_mesh_hits
+from delta.losses import layer_targets
+from delta.models.image import live_rays, reach_box
 
 log = logging.getLogger(__name__)
 
@@ -36,6 +43,8 @@ SUPPORT_FRAMES = 8
 #: the support grid's cell (m) and how many cells it is grown by around the seen points
 CELL = 0.02
 GROW = 3
+#: the layers each layer is never worn under: its density behind their seen surface is none of its own
+NEVER_UNDER = {"hair": ("clothing",)}
 
 
 @dataclasses.dataclass
@@ -62,65 +71,127 @@ def in_cells(points: torch.Tensor, lo: torch.Tensor, cell: float, cells: torch.T
     return out
 
 
-def support_of(points: torch.Tensor, cell: float = CELL, grow: int = GROW) -> Support:
-    """The cells holding canonical ``points`` (N, 3), grown by ``grow`` cells (a cube of side 2 grow + 1)."""
+def support_of(points: torch.Tensor, cell: float = CELL, grow: int = GROW,
+               behind: torch.Tensor | None = None) -> Support:  # fmt: skip
+    """The cells holding canonical ``points`` (N, 3), grown by ``grow`` cells (a cube of side 2 grow + 1),
+    less the grown cells that hold a point of ``behind`` (M, 3) (behind another layer's surface) and none
+    of ``points``."""
     if not len(points):
         return Support(torch.zeros(3), cell, torch.zeros(1, 1, 1, dtype=torch.bool))
     points = points.detach().float().cpu()
     lo = (torch.floor(points.amin(0) / cell) - grow - 1) * cell  # on the world's grid of ``cell``
     ijk = torch.floor((points - lo) / cell).long()
     size = (ijk.amax(0) + grow + 2).tolist()
-    cells = torch.zeros(size, dtype=torch.float32)
-    cells[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1.0
+    seen = torch.zeros(size, dtype=torch.float32)
+    seen[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1.0
+    cells = seen
     if grow:
         k = 2 * grow + 1
-        cells = nn.functional.max_pool3d(cells[None, None], k, stride=1, padding=grow)[0, 0]
-    return Support(lo, cell, cells > 0)
+        cells = nn.functional.max_pool3d(seen[None, None], k, stride=1, padding=grow)[0, 0]
+    cells = cells > 0
+    if behind is not None and len(behind):
+        carved = torch.zeros_like(cells)
+        at = torch.floor((behind.detach().float().cpu() - lo) / cell).long()
+        at = at[((at >= 0) & (at < torch.tensor(size))).all(-1)]
+        carved[at[:, 0], at[:, 1], at[:, 2]] = True
+        cells &= ~carved | (seen > 0)
+    return Support(lo, cell, cells)
+
+
+def ray_step(camera, vertices: torch.Tensor, stride: float) -> float:
+    """Pixels between the support's rays: ``stride``, or fewer where that spans more than half a ``CELL`` at the
+    body (``vertices`` (V, 3), posed): the median pixel's width there."""
+    mpp = float(metres_per_pixel(camera, vertices.detach()).median())
+    return min(float(stride), CELL / 2 / max(mpp, 1e-9))
+
+
+def ray_grid(n: int, step: float, device=None) -> torch.Tensor:
+    """(R, 2) ray positions ``step`` pixels apart over an n×n image (the first half a step in)."""
+    axis = torch.arange(step / 2, n, step, dtype=torch.float32, device=device)
+    v, u = torch.meshgrid(axis, axis, indexing="ij")
+    return torch.stack([u, v], -1).reshape(-1, 2)
 
 
 @torch.no_grad()
-def seen_points(model, frame: int, stride: int = 2, chunk: int = 16384) -> dict[str, torch.Tensor]:
-    """Canonical points (P, 3) where each layer of ``model``'s layered exterior is seen in ``frame`` (its
-    pixels every ``stride``)."""
+def seen_points(model, frame: int, masks: dict[str, torch.Tensor] | None = None, stride: int = 2,
+                chunk: int = 16384) -> tuple[dict, dict]:  # fmt: skip
+    """Canonical points where each layer of ``model``'s layered exterior is seen in ``frame`` (its pixels
+    every ``stride``), and where it is ruled out; two dicts of (P, 3) by layer name.
+
+    The rays are ``stride`` pixels apart, or closer where a pixel spans more than half a cell on the body
+    (a small image): every cell the layers pass through is met (:func:`ray_step`).
+
+    Seen: the point at the layer's depth on rays where its opacity is over ``SEEN`` and its mask in
+    ``masks`` ((n, n) each, the capture's parsing; None: opacity alone) is set. Ruled out: on rays whose
+    masks give a layer it is never worn under (``NEVER_UNDER``) and not itself, where the exterior is
+    seen, the points every half cell from half a cell before the front (the nearer seen layer's depth)
+    to a cell into the body (to ``GROW`` + 1 cells behind the front where the ray misses it)."""
     n = model.resolution
-    pixels = pixel_grid(n, device=model.background.device).view(n, n, 2)[::stride, ::stride].reshape(-1, 2)
     mesh = model.posed_mesh(frame)[0]
+    pixels = ray_grid(n, ray_step(model.camera(frame), mesh.vertices, stride), model.background.device)
     pixels = pixels[live_rays(pixels, reach_box(model, frame, mesh.vertices))]  # the others meet nothing
     rs = model.spec.render
     perturb, rs.perturb = rs.perturb, False
-    found = {name: [] for name in model.nerf.names}
+    names = model.nerf.names
+    found = {name: [] for name in names}
+    ruled_out = {name: [] for name in names}
+
+    def canonical(posed):
+        d = deformer.deform(mesh.skinning, posed, rs.k, rs.sigma, rs.max_dist)
+        return d.canonical[d.valid]
+
     try:
         for s in range(0, len(pixels), chunk):
             px = pixels[s : s + chunk]
             r = model.render(frame, px, mesh=mesh, soft=False)
             origins, dirs = model.camera(frame).rays(px)
-            for k, name in enumerate(model.nerf.names):
-                seen = r.layer_masks[:, k] > SEEN
+            ij = px.long().clamp(0, n - 1)
+            given = {name: (masks[name].to(px.device)[ij[:, 1], ij[:, 0]] > 0.5) if masks else None for name in names}
+            opaque = r.layer_masks > SEEN
+            front = torch.where(opaque, r.layer_depths, torch.full_like(r.layer_depths, float("inf"))).amin(1)
+            for k, name in enumerate(names):
+                seen = opaque[:, k] if given[name] is None else opaque[:, k] & given[name]
                 if bool(seen.any()):
-                    posed = origins[seen] + r.layer_depths[seen, k, None] * dirs[seen]
-                    d = deformer.deform(mesh.skinning, posed, rs.k, rs.sigma, rs.max_dist)
-                    found[name].append(d.canonical[d.valid])
+                    found[name].append(canonical(origins[seen] + r.layer_depths[seen, k, None] * dirs[seen]))
+                over = [given[o] for o in NEVER_UNDER.get(name, ()) if o in names and given[o] is not None]
+                if given[name] is None or not over:
+                    continue
+                out = torch.stack(over).any(0) & ~given[name] & front.isfinite()
+                if not bool(out.any()):
+                    continue
+                o, d, t0 = origins[out], dirs[out], front[out] - CELL / 2
+                hits = ray_mesh_hits(mesh.vertices, mesh.faces, o, d)
+                t1 = torch.where(hits.hit, hits.t, front[out] + GROW * CELL) + CELL  # a cell into the body
+                steps = torch.arange(int(float((t1 - t0).max()) / (CELL / 2)) + 1, device=o.device) * (CELL / 2)
+                t = t0[:, None] + steps
+                ruled_out[name].append(canonical((o[:, None] + t[..., None] * d[:, None])[t <= t1[:, None]]))
     finally:
         rs.perturb = perturb
     empty = model.background.new_zeros(0, 3)
-    return {name: torch.cat(p) if p else empty for name, p in found.items()}
+    cat = lambda pts: {name: torch.cat(p) if p else empty for name, p in pts.items()}  # noqa: E731
+    return cat(found), cat(ruled_out)
 
 
-def layer_supports(model, frames, names, stride: int = 2) -> dict[str, Support]:
-    """Each of the ``names`` layers' :class:`Support` over ``frames`` of ``model`` (trained in layers)."""
+def layer_supports(model, data, frames, names, stride: int = 2) -> dict[str, Support]:
+    """Each of the ``names`` layers' :class:`Support` over ``frames`` of ``model`` (trained in layers) and
+    ``data`` (its :class:`delta.data.frames.FrameData`: the masks; without a hair mask, opacity alone)."""
     t0 = time.perf_counter()
     points = {name: [] for name in names}
+    ruled_out = {name: [] for name in names}
     for f in frames:
-        seen = seen_points(model, int(f), stride)
+        masks = layer_targets(data.exterior[f].float(), data.hair[f].float()) if data.hair is not None else None
+        seen, out = seen_points(model, int(f), masks, stride)
         for name in names:
             points[name].append(seen[name])
-    out = {name: support_of(torch.cat(p)) for name, p in points.items()}
+            ruled_out[name].append(out[name])
+    out = {name: support_of(torch.cat(points[name]), behind=torch.cat(ruled_out[name])) for name in names}
     for name, sup in out.items():
         if not sum(len(p) for p in points[name]):
             log.warning("layer %s is seen in none of %d training frames: alone, it has no density left", name,
                         len(frames))  # fmt: skip
-        log.info("layer %s: seen at %d points in %d frames, %.3f m³ of canonical space with the grown margin "
-                 "(%.1f s)", name, sum(len(p) for p in points[name]), len(frames), float(sup.cells.sum()) * sup.cell**3,
+        log.info("layer %s: seen at %d points in %d frames, ruled out at %d, %.3f m³ of canonical space with "
+                 "the grown margin (%.1f s)", name, sum(len(p) for p in points[name]), len(frames),
+                 sum(len(p) for p in ruled_out[name]), float(sup.cells.sum()) * sup.cell**3,
                  time.perf_counter() - t0)  # fmt: skip
     return out
 
@@ -153,15 +224,15 @@ class Confined(nn.Module):
         return self.field.color_cell()
 
 
-def confined_layers(model, train, layers) -> dict[str, Confined]:
+def confined_layers(model, data, layers) -> dict[str, Confined]:
     """``layers`` of ``model``'s layered exterior, each confined to where ``SUPPORT_FRAMES`` of its training
-    frames ``train`` (indices, evenly spread) see it (the model is left as it is); none for one NeRF or one
+    frames (``data.train``, evenly spread) see it (the model is left as it is); none for one NeRF or one
     layer (nothing hides behind another)."""
     nerf = model.nerf
     if not layers or len(getattr(nerf, "names", ())) < 2:
         return {}
-    train = np.asarray(train)
+    train = np.asarray(data.train)
     frames = train[np.linspace(0, len(train) - 1, min(SUPPORT_FRAMES, len(train))).round().astype(int)]
-    supports = layer_supports(model, frames, layers)
+    supports = layer_supports(model, data, frames, layers)
     dev = model.background.device
     return {name: Confined(nerf.layers[name], supports[name]).to(dev) for name in layers}
