@@ -30,14 +30,11 @@ from delta.applications.dress import confine
 from delta.fields.networks import LayeredNeRF
 from delta.losses import layer_targets
 from delta.models.image import render_image
+from delta.models.layer_support import may_cover
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from table import device_name, save_table  # noqa: E402
-
-
-#: the layers that may lie over each layer (long hair falls over the clothing; nothing is worn over hair)
-COVERED_BY = {"clothing": ("hair",), "hair": ()}
 
 
 def main(argv=None) -> None:
@@ -68,7 +65,7 @@ def main(argv=None) -> None:
         for name in whole.names:
             model.nerf = LayeredNeRF.of({name: whole.layers[name]})
             alone = render_image(model, int(i))["nerf_mask"]
-            allowed = (masks[name] + sum(masks[c] for c in COVERED_BY[name])).clamp(0.0, 1.0)
+            allowed = (masks[name] + sum(masks[c] for c in may_cover(name, whole.names))).clamp(0.0, 1.0)
             rows.append({"subject": a.subject, "label": a.label, "frame": int(data.frame_ids[i]), "layer": name,
                          "mask_px": int((masks[name] > 0.5).sum()),
                          "alone_px": int((alone > 0.5).sum()),

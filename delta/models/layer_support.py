@@ -7,14 +7,14 @@ dress --layers hair``, a layer's own mesh) that density comes out: loose's hair 
 times its own mask, behind its dress (``benchmarks/layers_alone.csv``). Charging that density in training
 made a whole hair layer vanish (``docs/method.md``); this decides it from the avatar's own frames instead.
 
-Each training frame is rendered with every layer (pixels every ``stride``); where a layer is seen (its
-opacity over ``SEEN``) the point at its depth along the ray is taken back to the canonical space (the
-kNN blend, as the renderer does), and the cells of a ``cell``-metre grid that hold such points, grown by
-``grow`` cells (the layer's thickness behind its seen surface, F_e's reach), are the layer's support.
-A layer is never worn under another one (``NEVER_UNDER``: hair is not worn under clothing): where that
-other layer is seen and this one is not, the cells from the other's surface to the body leave this
-layer's grown margin; its seen cells stay. Loose's hair layer held
-the dress's red 1-5 cm behind the dress's surface beside the hair, inside the margin.
+Each training frame is rendered with every layer; where a layer is seen (its opacity over ``SEEN`` and
+the capture's parsing gives it) the point at its depth along the ray is taken back to the canonical
+space (the kNN blend, as the renderer does), and the cells of a ``cell``-metre grid that hold such
+points, grown by ``grow`` cells (the layer's thickness behind its seen surface, F_e's reach), are the
+layer's support. Some layers are never worn under others (``NEVER_UNDER``: hair is not worn under
+clothing): where the parsing gives such another layer and not this one, the cells from the exterior's
+front to the body leave this layer's grown margin; its seen cells stay. Loose's hair layer held the
+dress's red 1-5 cm behind the dress's surface beside the hair, inside the margin.
 :class:`Confined` is the layer with no density outside it.
 """
 
@@ -45,6 +45,12 @@ CELL = 0.02
 GROW = 3
 #: the layers each layer is never worn under: its density behind their seen surface is none of its own
 NEVER_UNDER = {"hair": ("clothing",)}
+
+
+def may_cover(name: str, names) -> tuple[str, ...]:
+    """The layers of ``names`` that may lie over layer ``name`` (long hair over the clothing): all the others
+    but those it is never worn under."""
+    return tuple(o for o in names if o != name and o not in NEVER_UNDER.get(name, ()))
 
 
 @dataclasses.dataclass
@@ -115,8 +121,8 @@ def ray_grid(n: int, step: float, device=None) -> torch.Tensor:
 @torch.no_grad()
 def seen_points(model, frame: int, masks: dict[str, torch.Tensor] | None = None, stride: int = 2,
                 chunk: int = 16384) -> tuple[dict, dict]:  # fmt: skip
-    """Canonical points where each layer of ``model``'s layered exterior is seen in ``frame`` (its pixels
-    every ``stride``), and where it is ruled out; two dicts of (P, 3) by layer name.
+    """Canonical points where each layer of ``model``'s layered exterior is seen in ``frame``, and where it
+    is ruled out; two dicts of (P, 3) by layer name.
 
     The rays are ``stride`` pixels apart, or closer where a pixel spans more than half a cell on the body
     (a small image): every cell the layers pass through is met (:func:`ray_step`).

@@ -70,3 +70,11 @@ def test_the_support_rays_are_close_enough_to_meet_every_cell():
     grid = ray_grid(4, 0.5)
     assert grid.shape == (64, 2) and grid[0].tolist() == [0.25, 0.25] and grid[1].tolist() == [0.75, 0.25]
     assert float(grid.max()) == 3.75
+
+
+def test_hair_may_lie_over_clothing_and_nothing_over_hair():
+    from delta.models.layer_support import may_cover
+
+    assert may_cover("clothing", ("clothing", "hair")) == ("hair",)
+    assert may_cover("hair", ("clothing", "hair")) == ()
+    assert may_cover("hair", ("hair",)) == ()
