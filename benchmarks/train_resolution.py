@@ -1,5 +1,5 @@
 """What the training resolution buys a subject, scored at the capture's size: its stages retrained with
-the workflow's own settings for it (its stages' settings.json, its scene.json) and the variant's
+the workflow's own settings for it (its stages' settings.json, which hold its scene's decisions) and the variant's
 changes (``--resolution``, any ``--settings``, e.g. a coarse-to-fine switch), then evaluated (as the
 workflow evaluates, or by ``--eval``); and a table of each variant's means.
 
@@ -52,7 +52,9 @@ def run(a: argparse.Namespace) -> None:
     res = ROOT / "results" / a.dataset / a.subject
     work = Path(a.work)
     work.mkdir(parents=True, exist_ok=True)
-    common = ["--record", str(res / "frames.h5"), "--body", a.body, "--scene", str(res / "scene.json"),
+    # no --scene: a stage's settings.json holds the scene's decisions already, and a decision the scene scales
+    # (stage 2's length) would be scaled again
+    common = ["--record", str(res / "frames.h5"), "--body", a.body,
               "--perceptual", str(ROOT / "resources/models/stlpips"), "--threads", str(a.threads)]  # fmt: skip
     start = str(res / "init/params.npz")
     for stage in range(1, a.stages + 1):
