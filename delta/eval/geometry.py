@@ -157,9 +157,10 @@ def vertex_errors(pred: np.ndarray, ref: np.ndarray, align: str = "centroid") ->
     return np.linalg.norm(pred - ref, axis=1)
 
 
-def similarity_aligned(pred: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """``pred`` (N, 3) under the rotation, scale and translation that minimise its squared distance to
-    ``ref`` (Umeyama 1991; a reflection is never taken)."""
+def similarity_transform(pred: np.ndarray, ref: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """The rotation, scale and translation that minimise the squared distance of ``pred`` (N, 3) to ``ref``
+    (Umeyama 1991; a reflection is never taken): ``(scale, rot (3, 3), shift (3,))``, a point x going to
+    ``scale * rot @ x + shift``."""
     p, r = pred.astype(np.float64), ref.astype(np.float64)
     mp, mr = p.mean(0), r.mean(0)
     pc, rc = p - mp, r - mr
@@ -168,7 +169,13 @@ def similarity_aligned(pred: np.ndarray, ref: np.ndarray) -> np.ndarray:
     rot = u @ d @ vt
     var = (pc**2).sum() / len(p)
     scale = float(np.trace(np.diag(sv) @ d) / var) if var > 0 else 1.0
-    return scale * pc @ rot.T + mr
+    return scale, rot, mr - scale * rot @ mp
+
+
+def similarity_aligned(pred: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """``pred`` (N, 3) under the similarity that brings it nearest ``ref`` (:func:`similarity_transform`)."""
+    scale, rot, shift = similarity_transform(pred, ref)
+    return scale * pred.astype(np.float64) @ rot.T + shift
 
 
 def vertex_error(pred: np.ndarray, ref: np.ndarray, align: str = "centroid") -> float:

@@ -6,7 +6,7 @@ import torch
 import trimesh
 
 from delta.cameras.models import OrthographicCamera, PinholeCamera, look_at
-from delta.eval.geometry import mesh_distance, vertex_error, vertex_errors, visible_vertices
+from delta.eval.geometry import mesh_distance, similarity_transform, vertex_error, vertex_errors, visible_vertices
 
 
 def plane(z, size=1.0, n=20):
@@ -77,6 +77,23 @@ def test_similarity_alignment_leaves_out_size_and_orientation_only():
     assert vertex_error(mirror, v, "similarity") > 0.1
     with pytest.raises(ValueError, match="similarity"):
         vertex_error(v, v, "affine")
+
+
+def test_similarity_transform_is_the_one_that_made_the_copy():
+    """The transform itself (what carries other points, say a garment, along with a body): a known scale,
+    rotation and shift are recovered, and carry points that took no part in the fit to their copies."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(2)
+    v, extra = rng.normal(size=(100, 3)), rng.normal(size=(7, 3))
+    rot = Rotation.from_rotvec([-0.7, 0.1, 1.1]).as_matrix()
+    move = lambda x: 0.83 * x @ rot.T + np.array([1.5, -0.2, 0.3])  # noqa: E731
+    scale, r, shift = similarity_transform(v, move(v))
+    assert scale == pytest.approx(0.83, rel=1e-12)
+    np.testing.assert_allclose(r, rot, atol=1e-12)
+    np.testing.assert_allclose(scale * extra @ r.T + shift, move(extra), atol=1e-12)
+    scale, r, shift = similarity_transform(v, v)
+    assert scale == pytest.approx(1.0) and np.allclose(r, np.eye(3)) and np.allclose(shift, 0.0)
 
 
 def _sphere():

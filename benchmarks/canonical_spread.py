@@ -1,0 +1,125 @@
+"""How consistently a trained avatar's deformation carries the true garment to its canonical space.
+
+The exterior is one canonical NeRF: every training frame's clothing is mapped back to it by the kNN
+skinning (``delta/deformers/knn.py``) and, in stage 2, moved by F_e. Where one point of the true garment
+lands at different canonical points in different frames, the NeRF learns the average of what those
+frames show there: a pattern is smeared by that spread, whatever the grid's cells. On a synthetic
+subject the generator's garment meshes say where each garment vertex is in every frame, so the spread
+is measured directly: each training frame's true garment vertices (brought into the avatar's frame by
+the similarity that best aligns the true body to the avatar's posed body, same topology) are deformed
+as the renderer deforms a sample, and each vertex's spread is its mean distance to its mean canonical
+point over the frames.
+
+Two passes separate the causes: ``fitted`` (the avatar's own poses: what training saw) and ``true``
+(the generator's poses put in their place, as ``pose_gap.py`` does: what the deformation model itself
+leaves). Rows: subject, poses, deformation (``knn``, ``knn+F_e`` with the frame's time, ``knn+F_e
+(no time)`` as a novel pose gets it), garment layer, height band of the garment (quintiles of its
+canonical height, ``all`` for the whole), and the spread's mean, median and 90th percentile in mm.
+
+    PYTHONPATH=$PWD python3 benchmarks/canonical_spread.py --model results/synthetic/gen6/stage2/model.pt \\
+        --record results/synthetic/gen6/frames.h5 --body resources/body/anny_sub1.npz --subject gen6 \\
+        --truth data/synthetic/gen6/gt --csv benchmarks/canonical_spread.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pandas as pd
+import torch
+
+from delta.deformers import knn as deformer
+from delta.eval.geometry import similarity_transform
+from delta.training.run import load_trained
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from pose_gap import put_true_poses  # noqa: E402
+from table import save_table  # noqa: E402
+
+BANDS = 5
+
+
+def garment_layers(meshes: h5py.File) -> list[str]:
+    """The generator's exterior layers (every ``{name}_vertices`` but the body's)."""
+    return sorted(k[: -len("_vertices")] for k in meshes if k.endswith("_vertices") and k != "body_vertices")
+
+
+@torch.no_grad()
+def canonical_points(model, frames, meshes: h5py.File, frame_ids, layers) -> dict[tuple[str, str], np.ndarray]:
+    """(deformation, layer) -> (F, V, 3) canonical points of the layer's true vertices in ``frames``."""
+    rs = model.spec.render
+    out: dict[tuple[str, str], list] = {}
+    for f in frames:
+        mesh, _, posed = model.posed_mesh(int(f))
+        fid = int(frame_ids[f])
+        scale, rot, shift = similarity_transform(meshes["body_vertices"][fid], posed.vertices[0].cpu().numpy())
+        for layer in layers:
+            true = meshes[f"{layer}_vertices"][fid].astype(np.float64)
+            points = torch.as_tensor(scale * true @ rot.T + shift, dtype=torch.float32, device=model.poses.device)
+            d = deformer.deform(mesh.skinning, points, rs.k, rs.sigma, float("inf"))
+            passes = {"knn": d.canonical}
+            if model.deformation is not None:
+                passes["knn+F_e"] = d.canonical + model.deformation(d.canonical, d.posed_ref, model.time_code(int(f)))
+                passes["knn+F_e (no time)"] = d.canonical + model.deformation(d.canonical, d.posed_ref)
+            for name, c in passes.items():
+                out.setdefault((name, layer), []).append(c.cpu().numpy())
+    return {k: np.stack(v) for k, v in out.items()}
+
+
+def spread_rows(points: np.ndarray) -> list[dict]:
+    """Rows of one (F, V, 3) set: the spread (mean distance to the vertex's mean point, mm) over all the
+    vertices and per height band (quintiles of the mean canonical height, lowest first)."""
+    mean = points.mean(0)
+    spread = 1000 * np.linalg.norm(points - mean, axis=-1).mean(0)
+    edges = np.quantile(mean[:, 1], np.linspace(0, 1, BANDS + 1))
+    band = np.clip(np.searchsorted(edges, mean[:, 1], side="right") - 1, 0, BANDS - 1)
+    rows = [("all", np.ones(len(spread), bool), edges[0], edges[-1])]
+    rows += [(f"{b + 1} of {BANDS}", band == b, edges[b], edges[b + 1]) for b in range(BANDS)]
+    return [{"band": name, "y_from_m": round(float(lo), 3), "y_to_m": round(float(hi), 3), "vertices": int(sel.sum()),
+             "spread_mean_mm": float(spread[sel].mean()), "spread_median_mm": float(np.median(spread[sel])),
+             "spread_p90_mm": float(np.percentile(spread[sel], 90))} for name, sel, lo, hi in rows]  # fmt: skip
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--model", required=True)
+    ap.add_argument("--record", required=True)
+    ap.add_argument("--body", required=True)
+    ap.add_argument("--subject", required=True)
+    ap.add_argument("--truth", required=True, help="the subject's gt folder (params.npz, meshes.h5)")
+    ap.add_argument("--every", type=int, default=6, help="every how many training frames to use")
+    ap.add_argument("--poses", nargs="+", default=["fitted", "true"], choices=["fitted", "true"])
+    ap.add_argument("--csv", required=True)
+    ap.add_argument("--append", action="store_true")
+    ap.add_argument("--threads", type=int, default=2)
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    truth = np.load(Path(a.truth) / "params.npz")
+    rows = []
+    with h5py.File(Path(a.truth) / "meshes.h5", "r") as meshes:
+        layers = garment_layers(meshes)
+        for poses in a.poses:
+            trained = load_trained(a.model, a.record, a.body)
+            model, data = trained.model, trained.data
+            ids, train = np.asarray(data.frame_ids), np.flatnonzero(np.asarray(data.train))
+            if len(meshes["body_vertices"][0]) != model.body.num_vertices:
+                raise SystemExit(f"{a.truth}: its body has {len(meshes['body_vertices'][0])} vertices, the avatar's "
+                                 f"{model.body.num_vertices}: not the same body model")  # fmt: skip
+            if poses == "true":
+                put_true_poses(model, train, ids, train, truth)
+            frames = train[:: a.every]
+            for (deformation, layer), points in canonical_points(model, frames, meshes, ids, layers).items():
+                for r in spread_rows(points):
+                    rows.append({"subject": a.subject, "poses": poses, "deformation": deformation, "layer": layer,
+                                 "frames": len(frames), **r, "model": a.model})  # fmt: skip
+    table = pd.DataFrame(rows)
+    print(table[table.band.isin(["all", f"1 of {BANDS}"])].drop(columns="model").round(1).to_string(index=False))
+    save_table(table.round(2), a.csv, a.append)
+
+
+if __name__ == "__main__":
+    main()
