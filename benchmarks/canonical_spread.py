@@ -38,7 +38,7 @@ from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from pose_gap import put_true_poses  # noqa: E402
-from table import save_table  # noqa: E402
+from table import model_arguments, save_table  # noqa: E402
 
 BANDS = 5
 
@@ -85,11 +85,7 @@ def spread_rows(points: np.ndarray) -> list[dict]:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--model", required=True)
-    ap.add_argument("--record", required=True)
-    ap.add_argument("--body", required=True)
-    ap.add_argument("--subject", required=True)
+    ap = model_arguments(argparse.ArgumentParser(description=__doc__.split("\n\n")[0]))
     ap.add_argument("--truth", required=True, help="the subject's gt folder (params.npz, meshes.h5)")
     ap.add_argument("--every", type=int, default=6, help="every how many training frames to use")
     ap.add_argument("--poses", nargs="+", default=["fitted", "true"], choices=["fitted", "true"])

@@ -34,15 +34,11 @@ from delta.models.layer_support import may_cover
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from table import device_name, save_table  # noqa: E402
+from table import device_name, model_arguments, save_table  # noqa: E402
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--model", required=True)
-    ap.add_argument("--record", required=True)
-    ap.add_argument("--body", required=True)
-    ap.add_argument("--subject", required=True)
+    ap = model_arguments(argparse.ArgumentParser(description=__doc__.split("\n\n")[0]))
     ap.add_argument("--label", required=True, help="what the avatar was trained with (a column of the CSV)")
     ap.add_argument("--frames", type=int, default=6, help="training frames scored, evenly spread")
     ap.add_argument("--confine", action="store_true", help="confine each layer as delta dress --layers does")

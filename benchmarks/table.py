@@ -25,13 +25,19 @@ def device_name(device: torch.device | str, threads: int) -> str:
     return torch.cuda.get_device_name(device) if device.type == "cuda" else f"cpu ({threads} threads)"
 
 
-def trained_model_arguments(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """The options of a benchmark that scores one trained avatar by the workflow's evaluation: the model,
-    its record and body, the subject's name, the splits and frames scored, rays a pixel, ST-LPIPS's folder."""
+def model_arguments(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of a benchmark that reads one trained avatar: the model, its record and body, the subject's name."""
     ap.add_argument("--model", required=True)
     ap.add_argument("--record", required=True)
     ap.add_argument("--body", required=True)
     ap.add_argument("--subject", required=True)
+    return ap
+
+
+def trained_model_arguments(ap: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of a benchmark that scores one trained avatar by the workflow's evaluation: the model,
+    its record and body, the subject's name, the splits and frames scored, rays a pixel, ST-LPIPS's folder."""
+    model_arguments(ap)
     ap.add_argument("--splits", nargs="+", default=["test_view", "test_pose"])
     ap.add_argument("--max-frames", type=int, default=5)
     ap.add_argument("--supersample", type=int, default=2)
