@@ -21,6 +21,8 @@ repository root::
 rows name it in ``training``). A kept ``--work`` folder resumes: run again with it (and fewer subjects, say) and only what is missing runs.
     PYTHONPATH=$PWD python3 benchmarks/generalization.py --reuse-builds --tiny --count 2 \\
         --csv /tmp/generalization_tiny.csv                                               # the script's own check
+
+A family run in parts (``--only``, one CSV a part) becomes one table with ``--combine part1.csv part2.csv``.
 """
 
 from __future__ import annotations
@@ -124,7 +126,11 @@ def main() -> None:
     ap.add_argument(
         "--training", type=json.loads, default={}, help="JSON training.overrides for every subject (a variant)"
     )
+    ap.add_argument("--combine", type=Path, nargs="+", metavar="CSV",
+                    help="run nothing: write --csv from these runs' CSVs (parts of one family), with one summary")  # fmt: skip
     a = ap.parse_args()
+    if a.combine:
+        return combine(a.combine, a.csv)
     drawn = family(a.count, a.seed)
     shipped = yaml.safe_load((REPO / "config/config.yaml").read_text())["datasets"]["synthetic"]["subjects"]
     for flag, names, known in (("--shipped", a.shipped, shipped), ("--only", a.only or [], drawn)):
@@ -148,20 +154,39 @@ def main() -> None:
                 "scene_stage2_factor": scene.get("stage2", {}).get("length_factor"),
                 "scene_exterior": scene["exterior"], "scene_capture": scene["capture"]}  # fmt: skip
         rows.append(row)
-    df = pd.DataFrame(rows)
-    summary: dict = {"subject": "summary", "description": f"{len(df)} subjects, seed {a.seed}",
-                     "tiny": a.tiny, "wall_s": round(wall, 1)}  # fmt: skip
+    summary = summary_row(pd.DataFrame(rows), f"{len(rows)} subjects, seed {a.seed}", a.tiny, wall)
+    write_rows(a.csv, rows + [summary])
+    print(json.dumps(summary, indent=1, default=str))
+    if a.work is None:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def summary_row(df: pd.DataFrame, description: str, tiny: bool, wall: float) -> dict:
+    """The ``summary`` row of subject rows: each PSNR column's mean, spread (best - worst), worst subject and
+    how many subjects lie within 2 dB of the best."""
+    summary: dict = {"subject": "summary", "description": description, "tiny": tiny, "wall_s": round(wall, 1)}
     for col in ("test_view_psnr", "test_view_psnr_refined", "test_pose_psnr", "test_pose_psnr_refined"):
         if col in df:
             summary[f"{col}_mean"] = round(float(df[col].mean()), 2)
             summary[f"{col}_spread"] = round(float(df[col].max() - df[col].min()), 2)
             summary[f"{col}_worst"] = f"{df.loc[df[col].idxmin(), 'subject']} {df[col].min():.2f}"
             summary[f"{col}_within_2db_of_best"] = int((df[col] >= df[col].max() - 2).sum())
-    rows.append(summary)
-    write_rows(a.csv, rows)
+    return summary
+
+
+def combine(parts: list[Path], out: Path) -> None:
+    """One table from the CSVs of runs of parts of the family (a subject in a later file replaces the same
+    subject in an earlier one), with one summary over all its subjects; the parts' wall times add up."""
+    tables = [pd.read_csv(p) for p in parts]
+    subjects = pd.concat([t[t.subject != "summary"] for t in tables], ignore_index=True)
+    subjects = subjects.drop_duplicates("subject", keep="last").sort_values("subject", kind="stable")
+    subjects = subjects.dropna(axis=1, how="all")  # the parts' summary-only columns
+    wall = sum(float(t.loc[t.subject == "summary", "wall_s"].sum()) for t in tables)
+    tiny = bool(subjects["tiny"].any()) if "tiny" in subjects else False
+    rows = subjects.to_dict("records")
+    summary = summary_row(subjects, f"{len(rows)} subjects, from {len(parts)} runs", tiny, wall)
+    write_rows(out, rows + [summary])
     print(json.dumps(summary, indent=1, default=str))
-    if a.work is None:
-        shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":
