@@ -10,7 +10,10 @@ the similarity that best aligns the true body to the avatar's posed body, same t
 as the renderer deforms a sample, and each vertex's spread is its mean distance to its mean canonical
 point over the frames.
 
-Two passes separate the causes: ``fitted`` (the avatar's own poses: what training saw) and ``true``
+The alignment is made per frame, so it also takes away that frame's error of the fitted body as a whole
+(its root's turn and place): the ``fitted`` pass is a lower bound of the spread training sees, and that
+error is measured apart (``pose_gap.py``'s root error). Two passes separate the causes: ``fitted`` (the
+avatar's own poses: what training saw, less the whole body's error) and ``true``
 (the generator's poses put in their place, as ``pose_gap.py`` does: what the deformation model itself
 leaves). Rows: subject, poses, deformation (``knn``, ``knn+F_e`` with the frame's time, ``knn+F_e
 (no time)`` as a novel pose gets it), garment layer, height band of the garment (quintiles of its
