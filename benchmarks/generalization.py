@@ -193,12 +193,19 @@ def summary_row(df: pd.DataFrame, description: str, tiny: bool, wall: float) -> 
     return summary
 
 
+def natural(name: str) -> tuple[str, int]:
+    """A subject's sort key: gen2 before gen10."""
+    stem = name.rstrip("0123456789")
+    return stem, int(name[len(stem) :] or -1)
+
+
 def combine(parts: list[Path], out: Path) -> None:
     """One table from the CSVs of runs of parts of the family (a subject in a later file replaces the same
     subject in an earlier one), with one summary over all its subjects; the parts' wall times add up."""
     tables = [pd.read_csv(p) for p in parts]
     subjects = pd.concat([t[t.subject != "summary"] for t in tables], ignore_index=True)
-    subjects = subjects.drop_duplicates("subject", keep="last").sort_values("subject", kind="stable")
+    subjects = subjects.drop_duplicates("subject", keep="last")
+    subjects = subjects.iloc[sorted(range(len(subjects)), key=lambda i: natural(subjects["subject"].iloc[i]))]
     subjects = subjects.dropna(axis=1, how="all")  # the parts' summary-only columns
     wall = sum(float(t.loc[t.subject == "summary", "wall_s"].sum()) for t in tables)
     tiny = bool(subjects["tiny"].any()) if "tiny" in subjects else False
