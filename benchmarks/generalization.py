@@ -40,7 +40,7 @@ import pandas as pd
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from workflow_run import REPO, run_snakemake, workflow_copy, write_rows  # noqa: E402
+from workflow_run import REPO, eval_summary, run_snakemake, train_benchmark, workflow_copy, write_rows  # noqa: E402
 
 from delta.eval.aggregate import subject_row  # noqa: E402
 
@@ -146,7 +146,8 @@ def main() -> None:
     prepare_workflow(work, subjects, a.tiny, a.reuse_builds, a.training)
     print(f"{len(subjects)} subjects:", json.dumps({n: describe(s) for n, s in subjects.items()}, indent=1), flush=True)
     if a.scores_only:
-        wall = run_snakemake(work, *[f"results/synthetic/{n}/eval/summary.json" for n in subjects], cores=a.cores)
+        targets = [str(eval_summary(Path(), "synthetic", n)) for n in subjects]
+        wall = run_snakemake(work, *targets, cores=a.cores)
         table = scores_table(work, list(subjects))
     else:
         wall = run_snakemake(work, "results/synthetic/metrics.csv", cores=a.cores)
@@ -174,8 +175,8 @@ def scores_table(work: Path, names: list[str]) -> pd.DataFrame:
     alone, as the workflow's ``aggregate_metrics`` writes them less the export's columns."""
     rows = []
     for n in names:
-        bench = {f"stage{k}": work / f"results/benchmarks/train/synthetic_{n}_stage{k}.tsv" for k in (1, 2)}
-        summary = json.loads((work / f"results/synthetic/{n}/eval/summary.json").read_text())
+        bench = {f"stage{k}": train_benchmark(work, "synthetic", n, k) for k in (1, 2)}
+        summary = json.loads(eval_summary(work, "synthetic", n).read_text())
         rows.append(subject_row("synthetic", n, summary, None, bench))
     return pd.DataFrame(rows).set_index("subject")
 

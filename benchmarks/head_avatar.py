@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from workflow_run import train_benchmark  # benchmarks/ is the script's folder
 
 ACTIONS = ("jawOpen", "eyeBlinkLeft", "mouthFunnel", "mouthSmileLeft", "browInnerUp", "mouthFrownLeft", "cheekPuff")
 
@@ -58,8 +59,7 @@ def score_rows(label: str, work: Path, subject: str, metrics_path: Path | None) 
                 rows.append({"run": label, "kind": "heldout", "metric": f"{split}_{'refined' if refined else 'as_tracked'}_{key}",
                              "value": float(group[key].mean()), "frames": len(group)})  # fmt: skip
     for stage in (1, 2):  # the workflow's own benchmark of the train job (wall seconds)
-        tsv = work / f"results/benchmarks/train/synthetic_{subject}_stage{stage}.tsv"
-        seconds = float(pd.read_csv(tsv, sep="\t")["s"].iloc[0])
+        seconds = float(pd.read_csv(train_benchmark(work, "synthetic", subject, stage), sep="\t")["s"].iloc[0])
         rows.append({"run": label, "kind": "training", "metric": f"stage{stage}_seconds", "value": seconds})
     return rows
 

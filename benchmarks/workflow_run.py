@@ -47,3 +47,14 @@ def write_rows(path: Path, rows: list[dict]) -> None:
         w = csv.DictWriter(fh, fieldnames=fields)
         w.writeheader()
         w.writerows(rows)
+
+
+def train_benchmark(work: Path, dataset: str, subject: str, stage: int) -> Path:
+    """The workflow's benchmark TSV of a subject's training stage in a run folder (rules/common.smk's
+    ``benchmark`` pattern, as the train rule names it)."""
+    return work / f"results/benchmarks/train/{dataset}_{subject}_stage{stage}.tsv"
+
+
+def eval_summary(work: Path, dataset: str, subject: str) -> Path:
+    """A subject's evaluation summary in a run folder (rules/common.smk's ``eval_summary``)."""
+    return work / f"results/{dataset}/{subject}/eval/summary.json"
