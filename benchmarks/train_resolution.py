@@ -11,6 +11,10 @@ workflow evaluates, or by ``--eval``); and a table of each variant's means.
     python benchmarks/train_resolution.py run --dataset synthetic --subject tight --stages 1 \\
         --settings '{"stage1": {"fine_from": 0.5}}' --eval '{"splits": ["test_view"], "refine_steps": 0, \\
         "max_frames": 5, "supersample": 2, "stage": 1, "worst": 0}' --work /tmp/tight_fine
+    python benchmarks/train_resolution.py run --dataset synthetic --subject gen4 --first 2 \
+        --settings '{"stage2": {"plateau_window": 100}}' --work /tmp/gen4_plateau
+
+``--first 2`` retrains stage 2 alone, from the workflow's stage 1.
 
 Each row: subject, variant, held-out split, refined or not, the means of PSNR, SSIM, ST-LPIPS, the region PSNRs, the
 NeRF-mask IoU and the outline band's PSNR and error share over the held-out frames.
@@ -56,8 +60,8 @@ def run(a: argparse.Namespace) -> None:
     # (stage 2's length) would be scaled again
     common = ["--record", str(res / "frames.h5"), "--body", a.body,
               "--perceptual", str(ROOT / "resources/models/stlpips"), "--threads", str(a.threads)]  # fmt: skip
-    start = str(res / "init/params.npz")
-    for stage in range(1, a.stages + 1):
+    start = str(res / "init/params.npz" if a.first == 1 else res / "stage1/model.pt")
+    for stage in range(a.first, a.stages + 1):
         saved = json.loads((res / f"stage{stage}/settings.json").read_text())
         settings = deep_merge(saved["settings"], json.loads(a.settings))
         settings["preset"] = saved["preset"]
@@ -75,14 +79,29 @@ def run(a: argparse.Namespace) -> None:
                        check=True, stdout=log, stderr=log)  # fmt: skip
 
 
+def stage_lengths(metrics: Path) -> dict:
+    """The steps and the trainer's seconds of each stage beside a metrics.csv: a variant's (``work/stage{s}``)
+    or the workflow's (``eval/metrics.csv`` beside ``stage{s}``)."""
+    out = {}
+    for stage in (1, 2):
+        for folder in (metrics.parent, metrics.parent.parent):
+            losses = folder / f"stage{stage}" / "losses.csv"
+            if losses.is_file():
+                last = pd.read_csv(losses).iloc[-1]
+                out |= {f"stage{stage}_steps": int(last["step"]), f"stage{stage}_s": float(last["seconds"])}
+                break
+    return out
+
+
 def table(a: argparse.Namespace) -> None:
     rows = []
     for item in a.metrics:
         variant, path = item.split("=", 1)
         df = pd.read_csv(path)
+        lengths = stage_lengths(Path(path))
         for (split, refined), part in df.groupby(["split", "refined"]):
             row = {"subject": a.subject, "variant": variant, "split": split, "refined": bool(refined),
-                   "frames": len(part), "image": part["resolution"].iloc[0]}  # fmt: skip
+                   "frames": len(part), "image": part["resolution"].iloc[0], **lengths}  # fmt: skip
             row.update({k: round(float(part[k].mean()), 4) for k in SCORES if k in part})
             rows.append(row)
     print(save_table(pd.DataFrame(rows), a.out, a.append).to_string(index=False))
@@ -98,6 +117,13 @@ def main() -> None:
     r.add_argument("--resolution", type=int, default=0, help="the training resolution (0: the run's own)")
     r.add_argument("--settings", default="{}", help="JSON deep-merged over the run's settings")
     r.add_argument("--stages", type=int, choices=[1, 2], default=2, help="retrain stage 1 only, or both")
+    r.add_argument(
+        "--first",
+        type=int,
+        choices=[1, 2],
+        default=1,
+        help="the first stage retrained (2: stage 2 alone, from the workflow's stage 1)",
+    )
     r.add_argument("--eval", default=None, help="JSON of the evaluation's settings (default: the workflow's)")
     r.add_argument("--work", required=True)
     r.add_argument("--threads", type=int, default=2)
