@@ -51,6 +51,26 @@ def near_and_outside(points: np.ndarray, vertices: np.ndarray, normals: np.ndarr
     return out
 
 
+def skin_faces(vertices: np.ndarray, faces: np.ndarray, body: np.ndarray, normals: np.ndarray,
+               depth: float) -> np.ndarray:  # fmt: skip
+    """(F,) bool: the faces of a surface extracted with :func:`near_and_outside`'s mask that the mask made,
+    not the field: faces facing into the body (their normal against the nearest body vertex's) whose centre
+    lies less than ``depth`` outside it (a grid cell: the level set between a masked sample and its
+    neighbour) or inside it.
+
+    The exterior's density is cut to 0 inside the body, so its level set closes on the skin: a second wall
+    under the garment that no ray sees (rays stop at the mesh) and a garment does not have.
+    """
+    if len(faces) == 0:
+        return np.zeros(0, dtype=bool)
+    tri = vertices[faces]
+    centre = tri.mean(1)
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    _, idx = cKDTree(body).query(centre, k=1, workers=1)
+    side = ((centre - body[idx]) * normals[idx]).sum(-1)
+    return ((normal * normals[idx]).sum(-1) < 0) & (side < depth)
+
+
 def sample(grid: Grid, field: Callable[[np.ndarray], np.ndarray], mask: np.ndarray | None = None,
            chunk: int = 65536) -> np.ndarray:  # fmt: skip
     """Values of ``field`` (M, 3) -> (M,) on the grid, 0 where ``mask`` (N,) is False; shape ``grid.shape``."""

@@ -139,13 +139,17 @@ def split_long_edges(vertices: np.ndarray, faces: np.ndarray, longest: float) ->
     return m.vertex_matrix().astype(np.float64), m.face_matrix().astype(np.int64).reshape(-1, 3)
 
 
+def canonical_surface(model: HybridAvatar) -> tuple[np.ndarray, np.ndarray]:
+    """The canonical body's vertices (V, 3) and vertex normals (V, 3), float64."""
+    cano = model.canonical_vertices.detach().cpu().numpy().astype(np.float64)
+    return cano, trimesh.Trimesh(cano, model.body.faces.cpu().numpy(), process=False).vertex_normals
+
+
 def density_grid(model: HybridAvatar, settings: ExportSettings,
                  layer: str | None = None) -> tuple[np.ndarray, marching.Grid]:  # fmt: skip
     """NeRF density on a grid over the canonical body's box plus ``max_dist``, 0 farther than ``max_dist``
     from the body (the renderer never evaluates the NeRF there) and inside it (rays stop at the mesh)."""
-    cano = model.canonical_vertices.detach().cpu().numpy().astype(np.float64)
-    faces = model.body.faces.cpu().numpy()
-    normals = trimesh.Trimesh(cano, faces, process=False).vertex_normals
+    cano, normals = canonical_surface(model)
     max_dist = float(model.spec.render.max_dist)
     grid = marching.make_grid(cano.min(0) - max_dist, cano.max(0) + max_dist, settings.grid)
     mask = marching.near_and_outside(grid.points(), cano, normals, max_dist)
@@ -156,14 +160,18 @@ def density_grid(model: HybridAvatar, settings: ExportSettings,
 def clothing_nerf_space(model: HybridAvatar, settings: ExportSettings, longest_edge: float = 0.0,
                         layer: str | None = None) -> MeshPart:  # fmt: skip
     """The clothing/hair surface {σ = threshold} in the NeRF's canonical space (one ``layer``'s of a layered
-    NeRF), cleaned, NeRF colours read at its vertices after edges longer than ``longest_edge`` (m; 0:
-    none) are split."""
+    NeRF) as a sheet, as a garment is: without the wall the density grid's cut at the skin makes
+    (:func:`marching.skin_faces`); cleaned, NeRF colours read at its vertices after edges longer than
+    ``longest_edge`` (m; 0: none) are split."""
     if model.nerf is None:
         raise ValueError("the avatar has no NeRF (no clothing or hair was modelled)")
     values, grid = density_grid(model, settings, layer)
     verts, faces = marching.extract_surface(values, grid, settings.threshold)
+    faces = faces[~marching.skin_faces(verts, faces, *canonical_surface(model), grid.spacing)]
     if len(faces):
         verts, faces = split_long_edges(*clean(verts, faces, settings), longest_edge)
+    else:
+        verts = verts[:0]
     colors = nerf_query(model, verts, settings.chunk, layer)[0] if len(verts) else np.zeros((0, 3))
     return MeshPart(verts, faces, colors)
 

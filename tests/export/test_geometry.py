@@ -59,6 +59,24 @@ def test_only_points_near_the_body_and_outside_it_are_kept():
     assert keep.tolist() == [False, False, True, False, True, False]
 
 
+def test_the_wall_the_mask_makes_on_the_skin_is_told_from_the_garment():
+    """A garment 6 cm thick over a ball of 0.5 m, its density cut to 0 inside the ball as the export cuts it:
+    the level set has a wall on the skin (normals into the ball) and the garment's outside; the skin faces
+    are the first, every one, and none of the second."""
+    body = trimesh.creation.icosphere(subdivisions=4, radius=0.5)
+    grid = marching.make_grid(np.full(3, -0.7), np.full(3, 0.7), 64)
+    mask = marching.near_and_outside(grid.points(), body.vertices, body.vertex_normals, max_dist=0.15)
+    values = marching.sample(grid, lambda p: 10.0 * (np.linalg.norm(p, axis=1) < 0.56), mask, chunk=4096)
+    verts, faces = marching.extract_surface(values, grid, 5.0)
+    skin = marching.skin_faces(verts, faces, body.vertices, body.vertex_normals, grid.spacing)
+    radius = np.linalg.norm(verts[faces].mean(1), axis=1)
+    assert radius[skin].max() < 0.5 + grid.spacing and radius[~skin].min() > 0.56 - grid.spacing
+    assert skin.any() and (~skin).any()
+    area = trimesh.Trimesh(verts, faces, process=False).area_faces
+    assert area[skin].sum() / area.sum() == pytest.approx(0.5**2 / (0.5**2 + 0.56**2), abs=0.03)
+    assert marching.skin_faces(verts, faces[:0], body.vertices, body.vertex_normals, grid.spacing).shape == (0,)
+
+
 def test_cleaning_drops_small_components_and_decimates():
     big = trimesh.creation.icosphere(subdivisions=4)  # 5120 faces
     small = trimesh.creation.icosphere(subdivisions=0, radius=0.1)  # 20 faces
