@@ -29,10 +29,19 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
+import trimesh
+from scipy.spatial import cKDTree
 
-from delta.eval.evaluate import clothing_distance, gt_body_vertices, pick_frames, train_body_errors_mm
+from delta.eval.evaluate import (
+    clothing_distance,
+    gt_body_vertices,
+    gt_exterior,
+    moved_like_body,
+    pick_frames,
+    train_body_errors_mm,
+)
 from delta.eval.geometry import similarity_transform
-from delta.export.meshes import read_mesh
+from delta.export.meshes import pose_clothing, read_mesh
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -66,9 +75,6 @@ def inner_wall(pred, ref, count: int = 20000, depth: float = 0.01, seed: int = 0
     """``(share, outside)``: the share of ``count`` samples of the avatar's surface ``pred`` that lie more than
     ``depth`` (m) under the true surface ``ref`` (along the normal of the nearest of 20 ``count`` samples of
     ``ref``: its outward side), and the mean distance (m) to ``ref`` of the other samples."""
-    import trimesh
-    from scipy.spatial import cKDTree
-
     points = trimesh.sample.sample_surface(pred, count, seed=seed)[0]
     dense, face = trimesh.sample.sample_surface(ref, 20 * count, seed=seed + 1)
     dist, k = cKDTree(dense).query(points)
@@ -80,21 +86,13 @@ def inner_wall(pred, ref, count: int = 20000, depth: float = 0.01, seed: int = 0
 def aligned_clothing(trained, part, meshes_h5: str | Path, frame: int):
     """The avatar's clothing posed as ``frame`` and moved by the similarity that aligns its body with the true
     one, and the true garments and hair of the frame (trimesh meshes)."""
-    import trimesh
-
-    from delta.eval.evaluate import gt_exterior
-    from delta.export.meshes import pose_clothing
-
     model, fid = trained.model, int(trained.data.frame_ids[frame])
-    keep = model.modelled.cpu().numpy()
     with torch.no_grad():
         out = model.pose_body(frame, model.offsets())
         posed = pose_clothing(model, part, out)
-    body = out.vertices[0].cpu().numpy()
-    scale, rot, move = similarity_transform(body[keep], gt_body_vertices(meshes_h5, [fid])[fid][keep])
-    return trimesh.Trimesh(scale * posed.vertices @ rot.T + move, posed.faces, process=False), gt_exterior(
-        meshes_h5, fid
-    )
+    true_body = gt_body_vertices(meshes_h5, [fid])[fid]
+    keep = model.modelled.cpu().numpy()
+    return moved_like_body(posed, out.vertices[0].cpu().numpy(), true_body, keep), gt_exterior(meshes_h5, fid)
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -111,8 +109,6 @@ def main(argv: list[str] | None = None) -> None:
     trained = load_trained(a.model, a.record, a.body)
     meshes = Path(a.truth) / "meshes.h5"
     frames = [f for f, _ in pick_frames(trained.data.split, ("test_view", "test_pose"), 5)]
-    import trimesh
-
     true_rest = trimesh.load(Path(a.truth) / "canonical_body.ply", process=False, force="mesh").vertices
     row = {"subject": a.subject, "model": a.model,
            "fitted_height_m": standing_height(trained.model.canonical_vertices.cpu().numpy()),

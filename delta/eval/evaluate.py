@@ -296,6 +296,13 @@ def gt_exterior(meshes_h5: str | Path, frame_id: int) -> trimesh.Trimesh | None:
     return trimesh.util.concatenate(parts) if parts else None
 
 
+def moved_like_body(part, body: np.ndarray, true_body: np.ndarray, keep: np.ndarray) -> trimesh.Trimesh:
+    """A posed surface ``part`` (a MeshPart) moved by the similarity that aligns the posed ``body`` (V, 3) with
+    the ``true_body`` over the ``keep`` vertices: the surface with the body's size, rotation and place left out."""
+    scale, rot, move = similarity_transform(body[keep], true_body[keep])
+    return trimesh.Trimesh(scale * part.vertices @ rot.T + move, part.faces, process=False)
+
+
 def clothing_distance(trained: Trained, nerf_space_mesh: str | Path, gt_meshes: str | Path, frames: list[int],
                       samples: int = 20000) -> dict:  # fmt: skip
     """Chamfer distance (mm, sample to sample), point-to-surface distance (mm, samples to the other
@@ -330,9 +337,7 @@ def clothing_distance(trained: Trained, nerf_space_mesh: str | Path, gt_meshes: 
             pred = trimesh.Trimesh(posed.vertices + shift, posed.faces, process=False)
             rows.append(mesh_distance(pred, ref, samples, seed=f))
             exact.append(point_to_surface(pred, ref, samples, seed=f))
-            scale, rot, move = similarity_transform(body[keep], gt_body[fid][keep])
-            aligned = trimesh.Trimesh(scale * posed.vertices @ rot.T + move, posed.faces, process=False)
-            exact_pa.append(point_to_surface(aligned, ref, samples, seed=f))
+            exact_pa.append(point_to_surface(moved_like_body(posed, body, gt_body[fid], keep), ref, samples, seed=f))
     return {"clothing_chamfer_mm": 1000 * float(np.mean([r.chamfer for r in rows])),
             "clothing_accuracy_mm": 1000 * float(np.mean([r.accuracy for r in rows])),
             "clothing_completeness_mm": 1000 * float(np.mean([r.completeness for r in rows])),
