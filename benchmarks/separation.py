@@ -32,6 +32,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
+from delta.body.lbs import lbs
 from delta.eval.evaluate import (
     clothing_distance,
     gt_body_vertices,
@@ -51,6 +52,14 @@ from table import model_arguments, save_table  # noqa: E402
 def standing_height(vertices: np.ndarray) -> float:
     """The body's extent along its up axis (y), metres: its standing height in the rest pose."""
     return float(np.ptp(vertices[:, 1]))
+
+
+def fitted_rest(model) -> np.ndarray:
+    """The fitted body's vertices (V, 3) in the rest pose (every rotation the identity), its shape and no
+    offsets: the pose the truth's ``canonical_body.ply`` stands in."""
+    with torch.no_grad():
+        pose = torch.zeros(1, model.body.num_joints, 3).to(model.betas)
+        return lbs(model.body, model.betas[None], pose).vertices[0].cpu().numpy()
 
 
 def size_row(trained, meshes_h5: str | Path, every: int = 10) -> dict:
@@ -101,6 +110,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     ap.add_argument("--truth", required=True, help="the subject's gt folder (meshes.h5, canonical_body.ply)")
     ap.add_argument("--export", required=True, help="the subject's export folder (clothing_nerf_space.ply)")
+    ap.add_argument("--label", default="", help="what the export folder holds, in the clothing_export column")
     ap.add_argument("--csv", required=True)
     ap.add_argument("--append", action="store_true")
     ap.add_argument("--threads", type=int, default=2)
@@ -110,8 +120,8 @@ def main(argv: list[str] | None = None) -> None:
     meshes = Path(a.truth) / "meshes.h5"
     frames = [f for f, _ in pick_frames(trained.data.split, ("test_view", "test_pose"), 5)]
     true_rest = trimesh.load(Path(a.truth) / "canonical_body.ply", process=False, force="mesh").vertices
-    row = {"subject": a.subject, "model": a.model,
-           "fitted_height_m": standing_height(trained.model.canonical_vertices.cpu().numpy()),
+    row = {"subject": a.subject, "clothing_export": a.label, "model": a.model,
+           "fitted_height_m": standing_height(fitted_rest(trained.model)),
            "true_height_m": standing_height(np.asarray(true_rest))}  # fmt: skip
     row |= size_row(trained, meshes)
     row |= train_body_errors_mm(trained, meshes)

@@ -11,7 +11,7 @@ workflow evaluates, or by ``--eval``); and a table of each variant's means.
     python benchmarks/train_resolution.py run --dataset synthetic --subject tight --stages 1 \\
         --settings '{"stage1": {"fine_from": 0.5}}' --eval '{"splits": ["test_view"], "refine_steps": 0, \\
         "max_frames": 5, "supersample": 2, "stage": 1, "worst": 0}' --work /tmp/tight_fine
-    python benchmarks/train_resolution.py run --dataset synthetic --subject gen4 --first 2 \
+    python benchmarks/train_resolution.py run --dataset synthetic --subject gen4 --first 2 \\
         --settings '{"stage2": {"plateau_window": 100}}' --work /tmp/gen4_plateau
 
 ``--first 2`` retrains stage 2 alone, from the workflow's stage 1.

@@ -145,11 +145,12 @@ def canonical_surface(model: HybridAvatar) -> tuple[np.ndarray, np.ndarray]:
     return cano, trimesh.Trimesh(cano, model.body.faces.cpu().numpy(), process=False).vertex_normals
 
 
-def density_grid(model: HybridAvatar, settings: ExportSettings,
-                 layer: str | None = None) -> tuple[np.ndarray, marching.Grid]:  # fmt: skip
+def density_grid(model: HybridAvatar, settings: ExportSettings, layer: str | None = None,
+                 surface: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, marching.Grid]:  # fmt: skip
     """NeRF density on a grid over the canonical body's box plus ``max_dist``, 0 farther than ``max_dist``
-    from the body (the renderer never evaluates the NeRF there) and inside it (rays stop at the mesh)."""
-    cano, normals = canonical_surface(model)
+    from the body (the renderer never evaluates the NeRF there) and inside it (rays stop at the mesh);
+    ``surface``: the model's :func:`canonical_surface`, when the caller has it."""
+    cano, normals = surface or canonical_surface(model)
     max_dist = float(model.spec.render.max_dist)
     grid = marching.make_grid(cano.min(0) - max_dist, cano.max(0) + max_dist, settings.grid)
     mask = marching.near_and_outside(grid.points(), cano, normals, max_dist)
@@ -165,9 +166,10 @@ def clothing_nerf_space(model: HybridAvatar, settings: ExportSettings, longest_e
     ``longest_edge`` (m; 0: none) are split."""
     if model.nerf is None:
         raise ValueError("the avatar has no NeRF (no clothing or hair was modelled)")
-    values, grid = density_grid(model, settings, layer)
+    surface = canonical_surface(model)
+    values, grid = density_grid(model, settings, layer, surface)
     verts, faces = marching.extract_surface(values, grid, settings.threshold)
-    faces = faces[~marching.skin_faces(verts, faces, *canonical_surface(model), grid.spacing)]
+    faces = faces[~marching.skin_faces(verts, faces, *surface, grid.spacing)]
     if len(faces):
         verts, faces = split_long_edges(*clean(verts, faces, settings), longest_edge)
     else:
