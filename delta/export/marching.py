@@ -37,17 +37,25 @@ def make_grid(lo: np.ndarray, hi: np.ndarray, cells: int) -> Grid:
     return Grid(lo, h, shape)  # type: ignore[arg-type]
 
 
+def nearest_side(points: np.ndarray, vertices: np.ndarray, normals: np.ndarray,
+                 max_dist: float = np.inf) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """For points (N, 3): (N,) bool within ``max_dist`` of a body vertex, and for those (M of them) the nearest
+    vertex's index (M,) and the point's offset along its normal (M,), (x - v_nn) · n_nn: positive outside."""
+    dist, idx = cKDTree(vertices).query(points, k=1, distance_upper_bound=max_dist, workers=1)
+    near = np.isfinite(dist)
+    i = idx[near]
+    return near, i, ((points[near] - vertices[i]) * normals[i]).sum(-1)
+
+
 def near_and_outside(points: np.ndarray, vertices: np.ndarray, normals: np.ndarray, max_dist: float) -> np.ndarray:
     """(N,) bool: within ``max_dist`` of a body vertex and on the outer side of the nearest one.
 
     The side test (x - v_nn) · n_nn > 0 is exact near the surface, which is where the
     exterior lives; inside the body the NeRF is never rendered (rays stop at the mesh).
     """
-    dist, idx = cKDTree(vertices).query(points, k=1, distance_upper_bound=max_dist, workers=1)
-    near = np.isfinite(dist)
+    near, _, side = nearest_side(points, vertices, normals, max_dist)
     out = np.zeros(len(points), dtype=bool)
-    i = idx[near]
-    out[near] = ((points[near] - vertices[i]) * normals[i]).sum(-1) > 0
+    out[near] = side > 0
     return out
 
 
@@ -64,10 +72,8 @@ def skin_faces(vertices: np.ndarray, faces: np.ndarray, body: np.ndarray, normal
     if len(faces) == 0:
         return np.zeros(0, dtype=bool)
     tri = vertices[faces]
-    centre = tri.mean(1)
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    _, idx = cKDTree(body).query(centre, k=1, workers=1)
-    side = ((centre - body[idx]) * normals[idx]).sum(-1)
+    _, idx, side = nearest_side(tri.mean(1), body, normals)
     return ((normal * normals[idx]).sum(-1) < 0) & (side < depth)
 
 
