@@ -7,6 +7,8 @@ background colour with the person alpha (white by default).
 
 from __future__ import annotations
 
+import math
+
 import dataclasses
 
 import cv2
@@ -281,6 +283,20 @@ class RayBatch:
     """The first patch² rays form a patch (row-major), 0 when none."""
     hair: torch.Tensor | None = None
     """(R,) the hair mask (part of ``exterior``) where the frames hold it."""
+
+
+def box_rays(data: FrameData, frame: int, box: tuple[int, int, int, int], most: int) -> RayBatch:
+    """The pixel centres of rows ``box`` [i0, i1) and columns [j0, j1) of a frame (clipped to it), every
+    pixel or, where that would be more than ``most``, every k-th row and column."""
+    n = data.resolution
+    i0, i1, j0, j1 = max(box[0], 0), min(box[1], n), max(box[2], 0), min(box[3], n)
+    stride = max(1, math.ceil(math.sqrt(max(i1 - i0, 0) * max(j1 - j0, 0) / most)))
+    ii, jj = torch.meshgrid(torch.arange(i0, i1, stride), torch.arange(j0, j1, stride), indexing="ij")
+    ii, jj = ii.reshape(-1), jj.reshape(-1)
+    pixels = torch.stack([jj.float(), ii.float()], dim=-1) + 0.5
+    hair = data.hair[frame, ii, jj] if data.hair is not None else None
+    return RayBatch(frame, pixels, data.images[frame, ii, jj], data.person[frame, ii, jj],
+                    data.exterior[frame, ii, jj], data.interior[frame, ii, jj], 0, hair)  # fmt: skip
 
 
 def sample_rays(data: FrameData, frame: int, num: int, generator: torch.Generator, patch: int = 0,

@@ -47,6 +47,11 @@ class EvalSettings:
     """Every this many steps (and after the last) the refinement measures its probe loss and keeps the pose of
     the lowest, the given pose included (0: the last step's pose, unchecked). On tight's held-out views the
     unchecked 30 steps ended 0.23 dB apart on a CPU and a GPU, checked 0.04 apart (docs/evaluation.md)."""
+    refine_sides: bool = False
+    """Before the refinement's steps, try each arm and leg with its upper bone, its lower bone or both swung
+    to their other side along the view (the same keypoints: one view does not tell them apart, and the steps
+    cannot cross from one to the other) and keep a limb so where its render matches the frame clearly better
+    (``delta.eval.heldout.choose_sides``; docs/fitting.md)."""
     supersample: int = _f(default=2, metadata={"minimum": 1, "maximum": 8})
     """Rays a pixel along each axis, averaged: the frames are area-downsampled photographs whose
     edge pixels mix person and background; one centre ray a pixel cannot (tight subject, four
