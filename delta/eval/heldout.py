@@ -77,7 +77,8 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
 
     With ``sides``, before the steps each arm and leg is also tried with its bones swung to their other side
     along the view (:func:`delta.body.sides.other_sides`: the same keypoints, which the steps' small moves
-    cannot cross to) and kept so where the probe's loss falls by :data:`SIDE_MARGIN` (:func:`choose_sides`).
+    cannot cross to) and kept so where the loss over the limb's box falls by :data:`SIDE_MARGIN`
+    (:func:`choose_sides`); the probe's best pose then starts from there.
     """
     params = model.per_frame_parameters()
     frozen = {p: p.requires_grad for p in model.parameters()}
