@@ -28,7 +28,7 @@ import torch
 from delta.body.lbs import batch_rodrigues, rigid_transforms, shaped_joints
 from delta.body.sides import limbs
 from delta.eval.evaluate import evaluate
-from delta.eval.settings import EvalSettings
+from delta.eval.settings import SPLITS, EvalSettings
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -56,6 +56,7 @@ def main(argv=None) -> None:
     ap.add_argument("--truth", default=None, help="the subject's gt folder (params.npz, meshes.h5)")
     ap.add_argument("--csv", required=True)
     ap.add_argument("--append", action="store_true")
+    ap.add_argument("--frames", type=int, nargs="+", help="score these held-out frame ids (all of them, in --splits)")
     ap.add_argument("--passes", nargs="+", choices=["off", "on"], default=["off", "on"],
                     help="score without (off) and with (on) the side choice")  # fmt: skip
     a = ap.parse_args(argv)
@@ -65,7 +66,12 @@ def main(argv=None) -> None:
     for sides in [p == "on" for p in a.passes]:
         trained = load_trained(a.model, a.record, a.body, device=a.device)  # fresh: refinement moves the poses
         model, data = trained.model, trained.data
-        st = EvalSettings(splits=tuple(a.splits), max_frames=a.max_frames, refine_sides=sides, report_unrefined=False,
+        if a.frames:  # the other held-out frames leave the scored splits
+            split, ids = np.asarray(data.split), np.asarray(data.frame_ids)
+            leave = np.isin(split, [SPLITS[s] for s in a.splits]) & ~np.isin(ids, a.frames)
+            data.split = np.where(leave, max(SPLITS.values()) + 1, split)
+        st = EvalSettings(splits=tuple(a.splits), max_frames=0 if a.frames else a.max_frames, refine_sides=sides,
+                          report_unrefined=False,
                           supersample=a.supersample, worst=0, perceptual_dir=a.perceptual_dir or None)  # fmt: skip
         given = model.poses.detach().clone()
         t0 = time.perf_counter()
