@@ -120,9 +120,7 @@ def other_sides(rotmats: torch.Tensor, joints: torch.Tensor, parents: torch.Tens
                 target = start + nearest / nearest.norm() * bone.norm()
             step = rotation_between(turn @ bone, target - start)
             new_turn = step @ turn  # the world rotation this joint's subtree takes
-            parent_turn = turn
-            parent = int(parents[joint])
-            local[joint] = G[parent].T @ parent_turn.T @ new_turn @ G[joint]
+            local[joint] = G[int(parents[joint])].T @ turn.T @ new_turn @ G[joint]
             start, turn = target, new_turn
         if ok:
             out.append((pattern, local))

@@ -146,8 +146,8 @@ def choose_sides(model: HybridAvatar, data: FrameData, frame: int, seed: int,
     for name, chain in limbs(model.body):
         if not all(bool(model.pose_mask[j]) for j in chain[:-1]):
             continue
-        rot, transl = model.local_rotations()
-        rot, transl = rot[frame].double(), transl[frame].double()
+        rot, transl = model.local_rotations(torch.tensor([frame], device=model.poses.device))
+        rot, transl = rot[0].double(), transl[0].double()
         posed = rigid_transforms(rot[None], joints[None], model.body.parents)[0][0] + transl
         rows = [int(model.body.parents[chain[0]]), *chain]
         batch = box_rays(data, frame, limb_box(camera.project(posed[rows])[0]), SIDE_RAYS)

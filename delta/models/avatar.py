@@ -181,13 +181,15 @@ class HybridAvatar(nn.Module):
         rot = torch.cat([(batch_rodrigues(turn) @ rot[:, 0])[:, None], rot[:, 1:]], 1)
         return rot, transl + shift if self.pinhole else transl
 
-    def local_rotations(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """Every frame's (F, J, 3, 3) local joint rotations and (F, 3) translation, with the trajectory's
-        correction (what :meth:`pose_body` poses)."""
-        rot = batch_rodrigues(self.poses)
+    def local_rotations(self, frames: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The (B, J, 3, 3) local joint rotations and (B, 3) translations of ``frames`` (B,) (None: every
+        frame), with the trajectory's correction (what :meth:`pose_body` poses)."""
+        if frames is None:
+            frames = torch.arange(self.poses.shape[0], device=self.poses.device)
+        rot = batch_rodrigues(self.poses[frames])
         if self.trajectory is None:
-            return rot, self.transl
-        return self._corrected(rot, self.transl, torch.arange(self.poses.shape[0], device=self.poses.device))
+            return rot, self.transl[frames]
+        return self._corrected(rot, self.transl[frames], frames)
 
     def skeletons(self) -> tuple[torch.Tensor, torch.Tensor]:
         """Every frame's (F, 3, 3) root rotation and (F, J, 3) posed joints, without skinning a vertex."""

@@ -51,6 +51,8 @@ def test_a_thigh_fitted_on_its_other_side_comes_back_to_the_photographs(lifted_k
     truth = posed_joints_of(model, f).detach()
     with torch.no_grad():
         rot, transl = model.local_rotations()
+        one_rot, one_transl = model.local_rotations(torch.tensor([f]))  # one frame's alone: the same values
+        torch.testing.assert_close((one_rot[0], one_transl[0]), (rot[f], transl[f]), rtol=0, atol=0)
         joints = shaped_joints(model.body, model.betas[None])[0].double()
         found = dict(other_sides(rot[f].double(), joints, model.body.parents, transl[f].double(), model.camera(f), leg))
         for j, r in found[(1, 0)].items():  # the thigh swung back, the ankle on its pixel: the wrong side
