@@ -12,7 +12,10 @@ capture keeps its fitted per-frame camera, which the refinement moves), refined 
 The difference is what the pose fit costs; what remains against the views is the avatar's own.
 ``--poses`` also takes another init fit's ``params.npz`` of the same record (a fit with other settings):
 its poses and translations (and orthographic cameras) of the scored frames, scored on the same avatar,
-tell whether a change to the fit would show in the renders. ``--frames`` scores chosen held-out frames.
+tell whether a change to the fit would show in the renders. ``true:arms``, ``true:legs`` and ``true:torso``
+keep the fitted poses but for that group's joints, whose local rotations become the truth's (an Anny body:
+clavicles to wrists; hips to feet; spine, neck and head): which part of the body the fit costs the render.
+``--frames`` scores chosen held-out frames.
 
 Rows: one per (frame, poses, refined): PSNR overall and in the regions the evaluation scores, body
 vertex error, and the fitted pose's error against the truth (root and joints, degrees; the largest
@@ -45,6 +48,29 @@ from table import device_name, save_table, trained_model_arguments  # noqa: E402
 
 SCORES = ("psnr", "psnr_body", "psnr_face", "psnr_clothing", "psnr_hair", "psnr_outline", "outline_error_share",
           "nerf_iou", "mesh_iou", "body_err_mm", "body_err_pa_mm", "refine_kept_step")  # fmt: skip
+
+
+#: Anny joints by name (before the side's ``.L``/``.R``) of the groups a ``true:GROUP`` pass takes from the truth
+GROUPS = {
+    "arms": ("clavicle", "shoulder01", "upperarm01", "upperarm02", "lowerarm01", "lowerarm02", "wrist"),
+    "legs": ("pelvis", "upperleg01", "upperleg02", "lowerleg01", "lowerleg02", "foot"),
+    "torso": ("spine05", "spine04", "spine03", "spine02", "spine01", "neck01", "neck02", "neck03", "head"),
+}
+
+
+def group_joints(names, group: str) -> list[int]:
+    """Indices of ``names`` (the body's joints) in ``GROUPS[group]``."""
+    if group not in GROUPS:
+        raise SystemExit(f"true:{group}: not a joint group (known: {', '.join(GROUPS)})")
+    return [j for j, n in enumerate(names) if str(n).split(".")[0] in GROUPS[group]]
+
+
+@torch.no_grad()
+def put_true_group(model, frames: np.ndarray, frame_ids: np.ndarray, truth, group: str) -> None:
+    """In place: ``frames``' local rotations of the joints of ``group`` become the generator's."""
+    idx = group_joints(model.body.joint_names, group)
+    for f in frames:
+        model.poses[f, idx] = torch.as_tensor(truth["poses"][frame_ids[f]][idx], dtype=model.poses.dtype)
 
 
 def angles_deg(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -97,8 +123,9 @@ def main(argv=None) -> None:
     ap.add_argument("--csv", required=True)
     ap.add_argument("--append", action="store_true")
     ap.add_argument("--poses", nargs="+", default=["fitted", "true"],
-                    help="passes: 'fitted' (the avatar's own), 'true' (the generator's), or another init fit's "
-                    "params.npz (labelled by its folder's name)")  # fmt: skip
+                    help="passes: 'fitted' (the avatar's own), 'true' (the generator's), 'true:GROUP' (the "
+                    "generator's rotations of one joint group: arms, legs, torso), or another init fit's params.npz "
+                    "(labelled by its folder's name)")  # fmt: skip
     ap.add_argument("--frames", type=int, nargs="+", help="score these held-out frame ids (all of them, in --splits)")
     a = ap.parse_args(argv)
     torch.set_num_threads(2)
@@ -114,7 +141,7 @@ def main(argv=None) -> None:
             leave = np.isin(split, [SPLITS[s] for s in a.splits]) & ~np.isin(ids, a.frames)
             data.split = split = np.where(leave, max(SPLITS.values()) + 1, split)
         scored = np.flatnonzero(np.isin(split, [SPLITS[s] for s in a.splits]))
-        if poses not in ("fitted", "true"):
+        if poses not in ("fitted", "true") and not poses.startswith("true:"):
             put_fitted_poses(model, scored, ids, poses)
             poses = Path(poses).parent.name
         # the errors of the poses the avatar was given by a fit (a 'true' pass carries the workflow fit's)
@@ -122,6 +149,8 @@ def main(argv=None) -> None:
                              truth["joint_names"])  # fmt: skip
         if poses == "true":
             put_true_poses(model, scored, ids, np.flatnonzero(split == SPLITS["train"]), truth)
+        elif poses.startswith("true:"):
+            put_true_group(model, scored, ids, truth, poses.split(":", 1)[1])
         t0 = time.perf_counter()
         df = evaluate(trained, a.record, st, gt_meshes=Path(a.truth) / "meshes.h5", subject=a.subject)
         err = pd.DataFrame(errors, index=scored)
