@@ -20,6 +20,7 @@ import torch
 
 from delta.body.lbs import rigid_transforms
 from delta.body.model import BodyModel
+from delta.body.upright import rotation_between
 
 #: (upper bone's joint, middle joint, end joint) of the limbs whose bones a view leaves ambiguous: the arms
 #: (shoulder, elbow, wrist) and the legs (hip, knee, ankle).
@@ -39,40 +40,6 @@ def limbs(model: BodyModel) -> list[tuple[str, tuple[int, ...]]]:
     names = model.joint_names
     found = LIMBS.get(model.name.split("_sub")[0], ())
     return [(chain[0], tuple(names.index(n) for n in chain)) for chain in found if all(n in names for n in chain)]
-
-
-def rotation_between(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """(3, 3) the smallest rotation taking the direction of (3,) ``a`` to that of ``b`` (not opposite)."""
-    a, b = a / a.norm(), b / b.norm()
-    v, c = torch.linalg.cross(a, b), torch.dot(a, b)
-    vx = torch.zeros(3, 3, dtype=a.dtype, device=a.device)
-    vx[0, 1], vx[0, 2], vx[1, 0], vx[1, 2], vx[2, 0], vx[2, 1] = -v[2], v[1], v[2], -v[0], -v[1], v[0]
-    return torch.eye(3, dtype=a.dtype, device=a.device) + vx + vx @ vx / (1 + c)
-
-
-def axis_angle(rot: torch.Tensor) -> torch.Tensor:
-    """(3, 3) rotation matrix -> (3,) axis-angle, through a unit quaternion built from its largest
-    component (Shepperd's method: exact near a half turn, where the skew part vanishes)."""
-    m = rot
-    trace = m[0, 0] + m[1, 1] + m[2, 2]
-    k = int(torch.argmax(torch.stack([trace, m[0, 0], m[1, 1], m[2, 2]])))
-    if k == 0:
-        r = torch.sqrt(1 + trace) * 2
-        q = torch.stack([r / 4, (m[2, 1] - m[1, 2]) / r, (m[0, 2] - m[2, 0]) / r, (m[1, 0] - m[0, 1]) / r])
-    elif k == 1:
-        r = torch.sqrt(1 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
-        q = torch.stack([(m[2, 1] - m[1, 2]) / r, r / 4, (m[0, 1] + m[1, 0]) / r, (m[0, 2] + m[2, 0]) / r])
-    elif k == 2:
-        r = torch.sqrt(1 - m[0, 0] + m[1, 1] - m[2, 2]) * 2
-        q = torch.stack([(m[0, 2] - m[2, 0]) / r, (m[0, 1] + m[1, 0]) / r, r / 4, (m[1, 2] + m[2, 1]) / r])
-    else:
-        r = torch.sqrt(1 - m[0, 0] - m[1, 1] + m[2, 2]) * 2
-        q = torch.stack([(m[1, 0] - m[0, 1]) / r, (m[0, 2] + m[2, 0]) / r, (m[1, 2] + m[2, 1]) / r, r / 4])
-    q = q if q[0] >= 0 else -q
-    s = q[1:].norm()
-    if s < 1e-12:
-        return torch.zeros(3, dtype=rot.dtype, device=rot.device)
-    return q[1:] * (2 * torch.atan2(s, q[0]) / s)
 
 
 def other_sides(rotmats: torch.Tensor, joints: torch.Tensor, parents: torch.Tensor, transl: torch.Tensor,

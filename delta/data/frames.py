@@ -7,9 +7,8 @@ background colour with the person alpha (white by default).
 
 from __future__ import annotations
 
-import math
-
 import dataclasses
+import math
 
 import cv2
 import numpy as np

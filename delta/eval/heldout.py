@@ -10,10 +10,11 @@ from __future__ import annotations
 import dataclasses
 
 import torch
+from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 
 from delta import losses as L
 from delta.body.lbs import rigid_transforms, shaped_joints
-from delta.body.sides import axis_angle, limbs, other_sides
+from delta.body.sides import limbs, other_sides
 from delta.data.frames import FrameData, box_rays, sample_rays
 from delta.metrics import iou, psnr
 from delta.models.avatar import HybridAvatar
@@ -155,7 +156,7 @@ def choose_sides(model: HybridAvatar, data: FrameData, frame: int, seed: int,
         best = None
         for pattern, local in other_sides(rot, joints, model.body.parents, transl, camera, chain):
             for j, r in local.items():
-                model.poses[frame, j] = axis_angle(r).to(given)
+                model.poses[frame, j] = rotation_matrix_to_axis_angle(r[None])[0].to(given)
             tried = float(_loss(model, frame, batch, seed))
             if tried < (1 - margin) * loss and (best is None or tried < best[0]):
                 best = (tried, pattern, model.poses[frame].clone())

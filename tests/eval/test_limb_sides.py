@@ -4,9 +4,10 @@ of its keypoints comes back to the side the photograph shows."""
 import numpy as np
 import pytest
 import torch
+from kornia.geometry.conversions import rotation_matrix_to_axis_angle
 
 from delta.body.lbs import rigid_transforms, shaped_joints
-from delta.body.sides import axis_angle, limbs, other_sides
+from delta.body.sides import limbs, other_sides
 from delta.data.frames import ByteFrames
 from delta.eval.heldout import choose_sides, limb_box
 from delta.models.image import render_image
@@ -56,7 +57,7 @@ def test_a_thigh_fitted_on_its_other_side_comes_back_to_the_photographs(lifted_k
         joints = shaped_joints(model.body, model.betas[None])[0].double()
         found = dict(other_sides(rot[f].double(), joints, model.body.parents, transl[f].double(), model.camera(f), leg))
         for j, r in found[(1, 0)].items():  # the thigh swung back, the ankle on its pixel: the wrong side
-            model.poses[f, j] = axis_angle(r).to(model.poses.dtype)
+            model.poses[f, j] = rotation_matrix_to_axis_angle(r[None])[0].to(model.poses.dtype)
     wrong = posed_joints_of(model, f).detach()
     assert (wrong[leg[1]] - truth[leg[1]]).norm() > 0.1  # the knee tens of centimetres off
     camera = model.camera(f)  # the knee and the ankle on their pixels: what the keypoints cannot tell apart
