@@ -94,8 +94,10 @@ def vertex_detail(details: list[torch.Tensor]) -> torch.Tensor:
 
 def mesh_edges(faces: torch.Tensor) -> torch.Tensor:
     """(F, 3) faces -> (E, 2) unique undirected edges."""
-    e = torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return torch.unique(torch.sort(e, dim=1).values, dim=0)
+    e = torch.sort(torch.cat([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), dim=1).values
+    n = int(faces.max()) + 1 if len(faces) else 1
+    key = torch.unique(e[:, 0] * n + e[:, 1])  # one integer an edge, in the pairs' lexicographic order
+    return torch.stack([key // n, key % n], 1)
 
 
 def total(terms: dict[str, torch.Tensor], weights: LossWeights) -> torch.Tensor:

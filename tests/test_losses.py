@@ -145,6 +145,12 @@ def test_mesh_edges_two_triangles():
     assert losses.mesh_edges(torch.tensor([[0, 1, 2]])).tolist() == [[0, 1], [0, 2], [1, 2]]
 
 
+def test_mesh_edges_are_every_faces_sides_once_in_order():
+    faces = torch.randint(0, 300, (2000, 3), generator=torch.Generator().manual_seed(0))
+    sides = {tuple(sorted((int(f[a]), int(f[b])))) for f in faces for a, b in ((0, 1), (1, 2), (2, 0))}
+    assert losses.mesh_edges(faces).tolist() == [list(e) for e in sorted(sides)]
+
+
 def test_total_weights_and_missing_terms():
     w = LossWeights(pixel=1.0, edge=500.0, inside=40.0)
     terms = {"pixel": torch.tensor(2.0, dtype=D), "edge": torch.tensor(0.01, dtype=D)}

@@ -220,7 +220,9 @@ def voxel_subset(points: torch.Tensor, cell: float) -> torch.Tensor:
     centre (ascending indices; deterministic)."""
     key = torch.floor(points / cell)
     off = (points / cell - key - 0.5).norm(dim=-1)
-    _, cell_of = torch.unique(key, dim=0, return_inverse=True)
+    k = (key - key.min(0).values).long()
+    span = k.max(0).values + 1
+    _, cell_of = torch.unique((k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2], return_inverse=True)
     order = torch.argsort(off, stable=True)  # nearest its voxel's centre first
     rank = torch.empty_like(order)
     rank[order] = torch.arange(len(order), device=points.device)
