@@ -17,6 +17,7 @@ import torch
 from delta import DeltaError
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.data.record import FrameRecord
+from delta.metrics import outline_band
 
 
 #: Bytes a training pixel holds (colour, person, exterior, interior, and hair where layers are split).
@@ -298,10 +299,20 @@ def box_rays(data: FrameData, frame: int, box: tuple[int, int, int, int], most: 
                     data.exterior[frame, ii, jj], data.interior[frame, ii, jj], 0, hair)  # fmt: skip
 
 
+EDGE_PX = 2
+"""Half-width (pixels) of the person's outline band (:func:`delta.metrics.outline_band`) that
+:func:`sample_rays` draws its edge rays from."""
+
+
 def sample_rays(data: FrameData, frame: int, num: int, generator: torch.Generator, patch: int = 0,
-                jitter: bool = True, crop: float = 1.0) -> RayBatch:  # fmt: skip
+                jitter: bool = True, crop: float = 1.0, edge: float = 0.0) -> RayBatch:  # fmt: skip
     """``num`` random pixels inside the frame's person box (rays elsewhere see only background),
     preceded by one ``patch``×``patch`` block of neighbouring pixels when ``patch`` > 0.
+
+    ``edge`` > 0: that share of the ``num`` pixels is drawn from the person's outline instead
+    (:func:`delta.metrics.outline_band`: within :data:`EDGE_PX` pixels of the person mask's edge), where a
+    render's error gathers (the silhouette's place is the geometry's, and a pixel off there costs the
+    whole contrast against the background).
 
     ``crop`` < 1 draws them from the box's central part of that fraction of its sides instead
     (NeRF's "precrop": mostly person, so that early steps do not teach an empty field).
@@ -324,6 +335,13 @@ def sample_rays(data: FrameData, frame: int, num: int, generator: torch.Generato
         n = data.resolution
         ii = torch.cat([gi.reshape(-1).clamp(max=n - 1), ii])
         jj = torch.cat([gj.reshape(-1).clamp(max=n - 1), jj])
+    at_edge = round(edge * num) if crop >= 1.0 else 0
+    if at_edge:  # drawn after the box's pixels and the patch, which stay those of a step without them
+        band = torch.nonzero(outline_band(data.person[frame] > 0.5, EDGE_PX))
+        if len(band):
+            pick = band[torch.randint(len(band), (at_edge,), generator=generator)]
+            first = patch * patch if patch else 0
+            ii[first : first + at_edge], jj[first : first + at_edge] = pick[:, 0], pick[:, 1]
     offset = torch.full((len(ii), 2), 0.5)
     if jitter:
         offset[patch * patch :] = torch.rand((num, 2), generator=generator)

@@ -198,12 +198,12 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
 
 
 def rays_at(data: FrameData, fine: Optional[FrameData], frame: int, num: int, generator: torch.Generator,
-            patch: int = 0, crop: float = 1.0) -> RayBatch:  # fmt: skip
+            patch: int = 0, crop: float = 1.0, edge: float = 0.0) -> RayBatch:  # fmt: skip
     """A step's rays: from ``data``, or from the ``fine`` frames with their pixels in ``data``'s units
     (the model's). The same draws from the generator either way."""
     if fine is None:
-        return sample_rays(data, frame, num, generator, patch, crop=crop)
-    batch = sample_rays(fine, frame, num, generator, patch, crop=crop)
+        return sample_rays(data, frame, num, generator, patch, crop=crop, edge=edge)
+    batch = sample_rays(fine, frame, num, generator, patch, crop=crop, edge=edge)
     return dataclasses.replace(batch, pixels=batch.pixels * (data.resolution / fine.resolution))
 
 
@@ -257,7 +257,9 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
         frame = int(data.train[torch.randint(len(data.train), (1,), generator=generator)])
         crop = cfg.nerf_warmup_crop if warm else 1.0
         source = fine if step >= cfg.fine_step() else None
-        batch = _to(rays_at(data, source, frame, cfg.rays, generator, cfg.patch if semantic else 0, crop), device)
+        batch = _to(
+            rays_at(data, source, frame, cfg.rays, generator, cfg.patch if semantic else 0, crop, cfg.edge_rays), device
+        )
         _maybe_update_occupancy(model, st, stage, step)
         if model.nerf is not None and model.spec.nerf.density_noise > 0:  # a function of the step: resumes exact
             model.nerf.set_noise(model.spec.nerf.noise_at(step), _step_seed(st, stage, step) + 7)

@@ -4,8 +4,11 @@ import numpy as np
 import pytest
 import torch
 
-from delta.data.frames import sample_rays
+from delta import DeltaError
+from delta.data.frames import EDGE_PX, sample_rays
+from delta.metrics import outline_band
 from delta.models.image import EDGE, busy_pixels, pixel_grid, render_image
+from delta.training.presets import resolve
 
 
 def test_pixel_grid_centres_and_subpixels():
@@ -63,6 +66,28 @@ def test_a_crop_draws_rays_from_the_central_part_of_the_person_box():
     full = sample_rays(data, 0, 50, torch.Generator().manual_seed(3), crop=1.0)
     same = sample_rays(data, 0, 50, torch.Generator().manual_seed(3))
     assert torch.equal(full.pixels, same.pixels)
+
+
+def test_edge_rays_come_from_the_outline_and_leave_the_other_draws_alone():
+    data = _Frames(n=20)
+    data.boxes = torch.tensor([[0, 20, 0, 20]])
+    data.person = torch.zeros(1, 20, 20)
+    data.person[0, 6:14, 5:12] = 1.0
+    plain = sample_rays(data, 0, 400, torch.Generator().manual_seed(4), patch=3)
+    edged = sample_rays(data, 0, 400, torch.Generator().manual_seed(4), patch=3, edge=0.25)
+    band = {tuple(p) for p in torch.nonzero(outline_band(data.person[0] > 0.5, EDGE_PX)).tolist()}
+    rows, cols = edged.pixels[:, 1].floor().long(), edged.pixels[:, 0].floor().long()
+    assert all((int(r), int(c)) in band for r, c in zip(rows[9 : 9 + 100], cols[9 : 9 + 100]))
+    # the patch and the rest of the random rays are those of a step without edge rays
+    assert torch.equal(edged.pixels[:9], plain.pixels[:9])
+    assert torch.equal(edged.pixels[109:].floor(), plain.pixels[109:].floor())
+    assert torch.equal(edged.rgb[:, 0], data.images[0, rows, cols, 0])  # each ray carries its own pixel
+    assert torch.equal(sample_rays(data, 0, 50, torch.Generator().manual_seed(2), edge=0.0).pixels,
+                       sample_rays(data, 0, 50, torch.Generator().manual_seed(2)).pixels)  # fmt: skip
+    assert resolve("fast", {"stage2": {"edge_rays": 0.25}}).stage2.edge_rays == 0.25
+    assert resolve("fast", {}).stage1.edge_rays == resolve("balanced", {}).stage2.edge_rays == 0.0  # off by default
+    with pytest.raises(DeltaError, match="stage2.edge_rays"):
+        resolve("fast", {"stage2": {"edge_rays": 1.5}})
 
 
 @pytest.mark.slow
