@@ -340,7 +340,7 @@ def sample_rays(data: FrameData, frame: int, num: int, generator: torch.Generato
         band = torch.nonzero(outline_band(data.person[frame] > 0.5, EDGE_PX))
         if len(band):
             pick = band[torch.randint(len(band), (at_edge,), generator=generator)]
-            first = patch * patch if patch else 0
+            first = patch * patch  # the random pixels follow the patch's
             ii[first : first + at_edge], jj[first : first + at_edge] = pick[:, 0], pick[:, 1]
     offset = torch.full((len(ii), 2), 0.5)
     if jitter:
