@@ -39,7 +39,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "delta.settings",
         "delta.progress",
         "delta.loss_weights",
-    ),  # files, unpickling, settings, progress, loss weights
+        "delta.optim",
+    ),  # files, unpickling, settings, progress, loss weights, the optimiser
     ("delta.body", "delta.cameras", "delta.geometry", "delta.fields", "delta.metrics", "delta.perceptual"),
     ("delta.data", "delta.losses", "delta.deformers"),
     ("delta.render",),

@@ -52,3 +52,21 @@ def test_the_workflow_builds_its_dag_without_torch(tmp_path):
     imported = {line.rsplit("|", 1)[-1].strip() for line in res.stderr.splitlines() if line.startswith("import time:")}
     assert "delta.config" in imported, "the probe saw the workflow's imports"
     assert not imported & {"torch", "trimesh", "scipy", "kornia"}, sorted(imported & {"torch", "trimesh", "scipy"})
+
+
+def test_the_working_modules_import_neither_kornia_nor_the_compiler():
+    """``import kornia`` loads its whole package (~0.5 s) and ``torch._dynamo`` ~2 s: the rotations and the
+    optimiser are the project's own, and the deterministic flag is set without the compiler's config."""
+    code = (
+        "import sys, torch\n"
+        "import delta.training.trainer, delta.eval.evaluate, delta.fitting.fit, delta.export.animated\n"
+        "import delta.export.video, delta.applications.animate, delta.applications.reenact\n"
+        "from delta.training.trainer import reproducible\n"
+        "with reproducible(torch.device('cpu')):\n"
+        "    inside = torch.are_deterministic_algorithms_enabled()\n"
+        "after = torch.are_deterministic_algorithms_enabled()\n"
+        "print(inside, after, 'kornia' in sys.modules, 'torch._dynamo' in sys.modules)"
+    )
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert res.stdout.split() == ["True", "False", "False", "False"]

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from kornia.geometry.conversions import rotation_matrix_to_axis_angle
+from delta.body.rotations import matrix_to_axis_angle
 
 from delta import DeltaError
 from delta.applications.motion import Motion, read_motion, resample
@@ -67,7 +67,7 @@ def place(root: torch.Tensor, transl: torch.Tensor, anchor_root: torch.Tensor, a
     B = rotation_between(motion_up, up)
     anchor = batch_rodrigues(anchor_root.double()[None])[0]
     A = axis_angle_matrix(up, signed_angle(heading(B @ R[0], up), heading(anchor, up), up)) @ B
-    new_root = rotation_matrix_to_axis_angle(A @ R)
+    new_root = matrix_to_axis_angle(A @ R)
     new_t = anchor_transl.double() + (transl.double() - transl[0].double()) @ A.T
     return new_root.to(root.dtype), new_t.to(transl.dtype)
 

@@ -25,7 +25,7 @@ from typing import Iterator, Sequence
 
 import numpy as np
 import torch
-from kornia.geometry.conversions import rotation_matrix_to_axis_angle
+from delta.body.rotations import matrix_to_axis_angle
 
 from delta import DeltaError
 from delta.body.lbs import batch_rodrigues
@@ -72,7 +72,7 @@ def driven_face(
     Rd = batch_rodrigues(driver_poses[:, j].reshape(-1, 3)).view(len(driver_poses), len(j), 3, 3)
     Rt = batch_rodrigues(target_pose[j])
     R = Rd @ Rd[reference].transpose(-1, -2) @ Rt
-    return rotation_matrix_to_axis_angle(R.reshape(-1, 3, 3)).view(len(driver_poses), len(j), 3)
+    return matrix_to_axis_angle(R.reshape(-1, 3, 3)).view(len(driver_poses), len(j), 3)
 
 
 @contextlib.contextmanager

@@ -28,6 +28,7 @@ from delta.applications.settings import ShowSettings
 from delta.applications.show import show_edit
 from delta.export.meshes import body_mesh, write_mesh
 from delta.io import require_files, save_json
+from delta.optim import Adam
 from delta.synthetic.spec import edit_amount
 from delta.training.run import load_trained
 
@@ -47,7 +48,7 @@ def estimate_phenotype(space, anny_model, betas: torch.Tensor, steps: int = 150)
     """(P,) the phenotype in (0, 1) whose β is nearest ``betas`` (S,) (Adam on the logits, from 0.5 each)."""
     target = betas.detach().double()
     logits = torch.zeros(len(space.phenotype_labels), dtype=torch.float64, requires_grad=True)
-    opt = torch.optim.Adam([logits], lr=0.1)
+    opt = Adam([logits], lr=0.1)
     for _ in range(steps):
         opt.zero_grad()
         loss = (phenotype_betas_of(space, anny_model, torch.sigmoid(logits), len(target)) - target).square().sum()

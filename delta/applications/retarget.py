@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from kornia.geometry.conversions import rotation_matrix_to_axis_angle
+from delta.body.rotations import matrix_to_axis_angle
 
 from delta import DeltaError
 from delta.body.lbs import batch_rodrigues
@@ -150,4 +150,4 @@ def retarget_smpl_family(poses: np.ndarray, family: str, joint_names: list[str],
     local = Gt.clone()
     nonroot = par >= 0
     local[:, nonroot] = Gt[:, par[nonroot]].transpose(-1, -2) @ Gt[:, nonroot]
-    return rotation_matrix_to_axis_angle(local.reshape(-1, 3, 3)).reshape(F, J, 3).numpy()
+    return matrix_to_axis_angle(local.reshape(-1, 3, 3)).reshape(F, J, 3).numpy()

@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 
 import torch
-from kornia.geometry.conversions import rotation_matrix_to_axis_angle
+from delta.body.rotations import matrix_to_axis_angle
 
 from delta import losses as L
 from delta.body.lbs import rigid_transforms, shaped_joints
@@ -19,6 +19,7 @@ from delta.data.frames import FrameData, box_rays, sample_rays
 from delta.metrics import iou, psnr
 from delta.models.avatar import HybridAvatar
 from delta.models.image import render_image
+from delta.optim import Adam
 
 
 PROBE_RAYS = 4096
@@ -85,7 +86,7 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
     frozen = {p: p.requires_grad for p in model.parameters()}
     for p in model.parameters():
         p.requires_grad_(any(p is q for q in params))
-    opt = torch.optim.Adam(params, lr=lr)
+    opt = Adam(params, lr=lr)
     rates = refine_rates(lr, lr_end, steps)
     g = torch.Generator().manual_seed(seed)
     losses: list[float] = []
@@ -156,7 +157,7 @@ def choose_sides(model: HybridAvatar, data: FrameData, frame: int, seed: int,
         best = None
         for pattern, local in other_sides(rot, joints, model.body.parents, transl, camera, chain):
             for j, r in local.items():
-                model.poses[frame, j] = rotation_matrix_to_axis_angle(r[None])[0].to(given)
+                model.poses[frame, j] = matrix_to_axis_angle(r[None])[0].to(given)
             tried = float(_loss(model, frame, batch, seed))
             if tried < (1 - margin) * loss and (best is None or tried < best[0]):
                 best = (tried, pattern, model.poses[frame].clone())

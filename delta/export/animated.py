@@ -25,7 +25,7 @@ import struct
 
 import numpy as np
 import torch
-from kornia.geometry.conversions import rotation_matrix_to_quaternion
+from delta.body.rotations import matrix_to_quaternion
 
 from delta.body.upright import Upright, rotation_between
 from delta.io import atomic_path
@@ -66,8 +66,8 @@ def world_transform(upright: Upright, root_start: np.ndarray, sole: float = 0.0)
 def quaternions(rotations: np.ndarray) -> np.ndarray:
     """(F, J, 3, 3) rotations -> (F, J, 4) unit quaternions (x, y, z, w), each joint's sign kept continuous
     over the frames (a key and its negation are the same rotation, but not to an interpolator)."""
-    q = rotation_matrix_to_quaternion(torch.from_numpy(np.ascontiguousarray(rotations, dtype=np.float64)))
-    q = q.numpy()[..., [1, 2, 3, 0]]  # kornia's (w, x, y, z)
+    q = matrix_to_quaternion(torch.from_numpy(np.ascontiguousarray(rotations, dtype=np.float64)))
+    q = q.numpy()[..., [1, 2, 3, 0]]  # (w, x, y, z) -> glTF's (x, y, z, w)
     # each key takes the sign nearer the previous key's (as flipped): the running product of the signs
     steps = np.where((q[1:] * q[:-1]).sum(-1) < 0, -1.0, 1.0)
     signs = np.concatenate([np.ones((1,) + q.shape[1:-1]), np.cumprod(steps, 0)])

@@ -10,7 +10,7 @@ from typing import Iterable, Iterator
 import cv2
 import numpy as np
 import torch
-from kornia.geometry.conversions import axis_angle_to_rotation_matrix, rotation_matrix_to_axis_angle
+from delta.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
 from delta.body.upright import Upright, axis_angle_matrix, estimate_upright, level_rotation
 from delta.cameras.models import camera_vertical
@@ -31,8 +31,8 @@ def moved_params(root_pose: torch.Tensor, transl: torch.Tensor, root_joint: torc
     so R0' = A R0 and t' = A (J0 + t - c) + c - J0 (J0: the shaped rest root joint).
     """
     A = rotation.to(root_pose)
-    R0 = axis_angle_to_rotation_matrix(root_pose[None])[0]
-    new_root = rotation_matrix_to_axis_angle((A @ R0)[None])[0]
+    R0 = axis_angle_to_matrix(root_pose[None])[0]
+    new_root = matrix_to_axis_angle((A @ R0)[None])[0]
     return new_root, A @ (root_joint + transl - centre) + centre - root_joint
 
 
@@ -83,8 +83,8 @@ def baked_trajectory(model: HybridAvatar, frame: int) -> Iterator[None]:
     try:
         with torch.no_grad():
             turn, shift = traj(frame)
-            R = axis_angle_to_rotation_matrix(turn[None])[0] @ axis_angle_to_rotation_matrix(model.poses[frame, :1])[0]
-            model.poses.data[frame, 0] = rotation_matrix_to_axis_angle(R[None])[0]
+            R = axis_angle_to_matrix(turn[None])[0] @ axis_angle_to_matrix(model.poses[frame, :1])[0]
+            model.poses.data[frame, 0] = matrix_to_axis_angle(R[None])[0]
             if model.pinhole:
                 model.transl.data[frame] += shift
             else:

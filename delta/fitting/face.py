@@ -39,6 +39,7 @@ from delta.body.model import BodyModel
 from delta.cameras.models import OrthographicCamera
 from delta.fitting.start import interpolate
 from delta.fitting.terms import gmof
+from delta.optim import Adam
 
 log = logging.getLogger(__name__)
 
@@ -187,7 +188,7 @@ def fit_face(
 
     def optimise(iterations: int, rigid: int) -> None:
         # metres move pixels ~10x more than radians and activations: smaller steps for the translation
-        opt = torch.optim.Adam([{"params": [expression, head, shape], "lr": cfg.lr},
+        opt = Adam([{"params": [expression, head, shape], "lr": cfg.lr},
                                 {"params": [place], "lr": cfg.lr / 10}])  # fmt: skip
         for it in range(iterations):
             # first the face's placement, size and turn with a neutral face and a wide robust scale (a body

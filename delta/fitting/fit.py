@@ -19,7 +19,7 @@ import dataclasses
 import math
 
 import torch
-from kornia.geometry.conversions import rotation_matrix_to_axis_angle
+from delta.body.rotations import matrix_to_axis_angle
 
 from delta.body.keypoints import KeypointMap
 from delta.body.lbs import batch_rodrigues, rigid_transforms, skin
@@ -31,6 +31,7 @@ from delta.fitting.limits import forward_directions, joint_limits
 from delta.fitting.settings import FitConfig
 from delta.fitting.visibility import LIMB_ENDS, SEEN, hidden_seen
 from delta.fitting.start import FACE, TORSO, facing_orientation, init_ortho_scale, init_translation, interpolate
+from delta.optim import Adam
 from delta.progress import Progress
 
 
@@ -279,7 +280,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
         params = [transl] * pinhole + cam_params + [pose] + [betas] * (stage > 1)
         # steps scale with the body's distance: what moves a far body a little throws a close-up's face off
         scale = distance_scale(camera, points(betas, pose, transl)[0]) if pinhole else 1.0
-        opt = torch.optim.Adam(params, lr=cfg.lr * scale)
+        opt = Adam(params, lr=cfg.lr * scale)
         for step in range(steps):
             if i == len(todo) - 1 and step in sweep_at:
                 swapped, refitted = _keep_cheapest(frame_cost, rows, sources, pose, transl, cam_params, pinhole,
@@ -368,16 +369,17 @@ def _keep_cheapest(frame_cost, rows: torch.Tensor, sources: torch.Tensor, pose: 
         tr = transl.detach()[rows].clone().requires_grad_()
         cams = [c.detach()[rows].clone().requires_grad_() for c in cam_params]
         params = [tr] * pinhole + cams + [P]
-        opt = torch.optim.Adam(params, lr=lr)
+        opt = Adam(params, lr=lr)
         # from the stage's rate down to a tenth of it: every copy settles before the costs are compared
-        fall = torch.optim.lr_scheduler.ExponentialLR(opt, 0.1 ** (1 / max(steps - 1, 1)))
+        fall = 0.1 ** (1 / max(steps - 1, 1))
         for _ in range(steps):
             opt.zero_grad()
             frame_cost(P, tr, cams, rows, stage).sum().backward()
             for p in params:
                 torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
             opt.step()
-            fall.step()
+            for group in opt.param_groups:
+                group["lr"] *= fall
     cost = frame_cost(P, tr, cams, rows, stage).nan_to_num(torch.inf)
     own = rows == sources
     own_cost = torch.full((pose.shape[0],), torch.inf, dtype=cost.dtype)
@@ -433,13 +435,13 @@ def _best_heading(
     yaw = torch.arange(H, dtype=torch.float64) * (2 * math.pi / H)
     turn = batch_rodrigues(torch.stack([torch.zeros_like(yaw), yaw, torch.zeros_like(yaw)], -1))  # (H, 3, 3)
     rot = batch_rodrigues(pose[:, 0])[:, None] @ turn[None]  # (F, H, 3, 3): turned about the body's own up axis
-    root = rotation_matrix_to_axis_angle(rot.reshape(F * H, 3, 3)).requires_grad_()
+    root = matrix_to_axis_angle(rot.reshape(F * H, 3, 3)).requires_grad_()
     rest = torch.zeros(F * H, pose.shape[1] - 1, 3, dtype=torch.float64)
     tr, cams = _copies(transl, H), [_copies(c, H) for c in cam_params]
     det = detected.repeat_interleave(H, 0)
     torso = det * _torso_mask(det)
     params = [root] + [tr] * pinhole + cams
-    opt = torch.optim.Adam(params, lr=cfg.lr)
+    opt = Adam(params, lr=cfg.lr)
     for _ in range(cfg.iterations[0]):
         opt.zero_grad()
         kp = kp_model(betas, torch.cat([root[:, None], rest], 1), tr)
@@ -520,7 +522,7 @@ def _limbs_by_visibility(points: PosedPoints, seen_by: tuple, pinhole: bool, det
     mesh_points, faces, camera = seen_by
     scale = distance_scale(camera, points(betas, pose, transl)[0]) if pinhole else 1.0
     params = [tr] * pinhole + cams + [P]
-    opt = torch.optim.Adam(params, lr=cfg.lr * scale)
+    opt = Adam(params, lr=cfg.lr * scale)
 
     def cost() -> torch.Tensor:
         kp2d = _project(camera, pinhole, cams, points(betas, P, tr)[0])

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from kornia.geometry.conversions import rotation_matrix_to_axis_angle
+from delta.body.rotations import matrix_to_axis_angle
 
 from delta.body.keypoints import OPENPOSE18
 from delta.cameras.models import PinholeCamera
@@ -20,7 +20,7 @@ def facing_orientation(camera) -> torch.Tensor:
     """Axis-angle of a body standing upright and facing the camera."""
     if isinstance(camera, PinholeCamera):
         flip = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=torch.float64))
-        return rotation_matrix_to_axis_angle((camera.R.T.to(torch.float64) @ flip)[None])[0]
+        return matrix_to_axis_angle((camera.R.T.to(torch.float64) @ flip)[None])[0]
     return torch.zeros(3, dtype=torch.float64)
 
 

@@ -13,6 +13,7 @@ import hashlib
 import json
 import logging
 import os
+import sys
 import time
 from pathlib import Path
 from typing import Callable, Optional
@@ -28,6 +29,7 @@ from delta.data.frames import FrameData, RayBatch, sample_rays
 from delta.io import atomic_path, load_state
 from delta.models.avatar import HybridAvatar
 from delta.models.image import render_image
+from delta.optim import Adam
 from delta.progress import Progress
 from delta.training.presets import StageSettings, TrainSettings, find_plateau, stage_view
 
@@ -175,11 +177,20 @@ def reproducible(device: torch.device):
         yield
         return
     before, warn = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
-    torch.use_deterministic_algorithms(True)
+    _deterministic(True)
     try:
         yield
     finally:
-        torch.use_deterministic_algorithms(before, warn_only=warn)
+        _deterministic(before, warn_only=warn)
+
+
+def _deterministic(mode: bool, warn_only: bool = False) -> None:
+    """``torch.use_deterministic_algorithms``, without importing the compiler it also configures (~2 s a
+    process, for a flag that matters only to compiled code) unless something has imported it already."""
+    if "torch._inductor.config" in sys.modules:
+        torch.use_deterministic_algorithms(mode, warn_only=warn_only)
+    else:
+        torch._C._set_deterministic_algorithms(mode, warn_only=warn_only)
 
 
 def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSettings, out_dir: Path,
@@ -217,7 +228,7 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
     out_dir.mkdir(parents=True, exist_ok=True)
     device = model.background.device
     generator = torch.Generator().manual_seed(st.seed * 1000 + stage)
-    optimizer = torch.optim.Adam(model.param_groups(cfg.lr), eps=1e-12, foreach=True)
+    optimizer = Adam(model.param_groups(cfg.lr), eps=1e-12)
     base_lr = [g["lr"] for g in optimizer.param_groups]  # before a resume loads the decayed ones
     start, rows = 0, []
     ckpt = out_dir / CHECKPOINT

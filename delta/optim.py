@@ -1,0 +1,110 @@
+"""Adam, the optimiser of every fit, training stage and refinement, without ``torch.optim``.
+
+``torch.optim``'s first ``step()`` imports ``torch._dynamo`` (its compile-time hooks), about 2 s on two
+cores, paid by every ``delta`` process that optimises anything, one process per workflow job. This is
+the same algorithm with the same arithmetic, in the same order (``torch.optim.Adam`` without weight decay,
+AMSGrad or maximisation: its results are matched bit for bit in the tests), and the same ``state_dict``
+layout, so a checkpoint written by either resumes in the other.
+
+Parameter groups are dicts as ``torch.optim``'s: ``params`` and ``lr``, any other key (a ``name``) kept;
+a group's ``lr`` may be changed between steps. A parameter without a gradient is skipped, as there.
+"""
+
+from __future__ import annotations
+
+from typing import Iterable, Union
+
+import torch
+
+ParamsOrGroups = Union[Iterable[torch.Tensor], Iterable[dict]]
+#: The rest of a ``torch.optim.Adam`` group's settings, as this update has them (its state loads there).
+TORCH_GROUP = {"weight_decay": 0.0, "amsgrad": False, "maximize": False, "foreach": None, "capturable": False,
+               "differentiable": False, "fused": None, "decoupled_weight_decay": False}  # fmt: skip
+
+
+class Adam:
+    """Adam (Kingma & Ba) with bias correction: ``torch.optim.Adam(params, lr, betas, eps)``'s update."""
+
+    def __init__(self, params: ParamsOrGroups, lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999),
+                 eps: float = 1e-8):  # fmt: skip
+        items = list(params)
+        if not items:
+            raise ValueError("Adam: no parameters to optimise")
+        groups = items if isinstance(items[0], dict) else [{"params": items}]
+        self.defaults = {"lr": lr, "betas": tuple(betas), "eps": eps}
+        self.param_groups: list[dict] = []
+        for g in groups:
+            group = {**self.defaults, **g, "params": list(g["params"])}
+            if any(not p.is_leaf for p in group["params"]):
+                raise ValueError("Adam: can only optimise leaf tensors")
+            self.param_groups.append(group)
+        self.state: dict[torch.Tensor, dict] = {}
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        for group in self.param_groups:
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                if set_to_none:
+                    p.grad = None
+                else:
+                    p.grad.detach_().zero_()
+
+    @torch.no_grad()
+    def step(self) -> None:
+        for group in self.param_groups:
+            beta1, beta2 = group["betas"]
+            lr, eps = group["lr"], group["eps"]
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                grad = p.grad
+                state = self.state.get(p)
+                if state is None:
+                    state = self.state[p] = {
+                        "step": torch.tensor(0.0),
+                        "exp_avg": torch.zeros_like(p, memory_format=torch.preserve_format),
+                        "exp_avg_sq": torch.zeros_like(p, memory_format=torch.preserve_format),
+                    }
+                state["step"] += 1
+                step = state["step"].item()
+                state["exp_avg"].lerp_(grad, 1 - beta1)
+                state["exp_avg_sq"].mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+                step_size = lr / (1 - beta1**step)
+                denom = (state["exp_avg_sq"].sqrt() / (1 - beta2**step) ** 0.5).add_(eps)
+                p.addcdiv_(state["exp_avg"], denom, value=-step_size)
+
+    def state_dict(self) -> dict:
+        """``torch.optim``'s layout: parameters numbered in group order, state keyed by those numbers."""
+        index: dict[int, int] = {}
+        groups = []
+        for group in self.param_groups:
+            ids = [index.setdefault(id(p), len(index)) for p in group["params"]]
+            groups.append({**TORCH_GROUP, **{k: v for k, v in group.items() if k != "params"}, "params": ids})
+        state = {index[id(p)]: dict(s) for p, s in self.state.items()}
+        return {"state": state, "param_groups": groups}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        """Takes a state of this optimiser or of ``torch.optim.Adam`` over the same groups of parameters."""
+        saved = state_dict["param_groups"]
+        if len(saved) != len(self.param_groups) or any(
+            len(s["params"]) != len(g["params"]) for s, g in zip(saved, self.param_groups)
+        ):
+            raise ValueError("Adam: the saved state has other groups of parameters than this optimiser")
+        for s in saved:
+            other = {k: s[k] for k in TORCH_GROUP if k in s and s[k] and k not in ("foreach", "fused")}
+            if other:
+                raise ValueError(f"Adam: the saved state was stepped with {other}, which this update does not do")
+        params = {}
+        for s, g in zip(saved, self.param_groups):
+            params.update(zip(s["params"], g["params"]))
+            g.update({k: v for k, v in s.items() if k in ("lr", "betas", "eps")})
+            g["betas"] = tuple(g["betas"])
+        self.state = {}
+        for key, s in state_dict["state"].items():
+            p = params[int(key)]
+            self.state[p] = {
+                "step": torch.as_tensor(s["step"], dtype=torch.float32).cpu().clone(),
+                "exp_avg": s["exp_avg"].to(device=p.device, dtype=p.dtype).clone(),
+                "exp_avg_sq": s["exp_avg_sq"].to(device=p.device, dtype=p.dtype).clone(),
+            }
