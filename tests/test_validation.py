@@ -60,6 +60,13 @@ def video(path: Path, frames: int, size: int = 32) -> Path:
     ({"applications": {"exteriors": {"e": "synthetic/tight:hair"}}}, "which is trained as one NeRF: set training.subjects.tight.layers: split"),
     ({"applications": {"shapes": {"s": {"weight": "0.3"}}}}, "'applications.shapes.s.weight'"),
     ({"applications": {"shapes": {"s": {"wieght": 0.3}}}}, "applications.shapes.s"),
+    ({"datasets": {"synthetic": {"subjects": {"x": {"garments": ["cape"]}}}}},
+     "datasets.synthetic.subjects.x.garments[0]: unknown garment 'cape'"),
+    ({"datasets": {"clips": {"root": "videos", "subjects": {"a": {}}}}}, "'datasets.clips.kind' is required"),
+    ({"preprocess": {"matting": {"model": "rvm", "path": "nowhere/rvm.onnx"}}},
+     "'preprocess.matting.path': ONNX model not found: " + str(REPO / "nowhere/rvm.onnx")),
+    ({"fitting": {"subjects": {"tight": {"exterior_fil": 0.1}}}}, "fitting (subject 'tight'): unknown key 'exterior_fil'"),
+    ({"fitting": {"settings": {"iterations": [10, 10]}}}, "'iterations' must be three step counts >= 0, got [10, 10]"),
 ])  # fmt: skip
 def test_each_mistake_is_named(cfg, expected):
     cfg = {"datasets": SYN, **cfg} if "datasets" not in cfg else cfg

@@ -278,17 +278,12 @@ def test_model_steps_run_only_where_the_dataset_ships_nothing(tmp_path, anny_mod
     "config_text,messages",
     [
         ("body_model:\n  name: smplx\n", ["SMPLX_NEUTRAL.npz", "body_model.smplx_path"]),
-        ("datasets:\n  synthetic:\n    subjects:\n      x: {garments: [cape]}\n",
-         ["datasets.synthetic.subjects.x.garments[0]: unknown garment 'cape'"]),
-        ("datasets:\n  clips:\n    root: videos\n    subjects: {a: {}}\n",
-         ["'datasets.clips.kind' is required"]),
-        ("preprocess:\n  matting: {model: rvm, path: nowhere/rvm.onnx}\n", ["preprocess.matting.path", "nowhere/rvm.onnx"]),
-        ("fitting:\n  subjects: {loose: {exterior_fil: 0.1}}\n", ["fitting (subject 'loose')", "unknown key 'exterior_fil'"]),
-        ("fitting:\n  settings: {iterations: [10, 10]}\n", ["'iterations' must be three step counts"]),
         ("fitting:\n  subjects: {lose: {}}\n", ["'fitting.subjects.lose': not a configured subject"]),
     ],
 )  # fmt: skip
 def test_config_problems_are_explained_at_dag_construction(tmp_path, config_text, messages):
+    """The Snakefile runs the one validation before it builds the DAG (a file-level and a cross-key problem
+    here; every other mistake has its message checked in-process by tests/test_validation.py)."""
     work = workflow_copy(tmp_path)
     (work / "c.yaml").write_text(config_text)
     res = snakemake(work, "--configfile", "c.yaml", "--dry-run")
