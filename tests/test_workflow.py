@@ -34,7 +34,10 @@ def workflow_copy(tmp_path: Path) -> Path:
 
 
 def snakemake(workdir: Path, *args: str) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", *args]
+    """Snakemake on two cores, a job one thread: the tiny jobs gain nothing from a second, and beside the
+    other pytest worker a two-thread job's OpenMP threads spin waiting for each other (a tiny training job
+    took 36 CPU-s in the suite against 13 alone)."""
+    cmd = [sys.executable, "-m", "snakemake", "--cores", "2", "--max-threads", "1", *args]
     return subprocess.run(cmd, cwd=workdir, capture_output=True, text=True, timeout=900)
 
 
