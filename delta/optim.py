@@ -52,27 +52,37 @@ class Adam:
 
     @torch.no_grad()
     def step(self) -> None:
+        """One update of every parameter that has a gradient, a group's tensors at once (``torch._foreach_*``:
+        a few kernels a group rather than a few a tensor, as ``torch.optim.Adam(foreach=True)``)."""
         for group in self.param_groups:
             beta1, beta2 = group["betas"]
             lr, eps = group["lr"], group["eps"]
-            for p in group["params"]:
-                if p.grad is None:
-                    continue
-                grad = p.grad
-                state = self.state.get(p)
-                if state is None:
-                    state = self.state[p] = {
-                        "step": torch.tensor(0.0),
-                        "exp_avg": torch.zeros_like(p, memory_format=torch.preserve_format),
-                        "exp_avg_sq": torch.zeros_like(p, memory_format=torch.preserve_format),
-                    }
-                state["step"] += 1
-                step = state["step"].item()
-                state["exp_avg"].lerp_(grad, 1 - beta1)
-                state["exp_avg_sq"].mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-                step_size = lr / (1 - beta1**step)
-                denom = (state["exp_avg_sq"].sqrt() / (1 - beta2**step) ** 0.5).add_(eps)
-                p.addcdiv_(state["exp_avg"], denom, value=-step_size)
+            params = [p for p in group["params"] if p.grad is not None]
+            if not params:
+                continue
+            states = [self.state.get(p) or self._new_state(p) for p in params]
+            grads = [p.grad for p in params]
+            exp_avgs, exp_avg_sqs = [s["exp_avg"] for s in states], [s["exp_avg_sq"] for s in states]
+            steps = []
+            for s in states:
+                s["step"] += 1
+                steps.append(s["step"].item())
+            torch._foreach_lerp_(exp_avgs, grads, 1 - beta1)
+            torch._foreach_mul_(exp_avg_sqs, beta2)
+            torch._foreach_addcmul_(exp_avg_sqs, grads, grads, 1 - beta2)
+            step_size = [-(lr / (1 - beta1**t)) for t in steps]
+            denom = torch._foreach_sqrt(exp_avg_sqs)
+            torch._foreach_div_(denom, [(1 - beta2**t) ** 0.5 for t in steps])
+            torch._foreach_add_(denom, eps)
+            torch._foreach_addcdiv_(params, exp_avgs, denom, step_size)
+
+    def _new_state(self, p: torch.Tensor) -> dict:
+        state = self.state[p] = {
+            "step": torch.tensor(0.0),
+            "exp_avg": torch.zeros_like(p, memory_format=torch.preserve_format),
+            "exp_avg_sq": torch.zeros_like(p, memory_format=torch.preserve_format),
+        }
+        return state
 
     def state_dict(self) -> dict:
         """``torch.optim``'s layout: parameters numbered in group order, state keyed by those numbers."""

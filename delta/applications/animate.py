@@ -20,12 +20,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from delta.body.rotations import matrix_to_axis_angle
 
 from delta import DeltaError
 from delta.applications.motion import Motion, read_motion, resample
 from delta.applications.settings import AnimateSettings
 from delta.body.lbs import batch_rodrigues, posed_joints
+from delta.body.rotations import matrix_to_axis_angle
 from delta.body.upright import (
     Upright,
     axis_angle_matrix,

@@ -25,10 +25,10 @@ from typing import Iterator, Sequence
 
 import numpy as np
 import torch
-from delta.body.rotations import matrix_to_axis_angle
 
 from delta import DeltaError
 from delta.body.lbs import batch_rodrigues
+from delta.body.rotations import matrix_to_axis_angle
 from delta.data.frames import load_full_frames
 from delta.export.video import posed_as, to_bgr, write_video
 from delta.io import require_files, save_json

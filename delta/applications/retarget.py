@@ -25,10 +25,10 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from delta.body.rotations import matrix_to_axis_angle
 
 from delta import DeltaError
 from delta.body.lbs import batch_rodrigues
+from delta.body.rotations import matrix_to_axis_angle
 
 #: SMPL's 22 body joints, shared by SMPL, SMPL+H and SMPL-X, and their parents.
 SMPL_BODY = ("pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2", "left_ankle",

@@ -11,9 +11,9 @@ import functools
 from typing import Optional
 
 import torch
-from delta.body.rotations import axis_angle_to_matrix
 
 from delta.body.model import BodyModel
+from delta.body.rotations import axis_angle_to_matrix
 
 
 @dataclasses.dataclass
@@ -49,8 +49,7 @@ def blend_shapes(coeffs: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
 
 def batch_rodrigues(axis_angle: torch.Tensor) -> torch.Tensor:
     """Axis-angle (..., 3) -> rotation matrices (..., 3, 3); finite gradients at 0 and beyond π."""
-    shape = axis_angle.shape[:-1]
-    return axis_angle_to_matrix(axis_angle.reshape(-1, 3)).reshape(*shape, 3, 3)
+    return axis_angle_to_matrix(axis_angle)
 
 
 def pose_features(rotmats: torch.Tensor) -> torch.Tensor:

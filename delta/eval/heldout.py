@@ -10,10 +10,10 @@ from __future__ import annotations
 import dataclasses
 
 import torch
-from delta.body.rotations import matrix_to_axis_angle
 
 from delta import losses as L
 from delta.body.lbs import rigid_transforms, shaped_joints
+from delta.body.rotations import matrix_to_axis_angle
 from delta.body.sides import limbs, other_sides
 from delta.data.frames import FrameData, box_rays, sample_rays
 from delta.metrics import iou, psnr

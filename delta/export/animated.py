@@ -25,8 +25,8 @@ import struct
 
 import numpy as np
 import torch
-from delta.body.rotations import matrix_to_quaternion
 
+from delta.body.rotations import matrix_to_quaternion
 from delta.body.upright import Upright, rotation_between
 from delta.io import atomic_path
 

@@ -10,8 +10,8 @@ from typing import Iterable, Iterator
 import cv2
 import numpy as np
 import torch
-from delta.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 
+from delta.body.rotations import axis_angle_to_matrix, matrix_to_axis_angle
 from delta.body.upright import Upright, axis_angle_matrix, estimate_upright, level_rotation
 from delta.cameras.models import camera_vertical
 from delta.io import atomic_path

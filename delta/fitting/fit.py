@@ -19,11 +19,11 @@ import dataclasses
 import math
 
 import torch
-from delta.body.rotations import matrix_to_axis_angle
 
 from delta.body.keypoints import KeypointMap
 from delta.body.lbs import batch_rodrigues, rigid_transforms, skin
 from delta.body.model import BodyModel
+from delta.body.rotations import matrix_to_axis_angle
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.fitting import silhouette as sil
 from delta.fitting import terms

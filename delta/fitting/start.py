@@ -7,9 +7,9 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from delta.body.rotations import matrix_to_axis_angle
 
 from delta.body.keypoints import OPENPOSE18
+from delta.body.rotations import matrix_to_axis_angle
 from delta.cameras.models import PinholeCamera
 
 TORSO = tuple(OPENPOSE18.index(n) for n in ("neck", "right_shoulder", "left_shoulder", "right_hip", "left_hip"))
