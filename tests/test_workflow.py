@@ -18,7 +18,7 @@ from delta.eval.runtime import evaluation_minutes, read_job, videos_minutes
 from delta.eval.settings import EvalSettings
 from delta.export.settings import ExportSettings
 from delta.settings import from_mapping
-from tests.conftest import ANNY_CACHE
+from tests.conftest import ANNY_CACHE, MODELS_DIR
 
 REPO = Path(__file__).resolve().parents[1]
 STANDIN = "standin-male-3-casual"
@@ -47,35 +47,71 @@ def test_lint_is_clean():
     assert "Congratulations" in res.stdout + res.stderr
 
 
-@pytest.mark.slow
-def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_model):
-    work = workflow_copy(tmp_path)
-    # one synthetic subject (orthographic, a dress) and one People Snapshot subject (its stand-in: pinhole with
-    # lens distortion, the dataset's adapter and the ONNX steps); configs merge: the main config lists them all,
-    # and the other synthetic captures have tests of their own
+def tiny_workflow(work: Path, applications: dict) -> tuple[dict, dict]:
+    """The end-to-end run's configuration written into ``work``: one synthetic subject (orthographic, a dress)
+    and one People Snapshot subject (its stand-in: pinhole with lens distortion, the dataset's adapter and the
+    ONNX steps), with ``applications``; configs merge: the main config lists them all, and the other
+    synthetic captures have tests of their own. Returns (main config, CI config)."""
     main = yaml.safe_load((work / "config/config.yaml").read_text())
     main["datasets"]["peoplesnapshot"]["subjects"] = {"male-3-casual": {}}
     for name in ("upper", "tight"):
         del main["datasets"]["synthetic"]["subjects"][name]
-    # the stand-in's avatar driven by the synthetic subject's fitted motion and wearing its dress and hair
-    # (across datasets, by the real name); the synthetic avatar made heavier
-    main["applications"] = {"motions": {"loose-motion": "synthetic/loose"},
-                            "animate": {"avatars": {"peoplesnapshot/male-3-casual": ["loose-motion"]},
-                                        "settings": {"max_frames": 3, "meshes": True}},
-                            "exteriors": {"loose-dress": "synthetic/loose"},
-                            "dress": {"avatars": {"peoplesnapshot/male-3-casual": ["loose-dress"]},
-                                      "settings": {"turntable_frames": 2}},
-                            "tryon": {"avatars": {"peoplesnapshot/male-3-casual": ["loose-dress"]},
-                                      "settings": {"turntable_frames": 2}},
-                            "shapes": {"heavier": {"weight": 0.8}},
-                            "reshape": {"avatars": {"synthetic/loose": ["heavier"]}, "settings": {"turntable_frames": 2}}}  # fmt: skip
+    main["applications"] = applications
     (work / "config/config.yaml").write_text(yaml.safe_dump(main))
     cfg = yaml.safe_load((work / ".test/config/config.yaml").read_text())
     for name in ("upper", "tight"):
         del cfg["datasets"]["synthetic"]["subjects"][name]
     cfg["body_model"]["anny"]["cache_dir"] = str(ANNY_CACHE)  # reuse the session's Anny build
-    cfg["preprocess"]["models_dir"] = str(mediapipe_pose_model.parent.parent)  # and its converted models
+    cfg["preprocess"]["models_dir"] = str(MODELS_DIR)  # and its converted models
     (work / ".test/config/ci.yaml").write_text(yaml.safe_dump(cfg))
+    return main, cfg
+
+
+#: every application, across datasets by the real name: the stand-in's avatar in the synthetic subject's
+#: fitted motion, wearing its dress (worn, and tried on a photo); the synthetic avatar made heavier
+ALL_APPLICATIONS = {"motions": {"loose-motion": "synthetic/loose"},
+                    "animate": {"avatars": {"peoplesnapshot/male-3-casual": ["loose-motion"]},
+                                "settings": {"max_frames": 3, "meshes": True}},
+                    "exteriors": {"loose-dress": "synthetic/loose"},
+                    "dress": {"avatars": {"peoplesnapshot/male-3-casual": ["loose-dress"]},
+                              "settings": {"turntable_frames": 2}},
+                    "tryon": {"avatars": {"peoplesnapshot/male-3-casual": ["loose-dress"]},
+                              "settings": {"turntable_frames": 2}},
+                    "shapes": {"heavier": {"weight": 0.8}},
+                    "reshape": {"avatars": {"synthetic/loose": ["heavier"]}, "settings": {"turntable_frames": 2}}}  # fmt: skip
+
+
+def test_every_jobs_command_is_one_the_command_line_takes(tmp_path):
+    """Each job's shell command, as Snakemake would run it, parses with ``delta``'s own parser: a rule and its
+    subcommand agree on every option, for every rule of the whole run with every application (the end-to-end
+    run executes most of them; dressing and try-on run in-process in tests/applications)."""
+    import shlex
+
+    from delta.cli import build_parser
+
+    work = workflow_copy(tmp_path)
+    tiny_workflow(work, ALL_APPLICATIONS)
+    res = snakemake(work, "--configfile", ".test/config/ci.yaml", "--dry-run", "--printshellcmds")
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    parser, seen = build_parser(), set()
+    for line in re.findall(r"^(?:\s*|Shell command: )(delta [^\n]*)$", res.stdout, re.M):
+        argv = shlex.split(line.split(" > ")[0])[1:]
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit:
+            pytest.fail(f"`delta` does not take the command {line}")
+        seen.add(argv[0])
+        assert args.func is not None
+    assert {"synthesize", "prepare", "fit-init", "analyze-scene", "train", "export", "evaluate", "animate", "dress",
+            "try-on", "reshape", "application-scores", "aggregate"} <= seen, sorted(seen)  # fmt: skip
+
+
+@pytest.mark.slow
+def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_model):
+    work = workflow_copy(tmp_path)
+    # the stand-in's avatar driven by the synthetic subject's fitted motion (across datasets, by the real
+    # name); the synthetic avatar made heavier; dressing and try-on have their commands checked above
+    main, cfg = tiny_workflow(work, {k: v for k, v in ALL_APPLICATIONS.items() if k not in ("dress", "tryon")})
     res = snakemake(work, "--configfile", ".test/config/ci.yaml")
     assert res.returncode == 0, res.stdout[-4000:] + res.stderr[-4000:]
     model = load_body_model(work / "resources/body/anny_sub1.npz")
@@ -184,21 +220,15 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
     video.release()
     assert len(list((animated / "meshes").glob("body_*.ply"))) == 3
     assert (work / "logs/animate" / f"peoplesnapshot_{STANDIN}_loose-motion.log").is_file()
-    tried = work / "results/peoplesnapshot" / STANDIN / "tryon/loose-dress"
-    assert cv2.imread(str(tried / "tryon.png")).shape == (32, 3 * 32, 3)
-    dressed = work / "results/peoplesnapshot" / STANDIN / "dress/loose-dress"
-    assert cv2.imread(str(dressed / "dressed.png")).shape == (32, 3 * 32, 3)
-    assert json.loads((dressed / "dress.json").read_text())["turntable_frames"] == 2
     reshaped = json.loads((work / "results/synthetic/loose/reshape/heavier/reshape.json").read_text())
     assert reshaped["edited"]["weight"] == 0.8 and reshaped["betas_after"] != reshaped["betas_before"]
-    # both scored against what the generator renders for them: the stand-in in the dress, loose made heavier
-    for dataset, subject, application, name in (("peoplesnapshot", STANDIN, "dress", "loose-dress"),
-                                                ("synthetic", "loose", "reshape", "heavier")):  # fmt: skip
-        table = pd.read_csv(work / "results" / dataset / "applications.csv")
-        assert list(table["variant"]) == ["as_trained", "edited", "gain"], dataset
-        assert (table["subject"] == subject).all() and (table["application"] == application).all()
-        assert (table["name"] == name).all() and table.loc[:1, "psnr"].between(5, 60).all()
-        assert table["stlpips_alex"].notna().all()
+    # scored against what the generator renders for it: loose made heavier
+    table = pd.read_csv(work / "results/synthetic/applications.csv")
+    assert list(table["variant"]) == ["as_trained", "edited", "gain"]
+    assert (table["subject"] == "loose").all() and (table["application"] == "reshape").all()
+    assert (table["name"] == "heavier").all() and table.loc[:1, "psnr"].between(5, 60).all()
+    assert table["stlpips_alex"].notna().all()
+    assert not (work / "results/peoplesnapshot/applications.csv").exists()  # nothing there is scored
     synthetic = pd.read_csv(work / "results/synthetic/metrics.csv")
     assert synthetic["train_body_err_mm"].notna().all()  # ground truth: geometry columns
     ps = pd.read_csv(work / "results/peoplesnapshot/metrics.csv")
