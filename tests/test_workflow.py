@@ -111,7 +111,9 @@ def test_tiny_configuration_end_to_end(tmp_path, anny_model, mediapipe_pose_mode
     work = workflow_copy(tmp_path)
     # the stand-in's avatar driven by the synthetic subject's fitted motion (across datasets, by the real
     # name); the synthetic avatar made heavier; dressing and try-on have their commands checked above
-    main, cfg = tiny_workflow(work, {k: v for k, v in ALL_APPLICATIONS.items() if k not in ("dress", "tryon")})
+    main, cfg = tiny_workflow(
+        work, {k: v for k, v in ALL_APPLICATIONS.items() if k not in ("exteriors", "dress", "tryon")}
+    )
     res = snakemake(work, "--configfile", ".test/config/ci.yaml")
     assert res.returncode == 0, res.stdout[-4000:] + res.stderr[-4000:]
     model = load_body_model(work / "resources/body/anny_sub1.npz")

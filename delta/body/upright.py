@@ -19,6 +19,8 @@ import math
 
 import torch
 
+from delta.body.rotations import axis_angle_to_matrix
+
 #: the bodies' up within this angle (degrees) of the camera's vertical: the camera is taken as level
 #: (``benchmarks/upright.csv``: the estimate is 2-7 degrees off for cameras pitched and rolled by up to 30)
 LEVEL_SNAP_DEG = 3.0
@@ -113,12 +115,9 @@ def estimate_upright(root_rotations: torch.Tensor, joints: torch.Tensor, level: 
 
 
 def axis_angle_matrix(axis: torch.Tensor, angle: float | torch.Tensor) -> torch.Tensor:
-    """(3, 3) rotation by ``angle`` radians about the unit (3,) ``axis`` (Rodrigues)."""
+    """(3, 3) rotation by ``angle`` radians about the (3,) ``axis`` (normalised here)."""
     k = axis / axis.norm()
-    K = torch.zeros(3, 3, dtype=k.dtype, device=k.device)
-    K[0, 1], K[0, 2], K[1, 0], K[1, 2], K[2, 0], K[2, 1] = -k[2], k[1], k[2], -k[0], -k[1], k[0]
-    angle = torch.as_tensor(angle, dtype=k.dtype, device=k.device)
-    return torch.eye(3, dtype=k.dtype, device=k.device) + angle.sin() * K + (1 - angle.cos()) * (K @ K)
+    return axis_angle_to_matrix(k * torch.as_tensor(angle, dtype=k.dtype, device=k.device))
 
 
 def _perpendicular(a: torch.Tensor) -> torch.Tensor:
