@@ -84,6 +84,17 @@ class BodyModel:
     def num_expression(self) -> int:
         return 0 if self.exprdirs is None else int(self.exprdirs.shape[-1])
 
+    def subtree(self, name: str) -> torch.Tensor:
+        """(J,) bool: the joint ``name`` and every joint it carries (none where the model has no such joint)."""
+        out = torch.zeros(self.num_joints, dtype=torch.bool)
+        if name not in self.joint_names:
+            return out
+        out[self.joint_names.index(name)] = True
+        for j, parent in enumerate(self.parents.tolist()):
+            if parent >= 0 and out[parent]:  # parents come first
+                out[j] = True
+        return out
+
     # ------------------------------------------------------------ conversion
     def to(self, device: torch.device | str | None = None, dtype: torch.dtype | None = None) -> "BodyModel":
         """A copy with floating tensors moved to ``device`` / cast to ``dtype``."""

@@ -89,3 +89,12 @@ def quaternion_to_axis_angle(q: torch.Tensor) -> torch.Tensor:
 def matrix_to_axis_angle(R: torch.Tensor) -> torch.Tensor:
     """(..., 3, 3) rotation matrices -> (..., 3) axis-angle with angle in [0, π]."""
     return quaternion_to_axis_angle(matrix_to_quaternion(R))
+
+
+def mean_rotation(R: torch.Tensor) -> torch.Tensor:
+    """(N, 3, 3) rotations -> (3, 3): their chordal mean, the rotation nearest (Frobenius) to their
+    arithmetic mean, by its singular value decomposition with the determinant kept at +1."""
+    U, _, Vt = torch.linalg.svd(R.mean(0))
+    flip = torch.ones(3, dtype=R.dtype, device=R.device)
+    flip[2] = torch.det(U @ Vt).sign()
+    return U @ torch.diag(flip) @ Vt

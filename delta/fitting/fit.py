@@ -144,12 +144,16 @@ def _project(camera, pinhole: bool, cam_params: list[torch.Tensor], points: torc
 
 #: optimisation steps between progress lines
 PROGRESS_EVERY = 50
+#: metres of the held root's place that the hold weighs as a radian of a held joint's turn: a still torso's
+#: 9° turn (0.16 rad) costs as much as 1.6 cm of its place
+HELD_PLACE = 0.1
 
 
 def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, cfg: FitConfig = FitConfig(),
         pose_weights: torch.Tensor | None = None, knees: list[int] = (), masks: torch.Tensor | None = None,
         start: FitStart | None = None, exterior: torch.Tensor | None = None,
-        sequence: torch.Tensor | None = None, depth: torch.Tensor | None = None) -> FitResult:  # fmt: skip
+        sequence: torch.Tensor | None = None, depth: torch.Tensor | None = None,
+        held_joints: torch.Tensor | None = None, held_frames: torch.Tensor | None = None) -> FitResult:  # fmt: skip
     """Fit β, θ_f and the camera to (F, 18, 3) keypoint detections and optional (F, H, W) person masks.
 
     ``exterior`` (F, H, W), the part of the person masks that is clothing or hair, gets the
@@ -157,6 +161,10 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
 
     ``sequence`` (F,) labels the sequence each frame belongs to (consecutive frames of different
     labels are not tied by the temporal terms; ``cfg.static_weight`` holds label 0's pose); None: one sequence.
+
+    ``held_joints`` (J,) bool: the joints ``cfg.static_weight`` holds near their mean (default: every joint
+    but the root); with the root among them its place (the translation, in units of :data:`HELD_PLACE`)
+    is held too. ``held_frames`` (F,) bool: the frames held (default: those of label 0).
 
     ``depth`` (F, 18) holds a detector's relative depths of the first 18 keypoints (metres; non-finite:
     none), compared bone by bone with ``cfg.depth_weight``.
@@ -224,7 +232,10 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     sil_w = (~empty).to(torch.float64)
     seq = None if sequence is None else torch.as_tensor(sequence)
     links = None if seq is None else seq[1:] == seq[:-1]
-    held = None if seq is None else seq == 0
+    held = held_frames.to(torch.bool) if held_frames is not None else None if seq is None else seq == 0
+    if held_joints is None:
+        held_joints = torch.arange(J) > 0
+    held_joints = held_joints.to(torch.bool)
 
     every = torch.arange(F)
 
@@ -262,7 +273,10 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
                 accel = accel + sum(terms.acceleration(c, links) for c in cam_params)
                 total = total + cfg.accel_weight * cfg.sigma_px * accel
             if cfg.static_weight > 0:
-                total = total + cfg.static_weight * cfg.sigma_px * terms.static_pose(pose[:, 1:], held)
+                still = terms.static_pose(pose[:, held_joints], held)
+                if held_joints[0]:
+                    still = still + terms.static_pose(transl / HELD_PLACE, held)
+                total = total + cfg.static_weight * cfg.sigma_px * still
         return total
 
     stages = list(enumerate(cfg.iterations))

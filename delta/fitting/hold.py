@@ -10,6 +10,17 @@ arm is raised or a leg lifted. Its spread over the frames (the standard deviatio
 the limbs) is the evidence: 0.04 on the synthetic loose turn, 0.06 on tight, 0.48 on the real dancer
 (`benchmarks/static_hold.csv`).
 
+A close-up of a talking head is the other case: its head turns and nods on shoulders that keep still,
+and the face points the fit follows say where the head points, not which joint turned it. Holding the
+limbs' mean there holds the neck and head, so the fit turns the whole body with the head (the synthetic
+short-haired talker: the root's heading followed the head's turn, correlation 0.95, 9° about its mean,
+where the truth's torso never moves) and a shirt drawn on that torso smears across frames. For a tracked
+face whose neck and shoulder keypoints keep still (:func:`torso_spread`, in shoulder widths: 0.001 on the
+synthetic talkers, 0.49 on the turning full bodies) the hold can keep the torso instead
+(``FitConfig.still_torso`` > 0): the root's turn and place and every joint below the neck, over every
+frame, with the neck and head free. It is off by default: measured on that talker it stills the root but
+leaves the shoulders further from their keypoints (docs/fitting.md).
+
 Shapes: F frames, 18 OpenPose keypoints (u, v, confidence).
 """
 
@@ -20,6 +31,9 @@ import numpy as np
 #: (from, to) OpenPose-18 indices of the limbs measured
 LIMBS = ((2, 4), (5, 7), (2, 3), (5, 6), (8, 10), (11, 13))
 _NECK, _HIPS = 1, (8, 11)
+_SHOULDERS = (2, 5)
+#: the joints a held torso leaves free: the neck's chain and everything it carries (Anny's, SMPL-X's)
+HEAD_CHAIN = ("neck01", "neck")
 MIN_FRAMES = 3
 
 
@@ -46,10 +60,42 @@ def limb_spread(keypoints: np.ndarray, conf: float = 0.5) -> float | None:
     return max(limb_spreads(keypoints, conf).values(), default=None)
 
 
-def hold_decision(keypoints: np.ndarray, held: np.ndarray, threshold: float, weight: float, conf: float = 0.5) -> dict:
+def torso_spread(keypoints: np.ndarray, conf: float = 0.5) -> float | None:
+    """How far the neck and shoulder keypoints move over the frames: the largest standard deviation of
+    their image coordinates, in shoulder widths (the median distance between the shoulders), over the
+    frames that see all three; None for fewer than ``MIN_FRAMES`` such frames."""
+    kp = np.asarray(keypoints, dtype=np.float64)
+    ids = [_NECK, *_SHOULDERS]
+    seen = (kp[:, ids, 2] >= conf).all(1)
+    if seen.sum() < MIN_FRAMES:
+        return None
+    xy = kp[seen][:, ids, :2]
+    width = float(np.median(np.linalg.norm(xy[:, 1] - xy[:, 2], axis=-1)))
+    return float(xy.std(0).max() / width) if width > 1e-6 else None
+
+
+def hold_decision(keypoints: np.ndarray, held: np.ndarray, threshold: float, weight: float, conf: float = 0.5,
+                  face: bool = False, still: float = 0.0) -> dict:  # fmt: skip
     """Whether the fit holds the pose of the ``held`` (F,) frames (``weight`` > 0 and their limbs'
-    spread at most ``threshold``; a capture whose limbs are not seen is held as configured), with the
-    evidence: ``{"hold": bool, "limb_spread": float | None, "threshold": float, "why": str}``."""
+    spread at most ``threshold``; a capture whose limbs are not seen is held as configured), and what it
+    holds, with the evidence: ``{"hold": bool, "holds": "limbs" | "torso", "limb_spread": float | None,
+    "torso_spread": float | None, "threshold": float, "why": str}``. ``holds`` is ``"torso"`` for a tracked
+    ``face`` whose neck and shoulders move by at most ``still`` shoulder widths over every frame
+    (:func:`torso_spread`), or are not seen often enough to tell (a close-up: held as configured): the
+    root's turn and place and the joints below the neck over every frame, the neck and head free; else
+    ``"limbs"``: every joint but the root over the ``held`` frames. ``still`` 0: never the torso."""
+    torso = torso_spread(keypoints, conf) if face else None
+    if weight > 0 and face and still > 0 and (torso is None or torso <= still):
+        why = ("the shoulders are not seen in enough frames: a tracked face's torso held as configured"
+               if torso is None else f"a face on a still torso (neck and shoulders spread {torso:.3f} <= {still:g} "
+               "shoulder widths)")  # fmt: skip
+        return {"hold": True, "holds": "torso", "limb_spread": None, "torso_spread": torso if torso is None else
+                round(torso, 4), "threshold": still, "why": f"{why}: the torso held, the neck and head free"}  # fmt: skip
+    out = _limbs_decision(keypoints, held, threshold, weight, conf)
+    return out | {"torso_spread": None if torso is None else round(torso, 4)}
+
+
+def _limbs_decision(keypoints: np.ndarray, held: np.ndarray, threshold: float, weight: float, conf: float) -> dict:
     spread = limb_spread(np.asarray(keypoints)[np.asarray(held, bool)], conf)
     if weight <= 0:
         hold, why = False, "static_weight is 0"
@@ -59,5 +105,5 @@ def hold_decision(keypoints: np.ndarray, held: np.ndarray, threshold: float, wei
         hold, why = True, f"the limbs keep one pose (spread {spread:.3f} <= {threshold:g} torso lengths)"
     else:
         hold, why = False, f"the limbs move (spread {spread:.3f} > {threshold:g} torso lengths): not held"
-    return {"hold": hold, "limb_spread": None if spread is None else round(spread, 4), "threshold": threshold,
-            "why": why}  # fmt: skip
+    return {"hold": hold, "holds": "limbs", "limb_spread": None if spread is None else round(spread, 4),
+            "threshold": threshold, "why": why}  # fmt: skip

@@ -32,11 +32,18 @@ class FitConfig:
     static_weight: float = 0.0
     """Holds the body pose (every joint but the root) of the capture's own sequence near its mean
     (``terms.static_pose``): for a subject who keeps one pose while turning. A novel-pose sequence
-    (``sequence`` label other than 0) is never held. 0: off (a capture with motion)."""
+    (``sequence`` label other than 0) is never held. A tracked face may hold its torso instead
+    (``still_torso``). 0: off (a capture with motion)."""
     static_spread: float = 0.15
     """The hold applies only where the capture's subject keeps one pose: its limbs' extent along the
     torso varies over the frames by at most this many torso lengths (``delta.fitting.hold``; a dancer
     0.48, a turn in place 0.04-0.06). A large value holds every capture."""
+    still_torso: float = 0.0
+    """A tracked face's torso keeps still where its neck and shoulder keypoints move by at most this many
+    shoulder widths (standard deviation over the frames) or are not seen: the hold then keeps the torso
+    (the root's turn and place, every joint below the neck) and leaves the neck and head free
+    (``delta.fitting.hold``; the synthetic talkers 0.001, a full body turning 0.49). 0: off, the default
+    (measured, not adopted: docs/fitting.md)."""
     min_keypoints: int = MIN_KEYPOINTS
     conf_threshold: float = CONF_THRESHOLD
     sil_weight: float = 300.0

@@ -59,7 +59,7 @@ def test_face_points_move_with_the_crop(talking):
 def test_the_init_fit_tracks_the_face(talking, tmp_path):
     # half the default steps (measured: jaw correlation 0.997 and mean error 0.018 against 0.999 and 0.018)
     summary = fit_run.run(talking["record"], talking["face_body"], tmp_path, overlays=0,
-                          cfg=FitConfig(iterations=(75, 100, 75)))  # fmt: skip
+                          cfg=FitConfig(iterations=(75, 100, 75), static_weight=10.0, still_torso=0.05))  # fmt: skip
     assert summary["flagged"] == 0
     with np.load(tmp_path / "params.npz") as p:
         fitted, names, flags = p["expression"], [str(n) for n in p["expression_names"]], p["face_flags"]
@@ -73,6 +73,10 @@ def test_the_init_fit_tracks_the_face(talking, tmp_path):
     assert np.abs(fitted[:, jaw] - truth[:, jaw]).mean() < 0.05
     report = (tmp_path / "report.csv").read_text().splitlines()[0]
     assert "face_flag" in report and "face_residual_px" in report
+    # the head turns on a torso that never moves: held (still_torso, off by default), the fit keeps the
+    # torso still and turns the neck and head
+    assert summary["static_hold"]["holds"] == "torso"
+    _the_head_turns_not_the_body(tmp_path / "params.npz", talking["root"] / "talker" / "gt" / "params.npz")
     # the evaluation's expression error reads the generator's truth: the tracked face's surface is nearer it
     # than a neutral face's (measured 0.27 against 0.85 mm); its activations are not (0.018 against 0.015:
     # the fit spreads small activations over actions the landmarks cannot tell apart), so only the jaw is held
@@ -87,6 +91,33 @@ def test_the_init_fit_tracks_the_face(talking, tmp_path):
     mean = lambda rows, key: np.mean([e[key] for e in rows])  # noqa: E731
     assert mean(tracked, "expr_err_mm") < 0.5 * mean(neutral, "expr_err_mm")
     assert mean(tracked, "expr_mae") < 0.05
+
+
+def _the_head_turns_not_the_body(fitted_path, truth_path):
+    """The fitted root keeps one heading (the truth's torso is still; before the torso was held it followed
+    the head's turn, 9° about its mean on the 512² talker), and the head's turn relative to the torso
+    follows the truth's."""
+    from scipy.spatial.transform import Rotation
+
+    with np.load(fitted_path) as p, np.load(truth_path) as g:
+        names, ids = [str(n) for n in p["joint_names"]], p["frame_ids"]
+        fitted, truth = p["poses"], g["poses"][ids]
+    assert np.ptp(truth[:, 0], axis=0).max() == 0.0, "the generator's talker keeps its torso still"
+    root = Rotation.from_rotvec(fitted[:, 0])
+    spread = np.degrees((root.inv() * Rotation.from_rotvec(fitted[:, 0].mean(0))).magnitude())
+    assert spread.max() < 2.0
+
+    def head_yaw(poses):
+        chain = [names.index(n) for n in ("neck01", "neck02", "neck03", "head")]
+        turn = Rotation.identity(len(poses))
+        for j in chain:
+            turn = turn * Rotation.from_rotvec(poses[:, j])
+        return turn.as_euler("YXZ", degrees=True)[:, 0]
+
+    yaw_fit, yaw_true = head_yaw(fitted), head_yaw(truth)
+    assert np.ptp(yaw_true) > 20  # the talk turns the head
+    assert np.corrcoef(yaw_fit, yaw_true)[0, 1] > 0.95
+    assert np.abs(yaw_fit - yaw_true).max() < 5.0
 
 
 def test_a_body_model_without_expressions_is_named(talking, tmp_path):

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from delta.fitting.hold import hold_decision, limb_spread
+from delta.fitting.hold import hold_decision, limb_spread, torso_spread
 
 # a standing body's OpenPose-18 joints in metres (x right, y up, z toward the camera), arms in an A-pose
 BODY = {
@@ -67,3 +67,69 @@ def test_a_capture_without_limbs_and_torso_is_held_as_configured():
     assert decision["hold"] and decision["limb_spread"] is None and "held as configured" in decision["why"]
     kp = _project(_turn(2))  # too few frames to tell
     assert limb_spread(kp) is None
+
+
+def _head_turns(frames: int, shoulders_turn: bool, degrees: float = 30.0) -> np.ndarray:
+    """A head and shoulders (no hips, knees, ankles, elbows or wrists): the head (nose, eyes, ears) turns
+    ±``degrees`` about the neck; with ``shoulders_turn`` the whole upper body turns with it."""
+    pts = np.array([BODY[k] for k in range(18)])
+    neck = pts[1].copy()
+    out = []
+    for a in np.radians(np.linspace(-degrees, degrees, frames)):
+        c, s = math.cos(a), math.sin(a)
+        rot = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+        p = pts.copy()
+        turned = [0, 14, 15, 16, 17] + ([1, 2, 5] if shoulders_turn else [])
+        p[turned] = (p[turned] - neck) @ rot.T + neck
+        out.append(p)
+    kp = _project(np.stack(out))
+    kp[:, [3, 4, 6, 7, 8, 9, 10, 11, 12, 13], 2] = 0.0
+    return kp
+
+
+def test_a_face_turning_on_still_shoulders_holds_the_torso():
+    kp = _head_turns(12, shoulders_turn=False)
+    decision = hold_decision(kp, np.ones(12, bool), 0.15, 10.0, face=True, still=0.05)
+    assert decision["hold"] and decision["holds"] == "torso"
+    assert decision["torso_spread"] == pytest.approx(0.0, abs=1e-9) and "torso held" in decision["why"]
+    # without a tracked face the same keypoints keep the limbs' hold (the head among them)
+    plain = hold_decision(kp, np.ones(12, bool), 0.15, 10.0)
+    assert plain["holds"] == "limbs" and plain["torso_spread"] is None
+    # no weight, no hold; no still threshold (the default), the limbs' hold
+    assert not hold_decision(kp, np.ones(12, bool), 0.15, 0.0, face=True, still=0.05)["hold"]
+    assert hold_decision(kp, np.ones(12, bool), 0.15, 10.0, face=True)["holds"] == "limbs"
+    # a close-up that never shows its shoulders (the body detector finds none) holds its torso as configured
+    kp[:, [2, 5], 2] = 0.0
+    unseen = hold_decision(kp, np.ones(12, bool), 0.15, 10.0, face=True, still=0.05)
+    assert unseen["holds"] == "torso" and unseen["torso_spread"] is None and "as configured" in unseen["why"]
+
+
+@pytest.mark.parametrize("degrees", [30.0, 60.0])
+def test_shoulders_turning_with_the_face_spread_by_the_oracles_amount(degrees):
+    """The upper body turning ±``degrees`` with the head, seen from the front: the neck stays, each shoulder
+    moves sideways by 0.18·cos a (its depth unseen), in a frame 0.36·cos a wide. A frontal ±30° turn
+    hides in the keypoints (0.024 shoulder widths, under the 0.05 of a still torso: the hold is a soft
+    pull, which the keypoints and silhouette overrule where they see the turn); ±60° does not."""
+    kp = _head_turns(12, shoulders_turn=True, degrees=degrees)
+    a = np.radians(np.linspace(-degrees, degrees, 12))
+    expected = (0.18 * np.cos(a)).std() / np.median(0.36 * np.cos(a))
+    assert torso_spread(kp) == pytest.approx(expected, rel=1e-9)
+    decision = hold_decision(kp, np.ones(12, bool), 0.15, 10.0, face=True, still=0.05)
+    assert decision["holds"] == ("torso" if expected <= 0.05 else "limbs")
+    assert decision["holds"] == ("torso" if degrees == 30 else "limbs")
+
+
+def test_what_each_hold_keeps(anny_files):
+    """A held torso is the root and every joint up to the neck in every frame; the limbs' hold is every
+    joint but the root."""
+    from delta.body.model import load_body_model
+    from delta.fitting.run import held_parts
+
+    model = load_body_model(anny_files["body"])
+    names = model.joint_names
+    chain = {"neck01", "neck02", "neck03", "head", "eye.L", "eye.R"}
+    joints, frames = held_parts(model, {"holds": "torso"}, 7)
+    assert {names[j] for j in range(len(names)) if not joints[j]} == chain
+    assert frames.tolist() == [True] * 7
+    joints, frames = held_parts(model, {"holds": "limbs"}, 7)
+    assert {names[j] for j in range(len(names)) if not joints[j]} == {"root"} and frames is None
