@@ -13,8 +13,8 @@ the limbs) is the evidence: 0.04 on the synthetic loose turn, 0.06 on tight, 0.4
 A close-up of a talking head is the other case: its head turns and nods on shoulders that keep still,
 and the face points the fit follows say where the head points, not which joint turned it. Holding the
 limbs' mean there holds the neck and head, so the fit turns the whole body with the head (the synthetic
-short-haired talker: the root's heading followed the head's turn, correlation 0.95, 9° about its mean,
-where the truth's torso never moves) and a shirt drawn on that torso smears across frames. For a tracked
+short-haired talker: the root turned 12.4° about its mean on average, where the truth's torso never
+moves; ``benchmarks/torso_hold.csv``) and a shirt drawn on that torso smears across frames. For a tracked
 face whose neck and shoulder keypoints keep still (:func:`torso_spread`, in shoulder widths: 0.001 on the
 synthetic talkers, 0.49 on the turning full bodies) the hold can keep the torso instead
 (``FitConfig.still_torso`` > 0): the root's turn and place and every joint below the neck, over every

@@ -94,9 +94,9 @@ def test_the_init_fit_tracks_the_face(talking, tmp_path):
 
 
 def _the_head_turns_not_the_body(fitted_path, truth_path):
-    """The fitted root keeps one heading (the truth's torso is still; before the torso was held it followed
-    the head's turn, 9° about its mean on the 512² talker), and the head's turn relative to the torso
-    follows the truth's."""
+    """The fitted root keeps one heading (the truth's torso is still; with the limbs' hold it turned with the
+    head, up to 49° from its mean on this talker), and the head's turn relative to the torso follows the
+    truth's."""
     from scipy.spatial.transform import Rotation
 
     with np.load(fitted_path) as p, np.load(truth_path) as g:
