@@ -85,14 +85,14 @@ def hold_decision(keypoints: np.ndarray, held: np.ndarray, threshold: float, wei
     root's turn and place and the joints below the neck over every frame, the neck and head free; else
     ``"limbs"``: every joint but the root over the ``held`` frames. ``still`` 0: never the torso."""
     torso = torso_spread(keypoints, conf) if face else None
+    evidence = {"torso_spread": None if torso is None else round(torso, 4)}
     if weight > 0 and face and still > 0 and (torso is None or torso <= still):
         why = ("the shoulders are not seen in enough frames: a tracked face's torso held as configured"
                if torso is None else f"a face on a still torso (neck and shoulders spread {torso:.3f} <= {still:g} "
                "shoulder widths)")  # fmt: skip
-        return {"hold": True, "holds": "torso", "limb_spread": None, "torso_spread": torso if torso is None else
-                round(torso, 4), "threshold": still, "why": f"{why}: the torso held, the neck and head free"}  # fmt: skip
-    out = _limbs_decision(keypoints, held, threshold, weight, conf)
-    return out | {"torso_spread": None if torso is None else round(torso, 4)}
+        return {"hold": True, "holds": "torso", "limb_spread": None, **evidence, "threshold": still,
+                "why": f"{why}: the torso held, the neck and head free"}  # fmt: skip
+    return _limbs_decision(keypoints, held, threshold, weight, conf) | evidence
 
 
 def _limbs_decision(keypoints: np.ndarray, held: np.ndarray, threshold: float, weight: float, conf: float) -> dict:
