@@ -9,10 +9,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from delta.cli import main
 from delta.data.video import probe_video
 
+ROOT = Path(__file__).resolve().parents[1]
 REAL = Path(os.environ.get("DELTA_REAL_CLIPS", Path(__file__).resolve().parents[2] / "shared" / "real"))
 #: the init fit at half its default steps (150, 200, 150): what these tests check (upright, tracked by the
 #: face, residuals) holds there, and each fit costs half its time on CI
@@ -103,9 +105,14 @@ def test_a_talking_head_close_up_is_tracked_and_fitted_by_its_face(tmp_path, med
     face_body = tmp_path / "face.npz"
     with_expressions(load_body_model(anny_files["body"]), ExpressionSpace.load(anny_expressions_file)).save(face_body)
     out = tmp_path / "init"
-    assert main(["fit-init", "--record", str(record), "--body", str(face_body), "--out", str(out), *SHORT_FIT]) == 0
+    # with the workflow's fit settings: its shoulders are not seen, so its torso is held still (one torso for
+    # every frame, the head turning on the neck)
+    workflow = yaml.safe_load((ROOT / "config" / "config.yaml").read_text())["fitting"]["settings"]
+    fit_settings = ["--settings", json.dumps({**workflow, **json.loads(SHORT_FIT[1])})]
+    assert main(["fit-init", "--record", str(record), "--body", str(face_body), "--out", str(out), *fit_settings]) == 0
     fit = json.loads((out / "summary.json").read_text())
     assert fit["started_from"] == "face" and fit["flagged"] == 0
+    assert fit["static_hold"]["holds"] == "torso"
     # measured 6.2 px (body keypoints and face points, 128² record) and 1.5 px (face points alone, 512²)
     assert fit["residual_px_mean"] < 4.0, fit
     with np.load(out / "params.npz") as p:

@@ -64,6 +64,9 @@ class FaceFitConfig:
     depth_weight: float = 1000.0
     """The same along the camera's axis, which a distant camera barely sees: a deeper, larger face
     projects like a nearer, smaller one, and the face is held at the body fit's depth."""
+    one_place: bool = False
+    """One translation correction for every frame (a still torso's, whose head turns on its neck), not one
+    a frame."""
     smooth_weight: float = 2.0
     """First-difference smoothness of activations and head correction between consecutive frames (px² per unit²)."""
     conf_threshold: float = 0.5
@@ -167,7 +170,8 @@ def fit_face(
     expression = torch.zeros(F, E, dtype=dtype, requires_grad=True)
     head = torch.zeros(F, len(joints), 3, dtype=dtype, requires_grad=True)
     shape = torch.zeros_like(betas, dtype=dtype, requires_grad=True)
-    place = torch.zeros(F, 3, dtype=dtype, requires_grad=True)  # in the camera's axes: across, up, depth
+    # in the camera's axes: across, up, depth
+    place = torch.zeros(1 if cfg.one_place else F, 3, dtype=dtype, requires_grad=True)
     axes = torch.eye(3, dtype=dtype) if isinstance(camera, OrthographicCamera) else camera.R.to(dtype)
     place_w = torch.tensor([cfg.place_weight, cfg.place_weight, cfg.depth_weight], dtype=dtype)
     base = poses.to(dtype).detach().clone()  # (a restart replaces a frame's body fit: never the caller's)
@@ -202,8 +206,9 @@ def fit_face(
             prior = prior + cfg.head_weight * head.square().sum((1, 2)) + (place.square() * place_w).sum(1)
             smooth = cfg.smooth_weight * (
                 (expression[1:] - expression[:-1]).square().sum(1) + (head[1:] - head[:-1]).square().sum((1, 2))
-            ) + ((place[1:] - place[:-1]).square() * place_w).sum(1)
-            loss = (data + prior).sum() + smooth.sum() + cfg.shape_weight * F * shape.square().sum()
+            )
+            steady = ((place[1:] - place[:-1]).square() * place_w).sum()  # 0 for one place
+            loss = (data + prior).sum() + smooth.sum() + steady + cfg.shape_weight * F * shape.square().sum()
             loss.backward()
             opt.step()
             with torch.no_grad():
@@ -235,8 +240,12 @@ def fit_face(
             # (not a blend: two fits may split one head turn differently between root, spine and neck)
             near = nearest_good(bad)[off]
             base[off] = pose_of(head.detach())[near]
-            T0[off] = (T0 + place.detach() @ axes)[near]
-            head[off], place[off] = 0.0, 0.0
+            if cfg.one_place:  # the frames share their place's correction: it stays
+                T0[off] = T0[near]
+            else:
+                T0[off] = (T0 + place.detach() @ axes)[near]
+                place[off] = 0.0
+            head[off] = 0.0
         optimise(cfg.restart_iterations, cfg.restart_iterations // 3)
         out, residual = settled()
         off = far_off(residual)
@@ -249,7 +258,7 @@ def fit_face(
         bad = torch.tensor([bool(f) for f in flags])
         expr = interpolate(expression.detach(), bad)
         corrected = interpolate(head.detach(), bad)
-        moved = interpolate(place.detach() @ axes, bad)
+        moved = interpolate((place.detach() @ axes).expand(F, -1), bad)
     if bad.any():
         counts = {k: flags.count(k) for k in set(flags) if k}
         log.warning("face tracking: %d of %d frames not fitted (%s); they take their neighbours' values",

@@ -153,7 +153,8 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
         pose_weights: torch.Tensor | None = None, knees: list[int] = (), masks: torch.Tensor | None = None,
         start: FitStart | None = None, exterior: torch.Tensor | None = None,
         sequence: torch.Tensor | None = None, depth: torch.Tensor | None = None,
-        held_joints: torch.Tensor | None = None, held_frames: torch.Tensor | None = None) -> FitResult:  # fmt: skip
+        held_joints: torch.Tensor | None = None, held_frames: torch.Tensor | None = None,
+        tied: bool = False) -> FitResult:  # fmt: skip
     """Fit β, θ_f and the camera to (F, 18, 3) keypoint detections and optional (F, H, W) person masks.
 
     ``exterior`` (F, H, W), the part of the person masks that is clothing or hair, gets the
@@ -164,7 +165,8 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
 
     ``held_joints`` (J,) bool: the joints ``cfg.static_weight`` holds near their mean (default: every joint
     but the root); with the root among them its place (the translation, in units of :data:`HELD_PLACE`)
-    is held too. ``held_frames`` (F,) bool: the frames held (default: those of label 0).
+    is held too. ``held_frames`` (F,) bool: the frames held (default: those of label 0). ``tied``: the held
+    joints (and place) are one value the held frames share, not pulled toward their mean (a still torso).
 
     ``depth`` (F, 18) holds a detector's relative depths of the first 18 keypoints (metres; non-finite:
     none), compared bone by bone with ``cfg.depth_weight``.
@@ -238,6 +240,8 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     held_joints = held_joints.to(torch.bool)
 
     every = torch.arange(F)
+    tie = (lambda: tie_held(pose, transl, held, held_joints)) if tied and cfg.static_weight > 0 else (lambda: None)
+    tie()
 
     def frame_cost(P: torch.Tensor, tr: torch.Tensor, cams: list[torch.Tensor], rows: torch.Tensor,
                    stage: int) -> torch.Tensor:  # fmt: skip
@@ -308,12 +312,26 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
             for p in params:  # a non-finite gradient (degenerate geometry) must not poison the parameters
                 torch.nan_to_num_(p.grad, nan=0.0, posinf=0.0, neginf=0.0)
             opt.step()
+            tie()
             done += 1
             if done % PROGRESS_EVERY == 0 or done == progress.total:
                 progress.report(done, f"fit stage {stage + 1}")
     res = _result(points, betas, pose, transl, camera, cam_params, detected, few, empty)
     res.neighbour_starts, res.neighbour_refits = swaps, refits
     return res
+
+
+def tie_held(pose: torch.Tensor, transl: torch.Tensor, held: torch.Tensor | None, joints: torch.Tensor) -> None:
+    """Give the ``held`` frames (None: all) one value of the held ``joints``' rotations (their mean; the
+    held spread is small) and, with the root among them, of the translation."""
+    rows = torch.arange(pose.shape[0]) if held is None else torch.nonzero(held).squeeze(1)
+    if len(rows) < 2:
+        return
+    with torch.no_grad():
+        sub = pose[rows][:, joints]
+        pose[rows.unsqueeze(1), torch.nonzero(joints).squeeze(1)] = sub.mean(0, keepdim=True).expand_as(sub)
+        if joints[0]:
+            transl[rows] = transl[rows].mean(0, keepdim=True).expand(len(rows), -1)
 
 
 #: the distance (m) at which the fit steps at ``FitConfig.lr``; a nearer body takes proportionally smaller steps

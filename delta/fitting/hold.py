@@ -16,10 +16,11 @@ limbs' mean there holds the neck and head, so the fit turns the whole body with 
 short-haired talker: the root turned 12.4° about its mean on average, where the truth's torso never
 moves; ``benchmarks/torso_hold.csv``) and a shirt drawn on that torso smears across frames. For a tracked
 face whose neck and shoulder keypoints keep still (:func:`torso_spread`, in shoulder widths: 0.001 on the
-synthetic talkers, 0.49 on the turning full bodies) the hold can keep the torso instead
-(``FitConfig.still_torso`` > 0): the root's turn and place and every joint below the neck, over every
-frame, with the neck and head free. It is off by default: measured on that talker it stills the root but
-leaves the shoulders further from their keypoints (docs/fitting.md).
+synthetic talkers, 0.49 on the turning full bodies) the hold keeps the torso instead
+(``FitConfig.still_torso`` > 0): one turn and place of the root and one pose of every joint below the
+neck, shared by every frame (tied, not pulled toward a mean: hundreds of face points outweigh any pull
+and lift a pulled torso off its shoulders' keypoints), with the neck and head free; the face tracking
+then corrects the body's place once for every frame and turns the head on its neck (docs/fitting.md).
 
 Shapes: F frames, 18 OpenPose keypoints (u, v, confidence).
 """

@@ -21,7 +21,7 @@ from delta.data.person import confident_keypoints, no_person_message
 from delta.data.record import FrameRecord
 from delta import DeltaError
 from delta.body.face_points import FacePoints
-from delta.fitting.face import FaceFit, fit_face
+from delta.fitting.face import FaceFit, FaceFitConfig, fit_face
 from delta.fitting.fit import FitStart, fit
 from delta.fitting.hold import HEAD_CHAIN, hold_decision
 from delta.fitting.settings import FitConfig
@@ -157,11 +157,14 @@ def with_face_points(kp_map: KeypointMap, detected: torch.Tensor, points: FacePo
     return joined, torch.cat([detected, face_seen.to(detected.dtype)], 1)
 
 
-def track_face(model, res, points: FacePoints | None, face_seen: torch.Tensor | None) -> FaceFit | None:
-    """Per-frame expressions and head rotations from the record's face points (None when it has none)."""
+def track_face(model, res, points: FacePoints | None, face_seen: torch.Tensor | None,
+               still: bool = False) -> FaceFit | None:  # fmt: skip
+    """Per-frame expressions and head rotations from the record's face points (None when it has none); a
+    ``still`` torso's place is corrected once for every frame (the head turns on the neck)."""
     if points is None:
         return None
-    return fit_face(model, points, face_seen.double(), res.camera, res.betas, res.pose, res.transl)
+    cfg = FaceFitConfig(one_place=still)
+    return fit_face(model, points, face_seen.double(), res.camera, res.betas, res.pose, res.transl, cfg)
 
 
 def fitted_upright(model, res) -> Upright:
@@ -212,9 +215,9 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
         depth = torch.from_numpy(rec.h5["keypoint_depth"][:]) if "keypoint_depth" in rec.h5 else None
         res = fit(model, fit_map, fit_detected, camera, fit_cfg, knees=knees, masks=masks, start=start,
                   exterior=exterior, sequence=sequence, depth=depth, held_joints=held_joints,
-                  held_frames=held_frames)  # fmt: skip
+                  held_frames=held_frames, tied=hold["holds"] == "torso")  # fmt: skip
         check_result(rec.path, res, frame_ids)
-        face, face_arrays = track_face(model, res, points, face_seen), {}
+        face, face_arrays = track_face(model, res, points, face_seen, still=hold["holds"] == "torso"), {}
         if face is not None:
             res.pose, res.betas, res.transl = face.poses, face.betas, face.transl
             face_arrays = dict(expression=face.expression.numpy(), expression_names=np.array(model.expression_names),

@@ -40,10 +40,10 @@ class FitConfig:
     0.48, a turn in place 0.04-0.06). A large value holds every capture."""
     still_torso: float = 0.0
     """A tracked face's torso keeps still where its neck and shoulder keypoints move by at most this many
-    shoulder widths (standard deviation over the frames) or are not seen: the hold then keeps the torso
-    (the root's turn and place, every joint below the neck) and leaves the neck and head free
-    (``delta.fitting.hold``; the synthetic talkers 0.001, a full body turning 0.49). 0: off, the default
-    (measured, not adopted: docs/fitting.md)."""
+    shoulder widths (standard deviation over the frames) or are not seen: the fit then gives every frame
+    one torso (the root's turn and place, every joint below the neck) and turns only the neck and head
+    (``delta.fitting.hold``; the synthetic talkers 0.001, a full body turning 0.49). 0: off (needs
+    ``static_weight`` > 0; the workflow's config sets 0.05: docs/fitting.md)."""
     min_keypoints: int = MIN_KEYPOINTS
     conf_threshold: float = CONF_THRESHOLD
     sil_weight: float = 300.0

