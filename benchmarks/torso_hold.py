@@ -9,6 +9,11 @@ fit's keypoint residual, mean and largest, and the face tracking's median residu
 training-ray PSNR over its last 5 % of steps and its seconds, and the held-out scores of the run's
 ``metrics.csv`` (``LABEL=CSV``, the evaluation's: means per split, refined and not).
 
+The committed rows: ``limbs`` (the limbs' hold, the fit turning the whole body with the head), ``torso``
+(the torso pulled toward its mean by ``static_weight``), ``torso-face-place-frozen`` (the same with the face
+tracking's translation frozen) and ``torso-tied`` (one torso for every frame, the workflow's; its face
+tracking kept the body's place, where the code now corrects it once for every frame).
+
     python benchmarks/torso_hold.py --truth data/synthetic/talker-short/gt/params.npz \\
         --record results/synthetic/talker-short/frames.h5 --body resources/body/anny_sub1_face.npz \\
         --run limbs=/work/exp/talker-short-base --metrics limbs=/work/exp/talker-short-base/eval2/metrics.csv \\
