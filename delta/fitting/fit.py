@@ -144,9 +144,6 @@ def _project(camera, pinhole: bool, cam_params: list[torch.Tensor], points: torc
 
 #: optimisation steps between progress lines
 PROGRESS_EVERY = 50
-#: metres of the held root's place that the hold weighs as a radian of a held joint's turn: a still torso's
-#: 9° turn (0.16 rad) costs as much as 1.6 cm of its place
-HELD_PLACE = 0.1
 
 
 def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, cfg: FitConfig = FitConfig(),
@@ -164,9 +161,9 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     labels are not tied by the temporal terms; ``cfg.static_weight`` holds label 0's pose); None: one sequence.
 
     ``held_joints`` (J,) bool: the joints ``cfg.static_weight`` holds near their mean (default: every joint
-    but the root); with the root among them its place (the translation, in units of :data:`HELD_PLACE`)
-    is held too. ``held_frames`` (F,) bool: the frames held (default: those of label 0). ``tied``: the held
-    joints (and place) are one value the held frames share, not pulled toward their mean (a still torso).
+    but the root). ``held_frames`` (F,) bool: the frames held (default: those of label 0). ``tied``: the held
+    joints are one value the held frames share, not pulled toward their mean, and with the root among them
+    so is the translation (a still torso).
 
     ``depth`` (F, 18) holds a detector's relative depths of the first 18 keypoints (metres; non-finite:
     none), compared bone by bone with ``cfg.depth_weight``.
@@ -277,10 +274,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
                 accel = accel + sum(terms.acceleration(c, links) for c in cam_params)
                 total = total + cfg.accel_weight * cfg.sigma_px * accel
             if cfg.static_weight > 0:
-                still = terms.static_pose(pose[:, held_joints], held)
-                if held_joints[0]:
-                    still = still + terms.static_pose(transl / HELD_PLACE, held)
-                total = total + cfg.static_weight * cfg.sigma_px * still
+                total = total + cfg.static_weight * cfg.sigma_px * terms.static_pose(pose[:, held_joints], held)
         return total
 
     stages = list(enumerate(cfg.iterations))
