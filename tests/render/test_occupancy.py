@@ -7,6 +7,7 @@ from delta.render.hybrid import render_rays
 from delta.render.settings import RenderSettings
 from delta.render.occupancy import OccupancyGrid
 from delta.render.settings import OccupancySettings
+from tests.conftest import upsampled
 from tests.render.test_hybrid import BG, sphere_avatar
 
 BOX = torch.tensor([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
@@ -199,12 +200,11 @@ def test_early_cull_loses_few_samples_the_exact_tests_keep_on_a_posed_anny(anny_
     between them, more than a cell from any one vertex's map. The loose capture's own poses lose none
     in stage 1 and 0.04 % in stage 2 (benchmarks/early_cull.csv)."""
     from delta.body.lbs import lbs
-    from delta.body.model import load_body_model
     from delta.deformers import knn as deformer
     from delta.models.avatar import knn_vertex_ids
     from delta.render.hybrid import early_cull
 
-    body = load_body_model(anny_files["body"])
+    body = upsampled(anny_files["body"])
     ids = knn_vertex_ids(body, "base")
     gen = torch.Generator().manual_seed(3)
     pose = body.canonical_pose[None].float() + bend * torch.randn(1, body.num_joints, 3, generator=gen)
