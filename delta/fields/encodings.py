@@ -138,8 +138,8 @@ def trilinear_matrix(xn: torch.Tensor, shape: tuple[int, int, int]) -> tuple[tor
     rows = torch.arange(P, device=xn.device)[:, None].expand(P, 8)[inside]
     values = weights[inside]
     n = math.prod(shape)
-    # built as CSR directly (rows sorted, each row's columns sorted and unique): no COO coalescing, whose
-    # sorts took most of a 55k-vertex model's setup
+    # built as CSR directly (rows sorted, each row's columns sorted and unique), not coalesced from COO:
+    # coalescing's two sorts would be most of a 55k-vertex model's setup
     crow = torch.zeros(P + 1, dtype=torch.long, device=xn.device)
     crow[1:] = inside.sum(1).cumsum(0)
     order = torch.sort(cols, stable=True).indices  # the transpose: by column, rows ascending within each
