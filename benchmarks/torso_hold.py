@@ -12,7 +12,7 @@ training-ray PSNR over its last 5 % of steps and its seconds, and the held-out s
 The committed rows: ``limbs`` (the limbs' hold, the fit turning the whole body with the head), ``torso``
 (the torso pulled toward its mean by ``static_weight``), ``torso-face-place-frozen`` (the same with the face
 tracking's translation frozen) and ``torso-tied`` (one torso for every frame, the workflow's; its face
-tracking kept the body's place, where the code now corrects it once for every frame), all of the short-haired
+tracking kept the body's place, where the workflow's fit corrects it once for every frame), all of the short-haired
 talker, and ``long-hair-torso-tied`` (the long-haired talker, ``results/synthetic/talker``, fitted and
 trained the workflow's way; its stage 1 ran beside other jobs: its seconds are not a measure).
 

@@ -273,7 +273,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
                 accel = accel + terms.acceleration(transl, links)
                 accel = accel + sum(terms.acceleration(c, links) for c in cam_params)
                 total = total + cfg.accel_weight * cfg.sigma_px * accel
-            if cfg.static_weight > 0:
+            if cfg.static_weight > 0 and not tied:  # tied, the held frames share one value: no spread to weigh
                 total = total + cfg.static_weight * cfg.sigma_px * terms.static_pose(pose[:, held_joints], held)
         return total
 
