@@ -276,7 +276,8 @@ def cmd_reenact(args: argparse.Namespace) -> None:
     _threads(args.threads)
     reenact_avatar(args.model, args.record, args.body, args.driver_model, args.driver_record, args.out,
                    anchor=args.anchor, reference=args.reference, max_frames=args.max_frames, fps=args.fps,
-                   device=args.device)  # fmt: skip
+                   device=args.device, truth=args.truth, perceptual_dir=args.perceptual,
+                   score_frames=args.score_frames, supersample=args.supersample)  # fmt: skip
 
 
 def _layers_argument(p: argparse.ArgumentParser) -> None:
@@ -665,7 +666,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reference", type=int, default=0, help="the driver's frame whose head pose means 'no turn'")
     p.add_argument("--max-frames", type=int, default=0, help="at most this many driver frames, evenly spread (0: all)")
     p.add_argument("--fps", type=int, default=25)
-    p.add_argument("--out", required=True, help="folder for reenactment.mp4 and reenactment.json")
+    p.add_argument("--out", required=True, help="folder for reenactment.mp4, reenactment.json and scores.csv")
+    p.add_argument("--truth", default=None, help="the generated capture of the avatar's subject driven by the "
+                   "driver's (synthetic subjects): scores.csv")  # fmt: skip
+    p.add_argument("--perceptual", default=None, help="folder of the ST-LPIPS weights (a column of scores.csv)")
+    p.add_argument("--score-frames", type=int, default=4, help="the driver's held-out frames scored against --truth")
+    p.add_argument("--supersample", type=int, default=2, help="rays a pixel along each axis when scoring")
     _job_arguments(p)
     p.set_defaults(func=cmd_reenact)
 

@@ -194,6 +194,7 @@ rule reenact:
             labels={"subject": "{subject}", "driven by": "{driver}"},
         ),
         summary=PATHS["reenact_json"],
+        scores=PATHS["reenact_scores"],
     log:
         log_path("reenact", "{dataset}_{subject}_{driver}"),
     benchmark:
@@ -203,14 +204,17 @@ rule reenact:
     threads: 2
     resources:
         mem_mb=lambda w, attempt: _grow(3000, attempt),
-        runtime=application_runtime(at_most(REENACT["max_frames"]), 30),
+        runtime=application_runtime(
+            at_most(REENACT["max_frames"]), 30, scored=reenact_scored
+        ),
     params:
         out=lambda w: PATHS["reenact_dir"].format(**w),
         max_frames=REENACT["max_frames"],
         fps=REENACT["fps"],
+        truth=reenact_truth_args,
         device=config["device"],
     shell:
         "delta reenact --model {input.model:q} --record {input.record:q} --body {input.body:q}"
         " --driver-model {input.driver_model:q} --driver-record {input.driver_record:q}"
-        " --max-frames {params.max_frames} --fps {params.fps} --out {params.out:q}"
+        " --max-frames {params.max_frames} --fps {params.fps} --out {params.out:q} {params.truth:q}"
         " --device {params.device:q} --threads {threads} > {log:q} 2>&1"

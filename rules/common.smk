@@ -26,7 +26,13 @@ from delta.export.settings import ExportSettings
 from delta.export.settings import part_settings as _export_part_settings
 from delta.settings import from_mapping as _from_mapping
 from delta.scene.settings import FRAME_BUDGET, user_decided
-from delta.synthetic.spec import dressed_raw, parse_subject, reshaped_raw, truth_name
+from delta.synthetic.spec import (
+    dressed_raw,
+    parse_subject,
+    reenacted_raw,
+    reshaped_raw,
+    truth_name,
+)
 from delta.training.presets import resolve as resolve_training, stage_view
 
 # the one validation (delta validate-config runs the same): every problem before any job starts;
@@ -67,6 +73,15 @@ def application_truths():
             out[("reshape", s, e)] = (
                 truth_name("reshape", s, e),
                 reshaped_raw(SYNTHETIC_RAW[s], edit),
+            )
+    for d, s, driver in application_jobs(config, "reenact"):
+        drives = subject_ref(config, config["applications"]["drivers"][driver])
+        if s in SYNTHETIC_RAW and drives is not None and drives[1] in SYNTHETIC_RAW:
+            out[
+                ("reenact", s, driver)
+            ] = (  # delta reenact's default anchor and reference: frame 0
+                truth_name("reenact", s, driver),
+                reenacted_raw(SYNTHETIC_RAW[s], SYNTHETIC_RAW[drives[1]]),
             )
     return out
 
@@ -143,6 +158,7 @@ PATHS = {
     "reenact_dir": "results/{dataset}/{subject}/reenact/{driver}",
     "reenactment": "results/{dataset}/{subject}/reenact/{driver}/reenactment.mp4",
     "reenact_json": "results/{dataset}/{subject}/reenact/{driver}/reenactment.json",
+    "reenact_scores": "results/{dataset}/{subject}/reenact/{driver}/scores.csv",
     "dress_dir": "results/{dataset}/{subject}/dress/{exterior}",
     "dressed": "results/{dataset}/{subject}/dress/{exterior}/dressed.png",
     "dressed_turntable": "results/{dataset}/{subject}/dress/{exterior}/turntable.mp4",
@@ -747,6 +763,7 @@ def scored_jobs():
     for app, key, wildcard in (
         ("dress", "dress_scores", "exterior"),
         ("reshape", "reshape_scores", "shape"),
+        ("reenact", "reenact_scores", "driver"),
     ):
         for d, s, e in application_jobs(config, app):
             if (app, s, e) in APPLICATION_TRUTHS:
@@ -785,9 +802,9 @@ DRESS = config["applications"]["dress"]["settings"]
 DRESS_SETTINGS = _from_mapping(ShowSettings, DRESS, "applications.dress.settings")
 
 
-def truth_inputs(wildcards, application, name, wearer=None):
+def truth_inputs(wildcards, application, name, wearer=None, meshes=True):
     """The generated truth of an application job, the ST-LPIPS weights and the exports whose clothing
-    surfaces are measured against it (the avatar's, and the wearer's), where it has a truth.
+    surfaces are measured against it (the avatar's, and the wearer's; ``meshes``), where it has a truth.
     """
     truth = APPLICATION_TRUTHS.get((application, wildcards.subject, name))
     if truth is None:
@@ -795,8 +812,9 @@ def truth_inputs(wildcards, application, name, wearer=None):
     files = {
         "truth": PATHS["syn_params"].format(subject=truth[0]),
         "alex": PATHS["perceptual_alex"],
-        "export": PATHS["export_meshes"].format(**wildcards),
     }
+    if meshes:
+        files["export"] = PATHS["export_meshes"].format(**wildcards)
     if wearer is not None:
         files["wearer_export"] = PATHS["export_meshes"].format(**wearer)
     return files
@@ -884,16 +902,43 @@ def tryon_inputs(wildcards):
 REENACT = config["applications"]["reenact"]
 
 
+def reenact_scored(input):
+    """A reenactment scored against its truth: each scored frame still, driven and truly driven."""
+    if "truth" not in input.keys():
+        return (0, 1)
+    return (3 * REENACT["score_frames"], REENACT["supersample"])
+
+
 def reenact_inputs(wildcards):
     """The avatar and the driving avatar (each its evaluated stage's model and its frames)."""
     dataset, subject = subject_ref(
         config, config["applications"]["drivers"][wildcards.driver]
     )
     driver = {"dataset": dataset, "subject": subject}  # validated with the config
-    return trained_inputs(wildcards) | {
-        "driver_model": PATHS["stage_model"].format(stage=EVAL["stage"], **driver),
-        "driver_record": PATHS["record"].format(**driver),
-    }
+    return (
+        trained_inputs(wildcards)
+        | {
+            "driver_model": PATHS["stage_model"].format(stage=EVAL["stage"], **driver),
+            "driver_record": PATHS["record"].format(**driver),
+        }
+        | truth_inputs(wildcards, "reenact", wildcards.driver, meshes=False)
+    )
+
+
+def reenact_truth_args(wildcards, input):
+    """Where a reenactment has a generated truth: what scores it (scores.csv)."""
+    if "truth" not in input.keys():
+        return []
+    return [
+        "--truth",
+        str(Path(input.truth).parent.parent),
+        "--perceptual",
+        str(Path(input.alex).parent),
+        "--score-frames",
+        str(REENACT["score_frames"]),
+        "--supersample",
+        str(REENACT["supersample"]),
+    ]
 
 
 def animate_clothing(wildcards, input):

@@ -520,20 +520,27 @@ def test_hair_moves_between_two_talking_heads_as_a_layer(tmp_path):
 
 def test_a_talking_head_is_reenacted_by_a_tracked_face_and_only_by_one(tmp_path):
     """applications.reenact: the talker driven by a tracked face is one job reading both avatars with the
-    face body model; a driver or an avatar without a tracked face is refused before any job."""
+    face body model, scored against a generated truth where both are synthetic; a driver or an avatar
+    without a tracked face is refused before any job."""
     work = workflow_copy(tmp_path)
     cfg = yaml.safe_load((work / ".test/config/config.yaml").read_text())
     cfg["applications"] = {"drivers": {"talker-face": "synthetic/talker"},
                            "reenact": {"avatars": {"synthetic/talker": ["talker-face"]}, "max_frames": 12}}  # fmt: skip
     (work / "apps.yaml").write_text(yaml.safe_dump(cfg))
     target = "results/synthetic/talker/reenact/talker-face/reenactment.mp4"
-    res = snakemake(work, target, "--configfile", "apps.yaml", "config/heads.yaml", "--dry-run", "--printshellcmds")
+    res = snakemake(work, target, "--configfile", "config/heads.yaml", "apps.yaml", "--dry-run", "--printshellcmds")
     out = res.stdout + res.stderr
     assert res.returncode == 0, out[-3000:]
     job = re.search(r"delta reenact [^\n]*", out).group(0)
     assert "--model results/synthetic/talker/stage2/model.pt" in job
     assert "--driver-model results/synthetic/talker/stage2/model.pt" in job
     assert "--body resources/body/anny_sub1_face.npz" in job and "--max-frames 12" in job
+    # both synthetic: scored against the talker the generator drives by the driver's true face from frame 0
+    assert "--truth data/synthetic/talker.follows.talker-face --perceptual resources/models/stlpips" in job
+    assert "--score-frames 4 --supersample 2" in job
+    truth = re.search(r"delta synthesize --subject talker\.follows\.talker-face [^\n]*", out).group(0)
+    assert '"driven": {"anchor": 0, "by": {' in truth and '"reference": 0}' in truth
+    assert "--expressions resources/body/anny_expressions.npz" in truth
     for change, message in (
         ({"drivers": {"talker-face": "synthetic/tight"}}, "'synthetic/tight' is not a tracked face"),
         ({"reenact": {"avatars": {"synthetic/tight": ["talker-face"]}}},
@@ -542,7 +549,7 @@ def test_a_talking_head_is_reenacted_by_a_tracked_face_and_only_by_one(tmp_path)
         bad = yaml.safe_load(yaml.safe_dump(cfg))
         bad["applications"].update(change)
         (work / "bad.yaml").write_text(yaml.safe_dump(bad))
-        res = snakemake(work, target, "--configfile", "bad.yaml", "config/heads.yaml", "--dry-run")
+        res = snakemake(work, target, "--configfile", "config/heads.yaml", "bad.yaml", "--dry-run")
         assert res.returncode != 0 and message in res.stdout + res.stderr, (res.stdout + res.stderr)[-2000:]
 
 

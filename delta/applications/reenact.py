@@ -5,7 +5,8 @@ the same body model, so the same expression space and skeleton). Each driver fra
 anchor frame:
 
 - the driver's expression activations, as they are (facial actions mean the same on every face);
-- the driver's head motion: for each joint of the neck, head, jaw and eyes (:data:`FACE_JOINTS`), the
+- the driver's head motion: for each joint of the neck, head, jaw and eyes
+  (:data:`delta.body.face_motion.FACE_JOINTS`), the
   driver's rotation relative to its own reference frame, put on top of the target's rotation in the
   anchor frame (``R = R_d(f) R_d(ref)ᵀ R_t(anchor)``), so the target keeps its own carriage of the head
   and turns, nods and looks as the driver does;
@@ -13,11 +14,17 @@ anchor frame:
 and everything else of the anchor frame: body, place, camera. Each frame renders as a pose the capture
 never held (stage 2's F_e gets no time code) at the capture's whole-frame size, written as
 ``reenactment.mp4`` with ``reenactment.json`` saying what drove what.
+
+Where both subjects are synthetic, the generator renders the truth (the avatar's subject at its anchor
+frame driven by the driver subject's true expressions and head motion, composed the same way) and
+:func:`score_reenactment` scores the avatar driven three ways against it: not at all, by the driver
+avatar's tracked motion, and by the driver's true motion.
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import time
 from pathlib import Path
@@ -27,9 +34,13 @@ import numpy as np
 import torch
 
 from delta import DeltaError
-from delta.body.lbs import batch_rodrigues
-from delta.body.rotations import matrix_to_axis_angle
+from delta import metrics as M
+from delta.applications.truth import mean_scores, truth_frames, write_scores
+from delta.body.face_motion import driven_poses, face_joints
 from delta.data.frames import load_full_frames
+from delta.eval.evaluate import Perceptual, score_image
+from delta.eval.settings import EvalSettings
+from delta.export.run import report_frames
 from delta.export.video import posed_as, to_bgr, write_video
 from delta.io import require_files, save_json
 from delta.models.avatar import HybridAvatar
@@ -38,15 +49,6 @@ from delta.progress import Progress
 from delta.training.run import load_trained
 
 log = logging.getLogger(__name__)
-
-#: name prefixes of the joints whose motion is the face's (Anny: neck01-03, head, eye.L/R; SMPL-X: neck,
-#: head, jaw, left_eye_smplhf, right_eye_smplhf)
-FACE_JOINTS = ("neck", "head", "jaw", "eye", "left_eye", "right_eye")
-
-
-def face_joints(joint_names: Sequence[str]) -> list[int]:
-    """Indices of the joints that move with the face (names starting with a :data:`FACE_JOINTS` prefix)."""
-    return [j for j, n in enumerate(joint_names) if str(n).lower().startswith(FACE_JOINTS)]
 
 
 def check_driver(target: HybridAvatar, driver: HybridAvatar, what: str = "the driver") -> None:
@@ -62,19 +64,6 @@ def check_driver(target: HybridAvatar, driver: HybridAvatar, what: str = "the dr
         raise DeltaError(f"{what} has another skeleton than the avatar: they need the same body model")
 
 
-@torch.no_grad()
-def driven_face(
-    target_pose: torch.Tensor, driver_poses: torch.Tensor, reference: int, joints: Sequence[int]
-) -> torch.Tensor:
-    """(F, K, 3) axis-angle of the ``joints`` for each driver frame: ``R_d(f) R_d(reference)ᵀ R_t`` from the
-    target's anchor pose (J, 3) and the driver's poses (F, J, 3)."""
-    j = list(joints)
-    Rd = batch_rodrigues(driver_poses[:, j].reshape(-1, 3)).view(len(driver_poses), len(j), 3, 3)
-    Rt = batch_rodrigues(target_pose[j])
-    R = Rd @ Rd[reference].transpose(-1, -2) @ Rt
-    return matrix_to_axis_angle(R.reshape(-1, 3, 3)).view(len(driver_poses), len(j), 3)
-
-
 @contextlib.contextmanager
 def expression_as(model: HybridAvatar, frame: int, expression: torch.Tensor) -> Iterator[None]:
     """Temporarily give ``frame`` another expression (E,) (restored on exit)."""
@@ -86,27 +75,123 @@ def expression_as(model: HybridAvatar, frame: int, expression: torch.Tensor) -> 
         model.expression.data[frame] = old
 
 
-@torch.no_grad()
-def reenact_frames(target: HybridAvatar, anchor: int, driver: HybridAvatar, frames: Sequence[int], reference: int,
-                   view) -> Iterator[torch.Tensor]:  # fmt: skip
-    """Renders (H, W, 3) in [0, 1] of ``target``'s anchor frame driven by ``driver``'s ``frames``."""
-    check_driver(target, driver)
-    joints = face_joints(target.body.joint_names)
+@dataclasses.dataclass
+class Drive:
+    """A face's motion: per-frame poses (F, J, 3) and expression activations (F, E), and the pose (J, 3) of its
+    reference frame (whose head means "no turn")."""
+
+    poses: torch.Tensor
+    expressions: torch.Tensor
+    reference: torch.Tensor
+
+    def __len__(self) -> int:
+        return len(self.poses)
+
+
+def avatar_drive(driver: HybridAvatar, frames: Sequence[int], reference: int) -> Drive:
+    """The motion of a trained avatar's ``frames`` (its refined poses and expressions)."""
     frames = list(frames)
-    rot = driven_face(target.poses.data[anchor], driver.poses.data[frames + [reference]], len(frames), joints)
-    for k, f in enumerate(frames):
-        pose = target.poses.data[anchor].clone()
-        pose[joints] = rot[k].to(pose)
-        with posed_as(target, anchor, pose, target.transl.data[anchor], timeless=True), \
-                expression_as(target, anchor, driver.expression.data[f]):  # fmt: skip
-            yield render_image(target, anchor, view=view, soft_silhouette=False)["rgb"]
+    return Drive(driver.poses.data[frames].clone(), driver.expression.data[frames].clone(),
+                 driver.poses.data[reference].clone())  # fmt: skip
+
+
+def still_drive(target: HybridAvatar, anchor: int, count: int) -> Drive:
+    """No motion: the anchor's own pose and expression ``count`` times (the avatar as trained, its frame
+    rendered as the driven ones are, without a time code)."""
+    pose = target.poses.data[anchor]
+    return Drive(pose[None].repeat(count, 1, 1), target.expression.data[anchor][None].repeat(count, 1), pose.clone())
+
+
+@torch.no_grad()
+def reenact_frames(target: HybridAvatar, anchor: int, drive: Drive, view, supersample: int = 1) -> Iterator[dict]:
+    """Renders (``render_image``'s dicts) of ``target``'s anchor frame driven by each frame of ``drive``."""
+    poses = driven_poses(target.poses.data[anchor], drive.poses.to(target.poses), drive.reference.to(target.poses),
+                         target.body.joint_names)  # fmt: skip
+    for k in range(len(drive)):
+        with posed_as(target, anchor, poses[k], target.transl.data[anchor], timeless=True), \
+                expression_as(target, anchor, drive.expressions[k]):  # fmt: skip
+            yield render_image(target, anchor, supersample=supersample, view=view, soft_silhouette=False)
+
+
+def truth_drive(params: str | Path, frame_ids: Sequence[int], target: HybridAvatar) -> Drive:
+    """The true motion of a reenactment's generated truth (``gt/params.npz``): its poses and expressions of the
+    capture frames ``frame_ids``, relative to its frame of the driver's reference (``drive_reference``).
+    Its poses hold the driver's face motion on top of the avatar subject's true anchor pose, so relative to
+    that frame they are the driver's own true motion; the joints and facial actions are matched by name."""
+    with np.load(params, allow_pickle=False) as p:
+        if "drive_reference" not in p:
+            raise DeltaError(f"{params}: not the generated truth of a reenactment (no 'drive_reference')")
+        poses, acts, ref = p["poses"], p["expression"], int(p["drive_reference"])
+        joints, actions = [str(n) for n in p["joint_names"]], [str(n) for n in p["expression_names"]]
+    body = target.body
+    for what, theirs, ours in (
+        ("joints", joints, body.joint_names),
+        ("facial actions", actions, body.expression_names),
+    ):
+        missing = sorted(set(ours) - set(theirs))
+        if missing:
+            raise DeltaError(f"{params}: the truth's body has no {what} {missing[:5]} of the avatar's body model")
+    j = [joints.index(n) for n in body.joint_names]
+    e = [actions.index(n) for n in body.expression_names]
+    ids = list(frame_ids)
+    t = lambda a: torch.as_tensor(a, dtype=target.poses.dtype)  # noqa: E731
+    return Drive(t(poses[ids][:, j]), t(acts[ids][:, e]), t(poses[ref][j]))
+
+
+def score_reenactment(tr, drv, anchor: int, reference: int, truth: str | Path, view, count: int,
+                      perceptual_dir: str | None = None, supersample: int = 2) -> list[dict]:  # fmt: skip
+    """Rows of ``scores.csv``: ``count`` of the driver's held-out frames (evenly spaced) of the reenactment
+    (``tr`` driven by ``drv``) scored against its generated truth (the avatar's subject driven by the driver
+    subject's true motion, :func:`delta.synthetic.generate.scene_motion`), each rendered three ways from the
+    avatar's anchor frame: ``as_trained`` (not driven: the frame as the avatar has it), ``edited`` (driven by
+    the driver avatar's tracked motion: the application) and ``true_drive`` (driven by the driver's true
+    motion: what the avatar renders of a perfectly tracked driver). Scores: PSNR, SSIM, L1 and ST-LPIPS on
+    the whole image and on the head (face, hair and neck: the person less its clothing), the exterior mask's
+    IoU with the truth's clothing and hair, and the mean absolute error of the expression activations."""
+    truth = Path(truth)
+    params = truth / "gt" / "params.npz"
+    require_files(truth=params)
+    with np.load(params, allow_pickle=False) as p:
+        if "drive_anchor" not in p:
+            raise DeltaError(f"{params}: not the generated truth of a reenactment (no 'drive_anchor')")
+        drove = int(p["drive_anchor"]), int(p["drive_reference"])
+    wanted = int(tr.data.frame_ids[anchor]), int(drv.data.frame_ids[reference])
+    if drove != wanted:
+        raise DeltaError(f"{params}: generated for the avatar's frame {drove[0]} driven relative to the driver's "
+                         f"frame {drove[1]}; this reenactment drives frame {wanted[0]} relative to {wanted[1]}")  # fmt: skip
+    frames = report_frames(drv.data.split, count)
+    ids = [int(drv.data.frame_ids[f]) for f in frames]
+    model = tr.model
+    images = truth_frames(truth, ids, (view.width, view.height), tr.settings.background)
+    perceptual = Perceptual(EvalSettings(perceptual_dir=perceptual_dir), model.background.device)
+    true = truth_drive(params, ids, model)
+    drives = {"as_trained": still_drive(model, anchor, len(frames)), "edited": avatar_drive(drv.model, frames, reference),
+              "true_drive": true}  # fmt: skip
+    split = np.asarray(drv.data.split)
+    rows = []
+    for variant, drive in drives.items():
+        for k, img in enumerate(reenact_frames(model, anchor, drive, view, supersample)):
+            head = images.head[k]
+            row = {"application": "reenact", "variant": variant, "frame": frames[k], "frame_id": ids[k],
+                   "split": int(split[frames[k]]),
+                   **score_image(img, images.images[k], {"head": head}, perceptual, ("head",), tr.settings.background),
+                   "exterior_iou": M.iou(img["nerf_mask"] > 0.5, images.exterior[k]) if model.nerf is not None
+                   else float("nan"),
+                   "expression_err": float((drive.expressions[k].cpu() - true.expressions[k].cpu()).abs().mean())}  # fmt: skip
+            rows.append(row)
+            log.info("%s frame %d: %.2f dB (head %.2f dB)", variant, ids[k], row["psnr"], row["psnr_head"])
+    return rows
 
 
 def reenact_avatar(model_path: str | Path, record: str | Path, body_path: str | Path, driver_model: str | Path,
                    driver_record: str | Path, out_dir: str | Path, anchor: int = 0, reference: int = 0,
-                   max_frames: int = 0, fps: int = 25, device: str = "cpu") -> dict:  # fmt: skip
-    """Write ``reenactment.mp4`` and ``reenactment.json`` in ``out_dir``: the avatar of ``model_path`` driven
-    by every frame of the avatar of ``driver_model`` (at most ``max_frames``, evenly spread; 0: all)."""
+                   max_frames: int = 0, fps: int = 25, device: str = "cpu", truth: str | Path | None = None,
+                   perceptual_dir: str | None = None, score_frames: int = 4, supersample: int = 2) -> dict:  # fmt: skip
+    """Write ``reenactment.mp4``, ``reenactment.json`` and ``scores.csv`` in ``out_dir``: the avatar of
+    ``model_path`` driven by every frame of the avatar of ``driver_model`` (at most ``max_frames``, evenly
+    spread; 0: all); with ``truth`` (the generated capture of the avatar's subject driven by the driver's),
+    ``score_frames`` of the driver's held-out frames scored against it (:func:`score_reenactment`; otherwise
+    ``scores.csv`` holds its header alone)."""
     t0 = time.perf_counter()
     require_files(model=model_path, record=record, body_model=body_path, driver_model=driver_model,
                   driver_record=driver_record)  # fmt: skip
@@ -125,12 +210,17 @@ def reenact_avatar(model_path: str | Path, record: str | Path, body_path: str | 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     progress = Progress(f"reenactment ({view.width}x{view.height})", len(frames))
-    images = (to_bgr(img) for img in reenact_frames(tr.model, anchor, drv.model, frames, reference, view))
+    drive = avatar_drive(drv.model, frames, reference)
+    images = (to_bgr(img["rgb"]) for img in reenact_frames(tr.model, anchor, drive, view))
     count = write_video(out / "reenactment.mp4", progress.counted(images, "rendered"), fps)
+    rows = []
+    if truth is not None and score_frames:
+        rows = score_reenactment(tr, drv, anchor, reference, truth, view, score_frames, perceptual_dir, supersample)
+    write_scores(out / "scores.csv", rows)
     summary = {"model": str(model_path), "driver": str(driver_model), "anchor": anchor, "reference": reference,
                "driver_frames": frames, "frames": count, "fps": fps, "resolution": "{}x{}".format(*full.size),
                "face_joints": [tr.model.body.joint_names[j] for j in face_joints(tr.model.body.joint_names)],
-               "seconds": round(time.perf_counter() - t0, 2)}  # fmt: skip
+               "scores": mean_scores(rows), "seconds": round(time.perf_counter() - t0, 2)}  # fmt: skip
     save_json(out / "reenactment.json", summary)
     log.info("%d frames of %s driven by %s in %.1f s", count, model_path, driver_model, summary["seconds"])
     return summary

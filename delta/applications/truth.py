@@ -41,6 +41,8 @@ class Truth:
     """(F, H, W, 3) in [0, 1], composited on the background."""
     exterior: torch.Tensor
     """(F, H, W) bool: clothing or hair, inside the person."""
+    head: torch.Tensor
+    """(F, H, W) bool: the person less its clothing (a head-and-shoulders capture's face, hair and neck)."""
 
 
 def truth_frames(capture: str | Path, frame_ids: list[int], size: tuple[int, int], background) -> Truth:
@@ -51,21 +53,25 @@ def truth_frames(capture: str | Path, frame_ids: list[int], size: tuple[int, int
     source = synthetic_source(capture, capture.name)
     und = Undistorter(source.camera)
     bg = np.asarray(background, dtype=np.float32)
-    images, exterior = {}, {}
+    images, exterior, head = {}, {}, {}
     try:
         for i, rgb in iter_video(source.video, set(frame_ids)):
             alpha = whole(und.image(source.provided["person"](i), mask=True), size, cv2.INTER_AREA)
             a = alpha.astype(np.float32)[..., None] / 255.0
             img = whole(und.image(rgb), size, cv2.INTER_AREA).astype(np.float32) / 255.0
             images[i] = img * a + bg * (1 - a)
-            ext = np.zeros(alpha.shape, dtype=bool)
-            for part in ("clothing", "hair"):  # part masks hold 0/1 (the person's alpha 0..255)
-                ext |= whole(und.image(source.provided[part](i), mask=True, nearest=True), size, cv2.INTER_NEAREST) > 0
-            exterior[i] = ext & (alpha > 127)
+            clothing, hair = (_part_mask(source, und, name, i, size) for name in ("clothing", "hair"))
+            exterior[i] = (clothing | hair) & (alpha > 127)
+            head[i] = (alpha > 127) & ~clothing
     finally:
         source.close()
-    return Truth(torch.from_numpy(np.stack([images[i] for i in frame_ids])),
-                 torch.from_numpy(np.stack([exterior[i] for i in frame_ids])))  # fmt: skip
+    stack = lambda d: torch.from_numpy(np.stack([d[i] for i in frame_ids]))  # noqa: E731
+    return Truth(stack(images), stack(exterior), stack(head))
+
+
+def _part_mask(source, und: Undistorter, name: str, frame: int, size: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool: a part's mask (it holds 0/1; the person's alpha 0..255) of ``frame`` at ``size``."""
+    return whole(und.image(source.provided[name](frame), mask=True, nearest=True), size, cv2.INTER_NEAREST) > 0
 
 
 class Scorer:

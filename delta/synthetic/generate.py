@@ -8,6 +8,7 @@ body and layer meshes), ``splits.json``, ``labels.json`` and canonical PLYs.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -22,6 +23,7 @@ import trimesh
 
 from delta import DeltaError
 from delta.body.expressions import ExpressionSpace, with_expressions
+from delta.body.face_motion import driven_poses
 from delta.body.face_points import FacePoints, dense_face_points
 from delta.body.keypoints import openpose18_map
 from delta.body.lbs import lbs, skin
@@ -84,6 +86,8 @@ def make_camera(spec: SubjectSpec, height_m: float, centre_y: float):
 
 
 def splits(spec: SubjectSpec) -> dict[str, list[int]]:
+    if spec.driven is not None:  # one frame per driver frame
+        return splits(spec.driven.by)
     turn = list(range(spec.turn_frames))
     test_view = turn[spec.test_view_every - 1 :: spec.test_view_every]
     held = set(test_view)
@@ -152,6 +156,21 @@ def face_actions(spec: SubjectSpec, names: list[str]) -> np.ndarray | None:
                            novel_expressions(names, spec.novel_frames, spec.seed)])  # fmt: skip
 
 
+def scene_motion(spec: SubjectSpec, names: list[str], expression_names: list[str]):
+    """(poses (F, J, 3), turn rates (F,), facial actions (F, E) or None, times (F,) in s) of the capture's
+    frames: its own motion, or a driven subject's anchor frame moved by the driver's face
+    (:class:`delta.synthetic.spec.DrivenSpec`; its garments and hair held as at the anchor's time)."""
+    d = spec.driven
+    if d is None:
+        poses, rates = motion(spec, names)
+        return poses, rates, face_actions(spec, expression_names), np.arange(len(poses)) / spec.fps
+    own = torch.from_numpy(motion(dataclasses.replace(spec, driven=None), names)[0][d.anchor])
+    theirs = torch.from_numpy(motion(d.by, names)[0])
+    poses = driven_poses(own, theirs, theirs[d.reference], names).numpy()
+    F = len(poses)
+    return poses, np.zeros(F), face_actions(d.by, expression_names), np.full(F, d.anchor / spec.fps)
+
+
 def generate(
     spec: SubjectSpec,
     body_model: str | os.PathLike,
@@ -178,17 +197,16 @@ def generate(
     rest_v, rest_j = rest.vertices[0].numpy(), rest.joints[0].numpy()
     layers = build_layers(model, rest_v, rest_j, spec.garments, spec.hair)
     camera = make_camera(spec, *frame_span(spec, rest_v[:, 1]))
-    poses, rates = motion(spec, model.joint_names)
-    actions = face_actions(spec, model.expression_names)
+    poses, rates, actions, times = scene_motion(spec, model.joint_names, model.expression_names)
     face = dense_face_points(model) if actions is not None else None
-    transl = np.zeros((spec.num_frames, 3))
+    transl = np.zeros((len(poses), 3))
     kp_map = openpose18_map(model)
     on_joint = kp_map.joint_weights.sum(1).numpy() > 0
     albedo = _Albedo(spec, layers, rest_v, model.regions.numpy())
     body_faces = model.faces.numpy()
     canon_n = [_normals(rest_v, body_faces)] + [_normals(l.vertices, l.faces) for l in layers]
     labels_v = [model.regions.numpy() + BODY_LABEL_OFFSET] + [np.full(len(l.vertices), l.label) for l in layers]
-    F, H, W = spec.num_frames, spec.resolution, spec.resolution
+    F, H, W = len(poses), spec.resolution, spec.resolution
     gt = out / "gt"
     gt.mkdir(parents=True, exist_ok=True)
     video = out / f"{spec.name}.mp4"
@@ -218,7 +236,7 @@ def generate(
                     posed = lbs(model, betas, pose, expression, transl=torch.from_numpy(transl[f : f + 1]))
                 verts = [posed.vertices[0].numpy()]
                 for k, layer in enumerate(layers, start=1):
-                    moved = layer.vertices + nonrigid_offsets(layer, canon_n[k], f / spec.fps, rates[f], spec.sway)
+                    moved = layer.vertices + nonrigid_offsets(layer, canon_n[k], times[f], rates[f], spec.sway)
                     lv, _ = skin(torch.from_numpy(moved)[None], weights[k - 1], posed.joint_transforms)
                     verts.append(lv[0].numpy())
                     mesh_dsets[layer.name][f] = verts[-1].astype(np.float32)
@@ -244,6 +262,11 @@ def generate(
         fps=spec.fps,
         **_camera_arrays(camera, F),
         **({} if actions is None else {"expression": actions, "expression_names": np.array(model.expression_names)}),
+        **(
+            {}
+            if spec.driven is None
+            else {"drive_anchor": spec.driven.anchor, "drive_reference": spec.driven.reference}
+        ),
     )
     save_json(gt / "splits.json", splits(spec))
     save_json(gt / "labels.json", {str(k): v for k, v in label_names().items()})

@@ -30,6 +30,18 @@ class GarmentSpec:
 
 
 @dataclasses.dataclass(frozen=True)
+class DrivenSpec:
+    """A subject's frame driven by another subject's face: the generated truth of a reenactment."""
+
+    by: "SubjectSpec"
+    """The driving subject: its expressions and its head motion, frame by frame."""
+    anchor: int
+    """The driven subject's own frame (its body, pose, place) that the driver's face moves."""
+    reference: int
+    """The driver's frame whose head pose means "no turn"."""
+
+
+@dataclasses.dataclass(frozen=True)
 class SubjectSpec:
     name: str
     seed: int = 0
@@ -69,9 +81,15 @@ class SubjectSpec:
     supersample: int = 2
     """Sub-samples per axis at edge pixels (2 -> 4 rays)."""
     fps: int = 30
+    driven: DrivenSpec | None = None
+    """Instead of its own motion, one frame per frame of another subject: the ``anchor`` frame with that
+    subject's expressions and, on the neck, head and eyes, its head motion relative to its ``reference``
+    frame (the truth of ``delta reenact``; its splits are the driver's)."""
 
     @property
     def num_frames(self) -> int:
+        if self.driven is not None:
+            return self.driven.by.num_frames
         return self.turn_frames + self.novel_frames
 
 
@@ -164,7 +182,25 @@ def parse_subject(name: str, raw: dict) -> SubjectSpec:
         raise DeltaError(
             f"{key}: camera_pitch and camera_roll need the pinhole camera (the orthographic one looks along -z)"
         )
+    if "driven" in kw:
+        kw["driven"] = _driven(name, kw["driven"], kw, f"{key}.driven")
     return SubjectSpec(name=name, **kw)
+
+
+def _driven(name: str, raw: Any, own: dict, key: str) -> DrivenSpec:
+    if not isinstance(raw, dict) or set(raw) != {"by", "anchor", "reference"}:
+        raise DeltaError(f"{key}: a mapping with 'by' (the driving subject), 'anchor' and 'reference' (frames)")
+    by = parse_subject(f"{name}.driven.by", raw["by"])
+    if by.driven is not None:
+        raise DeltaError(f"{key}.by: a driving subject has its own motion (it is not driven itself)")
+    if own.get("expressions", "none") != "talk" or by.expressions != "talk":
+        raise DeltaError(f"{key}: both subjects need talking faces (expressions: talk)")
+    own_frames = own.get("turn_frames", SubjectSpec.turn_frames) + own.get("novel_frames", SubjectSpec.novel_frames)
+    for field, count in (("anchor", own_frames), ("reference", by.num_frames)):
+        value = raw[field]
+        if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < count:
+            raise DeltaError(f"{key}.{field}: a frame in [0, {count}), got {value!r}")
+    return DrivenSpec(by=by, anchor=raw["anchor"], reference=raw["reference"])
 
 
 #: The keys of a subject that make its exterior (what an exterior transfer carries).
@@ -172,12 +208,13 @@ EXTERIOR_KEYS = ("garments", "hair", "hair_color")
 
 
 #: The word between a subject and an application's name in the name of its generated truth.
-TRUTH_WORDS = {"dress": "wears", "reshape": "shape"}
+TRUTH_WORDS = {"dress": "wears", "reshape": "shape", "reenact": "follows"}
 
 
 def truth_name(application: str, subject: str, name: str) -> str:
     """The generated truth's subject name of an application job: ``tight.wears.loose-dress``,
-    ``tight.shape.heavier`` (with a '.', which no configured subject name has)."""
+    ``tight.shape.heavier``, ``talker.follows.short-face`` (with a '.', which no configured subject name
+    has)."""
     return f"{subject}.{TRUTH_WORDS[application]}.{name}"
 
 
@@ -224,3 +261,9 @@ def reshaped_raw(raw: dict, edit: dict) -> dict:
         base = phenotype.get(key, DEFAULT_PHENOTYPE) if relative else 0.0
         phenotype[key] = min(max(base + amount, 0.0), 1.0)
     return {**raw, "phenotype": phenotype}
+
+
+def reenacted_raw(raw: dict, driver: dict, anchor: int = 0, reference: int = 0) -> dict:
+    """The subject ``raw``'s frame ``anchor`` driven by the subject ``driver``'s face relative to its frame
+    ``reference`` (:class:`DrivenSpec`): the generated truth of a reenactment."""
+    return {**raw, "driven": {"by": driver, "anchor": anchor, "reference": reference}}

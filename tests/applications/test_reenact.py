@@ -8,7 +8,8 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from delta import DeltaError
-from delta.applications.reenact import check_driver, driven_face, face_joints, reenact_frames
+from delta.applications.reenact import avatar_drive, check_driver, reenact_frames, still_drive
+from delta.body.face_motion import driven_face, face_joints
 from delta.models.image import render_image
 from tests.training.test_expressions import E, N, avatar, face_body, init
 
@@ -52,9 +53,11 @@ def test_driving_an_avatar_with_itself_reproduces_its_frames_and_restores_it():
     times = model.frame_time.clone()
     anchor = 1
     own = render_image(model, anchor, soft_silhouette=False)["rgb"]
-    images = list(reenact_frames(model, anchor, model, frames=[anchor, 0, 2], reference=anchor, view=None))
-    # its own frame with itself as the reference: the anchor's render
+    images = [img["rgb"] for img in reenact_frames(model, anchor, avatar_drive(model, [anchor, 0, 2], anchor), None)]
+    # its own frame with itself as the reference: the anchor's render, as is the anchor not driven at all
     torch.testing.assert_close(images[0], own, rtol=0, atol=1e-5)
+    (still,) = reenact_frames(model, anchor, still_drive(model, anchor, 1), None)
+    torch.testing.assert_close(still["rgb"], own, rtol=0, atol=1e-5)
     # another frame's face: its expression and its head and neck rotations, on the anchor's root
     for img, f in zip(images[1:], (0, 2)):
         assert torch.isfinite(img).all()
