@@ -137,6 +137,10 @@ def write_scores(path: str | Path, rows: list[dict]) -> None:
         table.to_csv(tmp, index=False, float_format="%.5g")
 
 
+#: the columns of ``scores.csv`` that say what a row is, not how it scores
+NOT_SCORES = ("application", "variant", "frame", "frame_id", "split", "model", "wearer", "edit")
+
+
 def summarize_scores(paths: list[str | Path]) -> pd.DataFrame:
     """``results/{dataset}/applications.csv``: per job (``.../{subject}/{application}/{name}/scores.csv``) and
     variant, the mean of each score over the frames, the number of frames, and what the edit gained over the
@@ -148,8 +152,7 @@ def summarize_scores(paths: list[str | Path]) -> pd.DataFrame:
         if table.empty:
             continue
         subject, application, name = p.parts[-4], p.parts[-3], p.parts[-2]
-        scores = [c for c in table.columns if c not in ("application", "variant", "frame", "model", "wearer", "edit")
-                  and pd.api.types.is_numeric_dtype(table[c])]  # fmt: skip
+        scores = [c for c in table.columns if c not in NOT_SCORES and pd.api.types.is_numeric_dtype(table[c])]
         means = table.groupby("variant", sort=False)[scores].mean()
         for variant, values in means.iterrows():
             rows.append({"application": application, "subject": subject, "name": name, "variant": variant,
