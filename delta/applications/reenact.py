@@ -37,6 +37,7 @@ from delta import DeltaError
 from delta import metrics as M
 from delta.applications.truth import mean_scores, truth_frames, write_scores
 from delta.body.face_motion import driven_poses, face_joints
+from delta.data import SPLITS
 from delta.data.frames import load_full_frames
 from delta.eval.evaluate import Perceptual, score_image
 from delta.eval.settings import EvalSettings
@@ -173,7 +174,7 @@ def score_reenactment(tr, drv, anchor: int, reference: int, truth: str | Path, v
         for k, img in enumerate(reenact_frames(model, anchor, drive, view, supersample)):
             head = images.head[k]
             row = {"application": "reenact", "variant": variant, "frame": frames[k], "frame_id": ids[k],
-                   "split": int(split[frames[k]]),
+                   "split": SPLITS[int(split[frames[k]])],
                    **score_image(img, images.images[k], {"head": head}, perceptual, ("head",), tr.settings.background),
                    "exterior_iou": M.iou(img["nerf_mask"] > 0.5, images.exterior[k]) if model.nerf is not None
                    else float("nan"),
