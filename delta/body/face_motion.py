@@ -22,14 +22,15 @@ def face_joints(joint_names: Sequence[str]) -> list[int]:
 
 @torch.no_grad()
 def driven_face(
-    target_pose: torch.Tensor, driver_poses: torch.Tensor, reference: int, joints: Sequence[int]
+    target_pose: torch.Tensor, driver_poses: torch.Tensor, reference: torch.Tensor, joints: Sequence[int]
 ) -> torch.Tensor:
-    """(F, K, 3) axis-angle of the ``joints`` for each driver frame: ``R_d(f) R_d(reference)ᵀ R_t`` from the
-    target's anchor pose (J, 3) and the driver's poses (F, J, 3)."""
+    """(F, K, 3) axis-angle of the ``joints`` for each driver frame: ``R_d(f) R_d(ref)ᵀ R_t`` from the target's
+    anchor pose (J, 3), the driver's poses (F, J, 3) and the driver's reference pose (J, 3)."""
     j = list(joints)
     Rd = batch_rodrigues(driver_poses[:, j].reshape(-1, 3)).view(len(driver_poses), len(j), 3, 3)
-    Rt = batch_rodrigues(target_pose[j])
-    R = Rd @ Rd[reference].transpose(-1, -2) @ Rt
+    Rref = batch_rodrigues(reference[j].to(driver_poses))
+    Rt = batch_rodrigues(target_pose[j].to(driver_poses))
+    R = Rd @ Rref.transpose(-1, -2) @ Rt
     return matrix_to_axis_angle(R.reshape(-1, 3, 3)).view(len(driver_poses), len(j), 3)
 
 
@@ -38,8 +39,6 @@ def driven_poses(target_pose: torch.Tensor, driver_poses: torch.Tensor, driver_r
     """(F, J, 3): the target's pose (J, 3) in every frame, its face joints driven by the driver's poses (F, J, 3)
     relative to the driver's reference pose (J, 3) (:func:`driven_face`)."""
     joints = face_joints(joint_names)
-    F = len(driver_poses)
-    out = target_pose[None].repeat(F, 1, 1)
-    both = torch.cat([driver_poses, driver_reference[None].to(driver_poses)])
-    out[:, joints] = driven_face(target_pose, both, F, joints)[:F].to(out)
+    out = target_pose[None].repeat(len(driver_poses), 1, 1)
+    out[:, joints] = driven_face(target_pose, driver_poses, driver_reference, joints).to(out)
     return out
