@@ -149,7 +149,7 @@ class HybridAvatar(nn.Module):
     def camera(self, frame: int):
         n = self.resolution
         if self.pinhole:
-            return PinholeCamera(self.cam_K, self.cam_R, self.cam_t, self.cam_K.new_zeros(5), n, n)
+            return PinholeCamera(self.cam_K, self.cam_R, self.cam_t, None, n, n)  # frames undistorted: an ideal lens
         scale, trans = self.ortho_scale[frame], self.ortho_trans[frame]
         if self.trajectory is not None:
             shift = self.trajectory(frame)[1]

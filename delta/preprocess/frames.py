@@ -43,7 +43,9 @@ class Undistorter:
     """Undistort images, masks and points of a pinhole camera; the camera keeps its K."""
 
     def __init__(self, camera):
-        self.active = isinstance(camera, PinholeCamera) and bool(torch.any(camera.dist != 0))
+        self.active = (
+            isinstance(camera, PinholeCamera) and camera.dist is not None and bool(torch.any(camera.dist != 0))
+        )
         if self.active:
             self.K, self.dist = camera.K.numpy(), camera.dist.numpy()
             size = (camera.width, camera.height)

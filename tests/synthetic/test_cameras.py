@@ -117,3 +117,18 @@ def test_metres_per_pixel_is_the_width_of_one_pixel_at_the_point():
     # twice as far from a pinhole, a pixel is twice as wide
     far = pin.center + 2 * (points - pin.center)
     torch.testing.assert_close(metres_per_pixel(pin, far), 2 * metres_per_pixel(pin, points))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_an_ideal_lens_projects_and_casts_as_a_zero_distortion_bit_for_bit(dtype):
+    """An avatar's camera has no distortion (None: its frames were undistorted) and skips the 20-step
+    inverse; a zero distortion inverts exactly, so nothing the avatar renders changes."""
+    zero = pinhole()
+    ideal = PinholeCamera(zero.K, zero.R, zero.t, None, 512, 512)
+    X = points().to(dtype)
+    for a, b in zip(ideal.project(X), zero.project(X)):
+        assert torch.equal(a, b)
+    uv = torch.rand(300, 2, generator=torch.Generator().manual_seed(0), dtype=dtype) * 512
+    for a, b in zip(ideal.rays(uv), zero.rays(uv)):
+        assert torch.equal(a, b)
+    assert not torch.equal(pinhole((-0.2, 0, 0, 0, 0)).rays(uv)[1], zero.rays(uv)[1])
