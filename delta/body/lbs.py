@@ -78,6 +78,20 @@ def _homogeneous(rot: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
     return torch.cat([top, bottom], dim=-2)
 
 
+@functools.lru_cache(maxsize=32)
+def _chain_plan(parents: tuple[int, ...], device: str) -> tuple[torch.Tensor, torch.Tensor, list, torch.Tensor]:
+    """Index tensors of forward kinematics by depth, made once per tree and device: each joint's parent
+    (joint 0, the root, its own), the roots, per level below them (the level's joints, their parents'
+    places in the level above), and each joint's place in the levels laid end to end."""
+    levels = kinematic_levels(parents)
+    place = {j: i for level in levels for i, j in enumerate(level)}
+    as_index = functools.partial(torch.tensor, dtype=torch.int64, device=device)
+    steps = [(as_index(level), as_index([place[parents[j]] for j in level])) for level in levels[1:]]
+    order = [j for level in levels for j in level]
+    unsort = as_index(sorted(range(len(order)), key=order.__getitem__))
+    return as_index([max(p, 0) for p in parents]), as_index(levels[0]), steps, unsort
+
+
 def rigid_transforms(
     rotmats: torch.Tensor, joints: torch.Tensor, parents: torch.Tensor
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -90,24 +104,23 @@ def rigid_transforms(
     Returns:
         posed_joints (B, J, 3) and relative transforms A (B, J, 4, 4) with
         A_j = G_j · [I | -J_j], which carry rest points to posed points.
+
+    The chain is composed a depth at a time (G_j = G_parent · L_j for all joints of one depth in one
+    product), with a handful of tensor operations a level whatever the joints' number: on a GPU each is a
+    kernel launch, forward and backward.
     """
-    par = parents.tolist()
-    rel = joints.clone()
-    rel[:, 1:] = joints[:, 1:] - joints[:, par[1:]]
+    parent, roots, steps, unsort = _chain_plan(tuple(parents.tolist()), str(joints.device))
+    rel = joints - torch.cat([torch.zeros_like(joints[:, :1]), joints[:, parent[1:]]], dim=1)
     local = _homogeneous(rotmats, rel)  # 1. each joint's transform relative to its parent
-    world = list(local.unbind(1))
-    for level in kinematic_levels(tuple(par))[1:]:  # 2. compose by depth: G_j = G_parent · L_j
-        parent_G = torch.stack([world[par[j]] for j in level], dim=1)
-        composed = parent_G @ local[:, list(level)]
-        for k, j in enumerate(level):
-            world[j] = composed[:, k]
-    G = torch.stack(world, dim=1)
+    world = [local[:, roots]]
+    for level, parent_place in steps:  # 2. compose by depth: G_j = G_parent · L_j
+        world.append(world[-1][:, parent_place] @ local[:, level])
+    G = torch.cat(world, dim=1)[:, unsort]
     posed_joints = G[..., :3, 3]
     # 3. remove the rest joint position: A_j = G_j - [0 | G_j[:3,:3] J_j]
     shift = torch.einsum("bjik,bjk->bji", G[..., :3, :3], joints)
-    A = G.clone()
-    A[..., :3, 3] = G[..., :3, 3] - shift
-    return posed_joints, A
+    A = torch.cat([G[..., :3, :3], (G[..., :3, 3] - shift).unsqueeze(-1)], dim=-1)
+    return posed_joints, torch.cat([A, G[..., 3:, :]], dim=-2)
 
 
 def skin(
