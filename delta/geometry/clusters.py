@@ -22,6 +22,9 @@ LEAF = 32
 """Primitives per leaf."""
 FANOUT = 16
 """Children per inner node."""
+FLAT_PAIRS = 1 << 24
+"""(query, leaf) tests a flat search makes at once: on a GPU every query is tested against every leaf
+(:func:`descend`), chunked to this many (boxes broadcast, so 0.2 GB of 3-D differences a chunk)."""
 
 
 @dataclasses.dataclass
@@ -61,19 +64,26 @@ def _group(lo: torch.Tensor, hi: torch.Tensor, size: int) -> tuple[torch.Tensor,
     return glo, ghi, index
 
 
-def build(lo: torch.Tensor, hi: torch.Tensor, leaf: int = LEAF, fanout: int = FANOUT) -> Hierarchy:
-    """The hierarchy over primitives with boxes lo, hi (P, D), P >= 1 (a point: lo = hi)."""
+def walks(device: torch.device) -> bool:
+    """Whether queries on ``device`` walk the levels (the CPU) or test every leaf at once (:func:`descend`)."""
+    return device.type == "cpu"
+
+
+def build(lo: torch.Tensor, hi: torch.Tensor, leaf: int = LEAF, fanout: int = FANOUT,
+          levels: bool | None = None) -> Hierarchy:  # fmt: skip
+    """The hierarchy over primitives with boxes lo, hi (P, D), P >= 1 (a point: lo = hi). ``levels``
+    (default: where queries walk them, :func:`walks`) False: the leaves alone, for flat searches."""
     if lo.shape[0] == 0:
         raise ValueError("a hierarchy needs at least one primitive")
     order = torch.argsort(morton_codes((lo + hi) / 2))
     leaf_lo, leaf_hi, slots = _group(lo[order], hi[order], leaf)
     members = torch.where(slots >= 0, order[slots.clamp_min(0)], -1)
-    levels = []
+    above = []
     node_lo, node_hi = leaf_lo, leaf_hi
-    while node_lo.shape[0] > fanout:
+    while (levels if levels is not None else walks(lo.device)) and node_lo.shape[0] > fanout:
         node_lo, node_hi, children = _group(node_lo, node_hi, fanout)
-        levels.insert(0, (node_lo, node_hi, children))
-    return Hierarchy(members, levels, leaf_lo, leaf_hi)
+        above.insert(0, (node_lo, node_hi, children))
+    return Hierarchy(members, above, leaf_lo, leaf_hi)
 
 
 def _ray_boxes(o, inv, zero, lo, hi) -> tuple[torch.Tensor, torch.Tensor]:
@@ -86,13 +96,23 @@ def _ray_boxes(o, inv, zero, lo, hi) -> tuple[torch.Tensor, torch.Tensor]:
     return torch.minimum(t0, t1).amax(-1), torch.maximum(t0, t1).amin(-1)
 
 
-def descend(h: Hierarchy, n: int, test: Callable) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def descend(
+    h: Hierarchy, n: int, test: Callable, flat: bool | None = None
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(query, leaf) pairs whose boxes pass ``test`` at every level, walking down from the top.
 
-    ``test(query, lo, hi)`` takes (M,) query indices and their nodes' (M, D) boxes and returns (M,) bool
-    (kept) and an (M,) value. Returns (M,) query and leaf indices, grouped by query in ascending order,
-    and the value of each pair's leaf."""
+    ``test(query, lo, hi)`` takes query indices and their nodes' boxes, broadcastable ((M,) and (M, D), or
+    (n, 1) and (1, L, D)), and returns a bool (kept) and a value of the broadcast shape. Returns (M,) query
+    and leaf indices, grouped by query in ascending order (a query's leaves ascending), and the value of
+    each pair's leaf.
+
+    ``flat`` (default: where queries do not walk, :func:`walks`: on any device but the CPU) tests every leaf
+    against every query instead of walking the levels: more arithmetic, but a fixed few operations, where
+    the walk compacts its pairs at every level and a GPU waits for each. A test that passes a leaf passes
+    every node above it (their boxes hold the leaf's), so both list the same pairs in the same order."""
     dev = h.leaf_lo.device
+    if flat if flat is not None else not walks(dev):
+        return _flat(h, n, test)
     top_lo, top_hi = h.levels[0][:2] if h.levels else (h.leaf_lo, h.leaf_hi)
     N = top_lo.shape[0]
     query = torch.arange(n, device=dev).repeat_interleave(N)
@@ -109,8 +129,23 @@ def descend(h: Hierarchy, n: int, test: Callable) -> tuple[torch.Tensor, torch.T
     return query, node, value
 
 
-def ray_leaf_pairs(h: Hierarchy, origins: torch.Tensor, dirs: torch.Tensor,
-                   pad: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+def _flat(h: Hierarchy, n: int, test: Callable) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`descend`'s pairs from every query tested against every leaf, ``FLAT_PAIRS`` tests at a time."""
+    L, dev = h.leaf_lo.shape[0], h.leaf_lo.device
+    step = max(1, FLAT_PAIRS // L)
+    out = []
+    for s in range(0, n, step):
+        query = torch.arange(s, min(n, s + step), device=dev)[:, None]
+        ok, value = test(query, h.leaf_lo[None], h.leaf_hi[None])  # (m, L)
+        who, leaf = ok.nonzero(as_tuple=True)
+        out.append((who + s, leaf, value[who, leaf]))
+    if len(out) == 1:
+        return out[0]
+    return tuple(torch.cat(x) for x in zip(*out))  # type: ignore[return-value]
+
+
+def ray_leaf_pairs(h: Hierarchy, origins: torch.Tensor, dirs: torch.Tensor, pad: float,
+                   flat: bool | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
     """(ray, leaf) pairs whose leaf box, grown by ``pad`` on every side, the ray (t >= 0) may pass through.
 
     Conservative: every leaf holding a primitive the ray meets at t >= 0 is listed (boxes grown by ``pad``
@@ -124,11 +159,11 @@ def ray_leaf_pairs(h: Hierarchy, origins: torch.Tensor, dirs: torch.Tensor,
         near = near.clamp_min(0)
         return far >= near, near
 
-    return descend(h, origins.shape[0], enter)
+    return descend(h, origins.shape[0], enter, flat)
 
 
-def near_leaf_pairs(h: Hierarchy, points: torch.Tensor,
-                    reach: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+def near_leaf_pairs(h: Hierarchy, points: torch.Tensor, reach: torch.Tensor,
+                    flat: bool | None = None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
     """(point, leaf) pairs whose leaf box lies within ``reach`` (N,) of the point (N, D), and the (M,)
     distance from the point to the box."""
 
@@ -136,7 +171,7 @@ def near_leaf_pairs(h: Hierarchy, points: torch.Tensor,
         gap = torch.maximum(lo - points[i], points[i] - hi).clamp_min(0).norm(dim=-1)
         return gap <= reach[i], gap
 
-    return descend(h, points.shape[0], close)
+    return descend(h, points.shape[0], close, flat)
 
 
 def group_rank(group: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:

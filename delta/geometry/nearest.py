@@ -24,7 +24,14 @@ POINT_LEAF = 128
 """Points per leaf of the tensor search's hierarchy: of 16-128, 128 was fastest for a step's searches on a
 GPU (`benchmarks/device_geometry.csv`), where the walk's launches cost more than the extra distances."""
 _CHUNK = 1 << 22
-"""Query-leaf (and query-point) distances held at once by the tensor search."""
+"""Query-leaf (and query-point) distances held at once by the tensor search on the CPU; other devices hold
+:data:`DEVICE_CHUNKS` times as many (0.4 GB at most): there each chunk is a round of kernel launches and
+waits, and a training step's 50k queries fit one."""
+DEVICE_CHUNKS = 8
+
+
+def _chunk(device: torch.device) -> int:
+    return _CHUNK if device.type == "cpu" else _CHUNK * DEVICE_CHUNKS
 
 
 class PointIndex:
@@ -62,7 +69,7 @@ class PointIndex:
             empty = q.new_zeros((0, k), device=queries.device)
             return empty, empty.long()
         probes = _probes(self.tree, k)
-        step = max(1, _CHUNK // self.tree.members.shape[0])
+        step = max(1, _chunk(q.device) // self.tree.members.shape[0])
         out = [_search(self.points, self.tree, probes, q[s : s + step], k) for s in range(0, len(q), step)]
         return tuple(torch.cat(x).to(queries.device) for x in zip(*out))
 
@@ -120,7 +127,7 @@ def _search(points: torch.Tensor, tree: clusters.Hierarchy, probes: torch.Tensor
     widths = count[by_count].cpu().numpy()
     dist = torch.empty((n, k), dtype=q.dtype, device=q.device)
     idx = torch.empty((n, k), dtype=torch.int64, device=q.device)
-    s, per_batch = 0, _CHUNK // members.shape[1]
+    s, per_batch = 0, _chunk(q.device) // members.shape[1]
     while s < n:
         cost = np.arange(1, n - s + 1) * np.maximum(widths[s:], 1)
         rows = by_count[s : s + max(1, int(np.searchsorted(cost, per_batch, side="right")))]

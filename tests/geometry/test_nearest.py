@@ -99,3 +99,43 @@ def test_hierarchy_holds_every_primitive_once_inside_its_boxes():
         assert torch.equal(children[real].sort().values, torch.arange(len(below_lo)))
         below_lo, below_hi = lo, hi
     assert len(tree.levels) >= 2 and tree.levels[0][0].shape[0] <= 4
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_flat_search_lists_the_walks_pairs_in_its_order(monkeypatch, dtype):
+    """A GPU tests every leaf at once (clusters.descend's flat search); the pairs, their order and values must
+    be the walk's, also across chunks of queries (a chunk here is a few queries) and for rays."""
+    pts = _cloud(4000, 3, 5).to(dtype)
+    tree = clusters.build(pts, pts, leaf=16, fanout=4)
+    g = torch.Generator().manual_seed(1)
+    q = (pts[torch.randint(len(pts), (700,), generator=g)] + 0.05 * torch.randn(700, 3, generator=g, dtype=D)).to(dtype)
+    reach = (0.2 * torch.rand(700, generator=g, dtype=D)).to(dtype)
+    reach[:5] = 0.0  # queries that reach no leaf
+    dirs = torch.nn.functional.normalize(torch.randn(700, 3, generator=g, dtype=D), dim=1).to(dtype)
+    dirs[:20, 1:] = 0.0  # axis-aligned rays: slabs they lie in
+    monkeypatch.setattr(clusters, "FLAT_PAIRS", 7 * tree.leaf_lo.shape[0] + 3)
+    for walk, flat in [
+        (clusters.near_leaf_pairs(tree, q, reach, flat=False), clusters.near_leaf_pairs(tree, q, reach, flat=True)),
+        (clusters.ray_leaf_pairs(tree, 2 * q, dirs, 1e-6, flat=False),
+         clusters.ray_leaf_pairs(tree, 2 * q, dirs, 1e-6, flat=True)),
+    ]:  # fmt: skip
+        assert len(walk[0]) > 1000 and torch.equal(walk[0], flat[0]) and torch.equal(walk[1], flat[1])
+        assert torch.equal(walk[2], flat[2])
+    leaves = clusters.build(pts, pts, leaf=16, fanout=4, levels=False)  # as a GPU builds it
+    assert leaves.levels == [] and torch.equal(leaves.members, tree.members)
+    for flat in (False, True):
+        got = clusters.near_leaf_pairs(leaves, q, reach, flat=flat)
+        assert all(torch.equal(a, b) for a, b in zip(got, clusters.near_leaf_pairs(tree, q, reach, flat=False)))
+
+
+def test_the_flat_search_finds_the_kdtrees_neighbours(monkeypatch):
+    pts = _cloud(3000, 3, 7)
+    g = torch.Generator().manual_seed(2)
+    q = torch.cat([pts[torch.randint(len(pts), (900,), generator=g)] + 0.05 * torch.randn(900, 3, generator=g, dtype=D),
+                   3 * torch.randn(100, 3, generator=g, dtype=D)])  # fmt: skip
+    walk = clusters.descend
+    monkeypatch.setattr(clusters, "descend", lambda h, n, test, flat=None: walk(h, n, test, True))
+    got_d, got_i = PointIndex(pts, "torch").query(q, 6)
+    want_d, want_i = cKDTree(pts.numpy()).query(q.numpy(), k=6)
+    np.testing.assert_allclose(got_d.numpy(), want_d, rtol=1e-12, atol=1e-15)
+    assert torch.equal(got_i, torch.from_numpy(want_i))
