@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import json
 import tempfile
 import time
 from pathlib import Path
@@ -96,6 +97,14 @@ def main() -> None:
     p.add_argument("--body", required=True)
     p.add_argument("--init", required=True)
     p.add_argument("--preset", default="fast")
+    p.add_argument(
+        "--settings",
+        default=None,
+        help="a stage 1's settings.json (its preset, the subject's and the "
+        "scene's settings) instead of the bare --preset: a head capture's expressions, layers and framing",
+    )
+    p.add_argument("--override", default="{}", help="JSON settings merged over the preset's or the run's")
+    p.add_argument("--label", default="", help="the subject or variant, written in every row")
     p.add_argument("--out", default="benchmarks/cuda_check.csv")
     p.add_argument("--steps", type=int, default=30)
     p.add_argument("--model", default=None, help="a trained stage's model.pt: also time a whole-image render")
@@ -106,8 +115,12 @@ def main() -> None:
     a = p.parse_args()
     if not torch.cuda.is_available():
         raise SystemExit("cuda_check: torch sees no CUDA device")
-    st = resolve(a.preset)
-    data = load_frames(a.record, st.resolution, st.background, st.box_margin)
+    if a.settings:
+        saved = json.loads(Path(a.settings).read_text())
+        st = resolve(saved["preset"], saved["settings"], json.loads(a.override))
+    else:
+        st = resolve(a.preset, json.loads(a.override))
+    data = load_frames(a.record, st.resolution, st.background, st.box_margin, hair=st.layers == "split")
     body = load_body_model(a.body)
     torch.manual_seed(0)
     model = build_avatar(body, st, load_init(a.init, data), data, 1, torch.device("cpu"))
@@ -124,6 +137,7 @@ def main() -> None:
     rows.append({"check": "device", "cpu": float("nan"), "cuda": float("nan"), "rel_diff": float("nan"),
                  "name": torch.cuda.get_device_name()})  # fmt: skip
     df = pd.DataFrame(rows)
+    df["label"] = a.label
     df.to_csv(a.out, index=False)
     with pd.option_context("display.max_rows", 200, "display.width", 200):
         print(df.to_string(index=False))
