@@ -120,6 +120,42 @@ def test_rigid_transforms_match_sequential_reference():
             torch.testing.assert_close(A[b, j, :3, 3], G[j][:3, 3] - G[j][:3, :3] @ joints[b, j])
 
 
+def _dispatched(fn) -> int:
+    """Tensor operations (not views) that fn() dispatches, forward and backward."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Count(TorchDispatchMode):
+        n = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            Count.n += func.overloadpacket.__name__ not in ("view", "select", "slice", "expand", "detach", "t")
+            return func(*args, **(kwargs or {}))
+
+    with Count():
+        fn()
+    return Count.n
+
+
+def test_kinematics_cost_a_few_operations_a_level_not_a_joint():
+    """On a GPU each operation is a launch: two trees of the same depth, one with four times the joints,
+    dispatch the same operations forward and backward (and the gradients are the sequential chain's)."""
+    narrow = [-1, *range(8)]  # a chain: 9 levels, one joint each
+    wide = [-1] + [0 if d == 0 else 1 + 4 * (d - 1) for d in range(8) for _ in range(4)]  # 4 joints a level
+    counts = []
+    for parents in (narrow, wide):
+        J = len(parents)
+        rot = batch_rodrigues(torch.randn(1, J, 3, generator=torch.Generator().manual_seed(J), dtype=torch.float64))
+        rot.requires_grad_()
+        joints = torch.randn(1, J, 3, dtype=torch.float64, requires_grad=True)
+        par = torch.tensor(parents)
+        depth = len(kinematic_levels(tuple(parents)))
+        counts.append((depth, _dispatched(lambda: sum(x.sum() for x in rigid_transforms(rot, joints, par)).backward())))
+    assert counts[0][0] == counts[1][0] == 9 and counts[0][1] == counts[1][1]
+    torch.autograd.gradcheck(lambda r, j: rigid_transforms(r, j, torch.tensor(narrow))[1],
+                             (torch.randn(1, 9, 3, 3, dtype=torch.float64, requires_grad=True),
+                              torch.randn(1, 9, 3, dtype=torch.float64, requires_grad=True)))  # fmt: skip
+
+
 # ------------------------------------------------------------------ gradients
 def _vertices(model, **kw):
     def f(betas, pose, offsets):
