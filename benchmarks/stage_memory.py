@@ -45,6 +45,13 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--stage", choices=["1", "2", "eval"], required=True,
                     help="one measurement a process (the OS reports the largest child's peak)")  # fmt: skip
+    ap.add_argument("--train-settings", default="{}",
+                    help="the workflow's --settings JSON of the subject's train job (its config keys: a head's layers, "
+                    "weights); the shortened steps and --resolution go over it")  # fmt: skip
+    ap.add_argument(
+        "--scene", default=None, help="the subject's scene.json, passed to delta train as the workflow does"
+    )
+    ap.add_argument("--eval-settings", default="{}", help="JSON over the evaluation's shortened settings")
     ap.add_argument("--work", default=None, help="folder for the shortened stages (kept between --stage runs)")
     ap.add_argument("--out", required=True)
     ap.add_argument("--append", action="store_true")
@@ -52,11 +59,16 @@ def main() -> None:
     res = ROOT / "results" / a.dataset / a.subject
     work = Path(a.work or tempfile.mkdtemp(prefix="stage_memory_"))
     common = ["--record", str(res / "frames.h5"), "--body", a.body, "--threads", str(a.threads)]
-    stage = {"resolution": a.resolution, "stage1": {"iterations": a.steps}, "stage2": {"iterations": a.steps}}
-    settings = json.dumps({"preset": a.preset, **stage})
+    given = json.loads(a.train_settings)
+    fixed = {"resolution", "stage1.iterations", "stage2.iterations"}  # not the scene's to decide here
+    short = {"resolution": a.resolution, "user_set": sorted({*given.get("user_set", []), *fixed})}
+    for k in ("stage1", "stage2"):
+        short[k] = {**given.get(k, {}), "iterations": a.steps}
+    settings = json.dumps({**given, "preset": given.get("preset", a.preset), **short})
+    scene = ["--scene", a.scene] if a.scene else []
     if a.stage == "1":
         cmd = ["delta", "train", "--stage", "1", "--start", str(res / "init/params.npz"), "--out", str(work / "stage1")]
-        cmd += ["--settings", settings, *common]
+        cmd += ["--settings", settings, *scene, *common]
     elif a.stage == "2":
         cmd = [
             "delta",
@@ -68,9 +80,10 @@ def main() -> None:
             "--out",
             str(work / "stage2"),
         ]
-        cmd += ["--settings", settings, "--perceptual", str(ROOT / "resources/models/stlpips"), *common]
+        cmd += ["--settings", settings, *scene, "--perceptual", str(ROOT / "resources/models/stlpips"), *common]
     else:
         ev = {"max_frames": a.frames, "refine_steps": 30, "splits": ["test_view"], "supersample": 2}
+        ev.update(json.loads(a.eval_settings))
         cmd = ["delta", "evaluate", "--model", str(work / "stage2/model.pt"), "--subject", a.subject,
                "--out", str(work / "metrics.csv"), "--settings", json.dumps(ev), *common]  # fmt: skip
     seconds, peak = run(cmd)
