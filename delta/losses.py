@@ -72,11 +72,12 @@ def skin_inside(mesh_rgb: torch.Tensor, skin_color: torch.Tensor, exterior_mask:
     return huber(exterior_mask[:, None] * (mesh_rgb - skin_color), delta)
 
 
-def edge(vertices: torch.Tensor, reference: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
-    """Relative edge loss: mean ‖(v_a - v_b) - (u_a - u_b)‖² over edges (E, 2)."""
-    ev = vertices[edges[:, 0]] - vertices[edges[:, 1]]
-    eu = reference[edges[:, 0]] - reference[edges[:, 1]]
-    return ((ev - eu) ** 2).sum(-1).mean()
+def edge(displacement: torch.Tensor, edges: torch.Tensor) -> torch.Tensor:
+    """Relative edge loss between a mesh v and its reference u = v - d, from the displacement d (V, 3):
+    mean ‖(v_a - v_b) - (u_a - u_b)‖² = mean ‖d_a - d_b‖² over edges (E, 2). Taken from d itself, its
+    gradient reaches d alone (through v and u it would cancel, up to rounding, at twice the gathers)."""
+    diff = displacement[edges[:, 0]] - displacement[edges[:, 1]]
+    return (diff**2).sum(-1).mean()
 
 
 def offset(offsets: torch.Tensor, regions: torch.Tensor, region_weights: dict) -> torch.Tensor:

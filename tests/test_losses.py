@@ -120,11 +120,16 @@ def test_edge_single_triangle():
     verts[2] = t(0.0, 2.0, 0.0)  # vertex 2 moved by (0, 1, 0)
     edges = torch.tensor([[0, 1], [1, 2], [0, 2]])
     # edge 0-1 unchanged; 1-2: (v1-v2) - (u1-u2) = (0,-1,0); 0-2: (0,-1,0) -> (0 + 1 + 1) / 3
-    close(losses.edge(verts, ref, edges), 2.0 / 3)
+    close(losses.edge(verts - ref, edges), 2.0 / 3)
     # a rigid translation costs nothing
-    close(losses.edge(ref + t(3.0, -1.0, 2.0), ref, edges), 0.0)
+    close(losses.edge(t(3.0, -1.0, 2.0).expand(3, 3), edges), 0.0)
     # scaling by 2: edge differences equal the reference edges: (1 + 2 + 1) / 3
-    close(losses.edge(2 * ref, ref, edges), 4.0 / 3)
+    close(losses.edge(2 * ref - ref, edges), 4.0 / 3)
+    # the textbook form from both meshes, on random ones: the same value
+    g = torch.Generator().manual_seed(0)
+    v, u = torch.randn(3, 3, generator=g, dtype=torch.float64), torch.randn(3, 3, generator=g, dtype=torch.float64)
+    textbook = (((v[edges[:, 0]] - v[edges[:, 1]]) - (u[edges[:, 0]] - u[edges[:, 1]])) ** 2).sum(-1).mean()
+    close(losses.edge(v - u, edges), float(textbook))
 
 
 def test_offset_region_weights():

@@ -58,7 +58,7 @@ def loss_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, skin_col
         "skin": L.skin(r.mesh_rgb, batch.rgb, batch.interior, d),
         "inside": L.inside(r.silhouette, batch.person, d),
         "skin_inside": L.skin_inside(r.mesh_rgb, skin_color, batch.exterior, d),
-        "edge": L.edge(out.rest_vertices[0], out.rest_vertices[0] - offsets, model.edges),
+        "edge": L.edge(offsets, model.edges),  # the mesh with its offsets against the one without
         "offset": L.offset(offsets, model.body.regions, st.weights.offset_region_weights),
     }
     details = [f.detail for f in (model.offset_field, model.albedo_field) if f.detail is not None]
@@ -95,9 +95,14 @@ def nerf_only_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, gen
     return terms, r
 
 
-def _psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    mse = float(((a - b) ** 2).mean())
+def _psnr_of(mse: float) -> float:
     return float(10 * np.log10(1.0 / max(mse, 1e-10)))
+
+
+def _read_back(*scalars: torch.Tensor) -> list[float]:
+    """The values of 0-d tensors as floats, read from the device at once (on a GPU one wait, not one each);
+    each exactly as ``float(t)`` gives it."""
+    return torch.stack([t.detach().reshape(()).to(torch.float64) for t in scalars]).tolist()
 
 
 def fingerprint(stage: int, st: TrainSettings, data: FrameData, origin: str = "", model=None) -> str:
@@ -288,10 +293,11 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
         with frame_locked(model.per_frame_parameters(), frame):
             optimizer.step()
         seen += 1
-        rows.append({"step": step + 1, "loss": float(loss.detach()), "psnr": _psnr(r.rgb.detach(), batch.rgb),
+        logged = _read_back(loss, ((r.rgb.detach() - batch.rgb) ** 2).mean(), *terms.values())
+        rows.append({"step": step + 1, "loss": logged[0], "psnr": _psnr_of(logged[1]),
                      "samples": r.samples_evaluated, "seconds": round(before + time.time() - t0, 3),
                      **({"warmup": float(warm)} if warmup_end else {}),
-                     **{k: float(v.detach()) for k, v in terms.items()}})  # fmt: skip
+                     **dict(zip(terms, logged[2:]))})  # fmt: skip
         if (step + 1) % cfg.log_every == 0 or step + 1 == end:
             row = rows[-1]
             progress.report(
