@@ -62,20 +62,25 @@ class Bins:
         count = self.cell_count[self.ray_cell] + self.everywhere.shape[0]  # (R,)
         end = torch.cumsum(count, 0)
         total = int(end[-1]) if R else 0
-        cuts = torch.searchsorted(end, torch.arange(chunk, max(total, chunk), chunk, device=end.device), right=True)
+        if total <= chunk:  # one batch (a training step's): its size is known, nothing more to read back
+            yield self._pairs(0, R, total)
+            return
+        cuts = torch.searchsorted(end, torch.arange(chunk, total, chunk, device=end.device), right=True)
         bounds = [0, *sorted(set(cuts.tolist()) - {0, R}), R]
         for lo, hi in zip(bounds[:-1], bounds[1:]):
             yield self._pairs(lo, hi)
 
-    def _pairs(self, lo: int, hi: int) -> tuple[torch.Tensor, torch.Tensor]:
+    def _pairs(self, lo: int, hi: int, size: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The pairs of rays lo..hi; ``size``: their number when known (then no count is read back)."""
         dev = self.ray_cell.device
         rays = torch.arange(lo, hi, device=dev)
         binned = self.cell_count[self.ray_cell[lo:hi]]
-        ray = rays.repeat_interleave(binned)
-        first = torch.cumsum(binned, 0) - binned  # each ray's first pair
-        rank = torch.arange(ray.shape[0], device=dev) - first.repeat_interleave(binned)
-        face = self.cell_faces[self.cell_start[self.ray_cell[ray]] + rank]
         S = self.everywhere.shape[0]
+        out = None if size is None else size - S * (hi - lo)
+        ray = rays.repeat_interleave(binned, output_size=out)
+        first = torch.cumsum(binned, 0) - binned  # each ray's first pair
+        rank = torch.arange(ray.shape[0], device=dev) - first.repeat_interleave(binned, output_size=ray.shape[0])
+        face = self.cell_faces[self.cell_start[self.ray_cell[ray]] + rank]
         if S:
             ray = torch.cat([ray, rays.repeat_interleave(S)])
             face = torch.cat([face, self.everywhere.repeat(hi - lo)])
@@ -89,11 +94,10 @@ def bin_faces(tri: torch.Tensor, origin: torch.Tensor, dirs: torch.Tensor) -> Bi
     dtype = tri.dtype
     dn = torch.nn.functional.normalize(dirs.to(dtype), dim=1)
     axis = dn.mean(0)
-    if not bool(axis.norm() > 0):
-        return None
-    axis = axis / axis.norm()
+    length = axis.norm()
+    axis = axis / length
     cos = dn @ axis
-    if not bool((cos > MIN_COS).all()):
+    if not all(torch.stack([length > 0, (cos > MIN_COS).all()]).tolist()):  # one read back for both
         return None
     basis = _plane(axis)  # rows: the projection plane's axes, depth
     ray_uv = (dn @ basis[:2].T) / cos[:, None]  # (R, 2)
@@ -111,8 +115,7 @@ def bin_faces(tri: torch.Tensor, origin: torch.Tensor, dirs: torch.Tensor) -> Bi
 
 def _plane(axis: torch.Tensor) -> torch.Tensor:
     """(3, 3) rows: two axes of the plane across ``axis`` (unit), then ``axis``."""
-    helper = torch.zeros(3, dtype=axis.dtype, device=axis.device)
-    helper[int(axis.abs().argmin())] = 1.0
+    helper = torch.nn.functional.one_hot(axis.abs().argmin(), 3).to(axis.dtype)
     e1 = torch.nn.functional.normalize(torch.linalg.cross(axis, helper), dim=0)
     return torch.stack([e1, torch.linalg.cross(axis, e1), axis])
 
@@ -138,7 +141,7 @@ def _grid(ids, f_lo, f_hi, ray_uv, everywhere) -> Bins | None:
     dev = ray_uv.device
     lo, hi = ray_uv.amin(0), ray_uv.amax(0)
     side = int(min(MAX_SIDE, max(1, round((max(len(ids), 1) / FACES_PER_CELL) ** 0.5))))
-    cell = ((hi - lo) / side).clamp_min(1e-12 * (1 + float(lo.abs().amax())))
+    cell = ((hi - lo) / side).clamp_min(1e-12 * (1 + lo.abs().amax()))
     overlaps = ((f_hi >= lo) & (f_lo <= hi)).all(1)
     ids, f_lo, f_hi = ids[overlaps], f_lo[overlaps], f_hi[overlaps]
     c0 = ((f_lo - lo) / cell).floor().clamp(0, side - 1).long()  # (Fo, 2) first and last cell per axis
@@ -148,8 +151,10 @@ def _grid(ids, f_lo, f_hi, ray_uv, everywhere) -> Bins | None:
     total = int(per_face.sum())
     if total > MAX_BINNED:
         return None
-    which = torch.arange(len(ids), device=dev).repeat_interleave(per_face)
-    k = torch.arange(total, device=dev) - (torch.cumsum(per_face, 0) - per_face).repeat_interleave(per_face)
+    which = torch.arange(len(ids), device=dev).repeat_interleave(per_face, output_size=total)
+    k = torch.arange(total, device=dev) - (torch.cumsum(per_face, 0) - per_face).repeat_interleave(
+        per_face, output_size=total
+    )
     cu = c0[which, 0] + k // n[which, 1]
     cv = c0[which, 1] + k % n[which, 1]
     cells = cu * side + cv

@@ -106,9 +106,9 @@ def _keep_nearest(best: torch.Tensor, face: torch.Tensor, ray, t, f) -> None:
     near = torch.full_like(best, torch.inf).scatter_reduce(0, ray, t, "amin")
     win = (t == near[ray]) & (near[ray] < best[ray])
     none = torch.iinfo(torch.int64).max
-    pick = torch.full_like(face, none).scatter_reduce(0, ray[win], f[win], "amin")
-    won = pick != none
-    face[won] = pick[won]
+    # losers carry `none` rather than being dropped: no compaction, so no wait for its size on a GPU
+    pick = torch.full_like(face, none).scatter_reduce(0, ray, torch.where(win, f, none), "amin")
+    face.copy_(torch.where(pick != none, pick, face))
     torch.minimum(best, near, out=best)
 
 
