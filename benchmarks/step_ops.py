@@ -4,9 +4,9 @@ On a GPU a step is launch-bound (`step_trace_h100.csv`: 4 700 kernel launches fo
 96 ms step), so the number of operations a step dispatches, and how many of them make the host wait for
 the device (``nonzero``, ``.item()``, boolean indexing, copies to the host), is the figure to cut. Both are
 counted here on the CPU, exactly, by a dispatch mode around ``--steps`` steps (forward, losses, backward),
-with ``--device-paths`` running the code paths a GPU takes (the tensor searches instead of Embree and
-SciPy's KD-tree and transform, the grid encodings' ``grid_sample`` instead of their sparse matrices, a
-device's chunk sizes and flat leaf search), so
+with ``--device-paths`` running the code paths a GPU takes (:func:`delta.devices.tensor_paths`: the tensor
+searches instead of Embree and SciPy's KD-tree and transform, the grid encodings' ``grid_sample`` instead
+of their sparse matrices, a device's chunk sizes and flat leaf search), so
 a change's effect on the GPU's launches is known before a GPU is at hand. One row per component of
 ``step_profile.py`` (inclusive counts) and one for the whole step:
 
@@ -26,6 +26,8 @@ from pathlib import Path
 import pandas as pd
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
+
+from delta.devices import tensor_paths
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from step_profile import components, fresh_model, patched, step_fn  # noqa: E402
@@ -81,37 +83,6 @@ def counted(owners, counter: OpCounter):
     return patched(owners, wrap)
 
 
-@contextlib.contextmanager
-def device_paths():
-    """The geometry and encodings take the paths they take on a GPU, on the CPU."""
-    from delta.fields import encodings
-    from delta.geometry import clusters, distance_grid, nearest, raymesh
-
-    build, init = distance_grid.build, nearest.PointIndex.__init__
-
-    def torch_build(*a, **kw):
-        kw["method"] = "torch"
-        return build(*a, **kw)
-
-    def torch_index(self, points, backend="auto", leaf=nearest.POINT_LEAF):
-        init(self, points, "torch", leaf)
-
-    owners = [(distance_grid, "build", torch_build), (raymesh, "embree_available", lambda: False),
-              (nearest.PointIndex, "__init__", torch_index),
-              (nearest, "_chunk", lambda device: nearest._CHUNK * nearest.DEVICE_CHUNKS),
-              (clusters, "walks", lambda device: False),
-              (encodings.GridEncoding, "at_fixed", encodings.GridEncoding.forward)]  # fmt: skip
-    # (another tree's code, for a before and after, may lack a part: then it is added and removed again)
-    saved = [(o, n, getattr(o, n, None)) for o, n, _ in owners]
-    for o, n, f in owners:
-        setattr(o, n, f)
-    try:
-        yield
-    finally:
-        for o, n, f in saved:
-            setattr(o, n, f) if f is not None else delattr(o, n)
-
-
 def extra_parts(model) -> list[tuple[object, str, str]]:
     """Parts of a step beyond the timed components: the posed body, the losses, the backward pass."""
     from delta import losses
@@ -149,7 +120,7 @@ def main() -> None:
     ap.add_argument("--append", action="store_true")
     a = ap.parse_args()
     torch.set_num_threads(2)
-    with device_paths() if a.device_paths else contextlib.nullcontext():
+    with tensor_paths() if a.device_paths else contextlib.nullcontext():
         tr = fresh_model(a.settings, a.override, a.record, a.body, a.init, "cpu")
         model = tr.model.train()
         table, counter = count(model, tr.data, tr.settings, a.steps)

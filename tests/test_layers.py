@@ -40,7 +40,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "delta.progress",
         "delta.loss_weights",
         "delta.optim",
-    ),  # files, unpickling, settings, progress, loss weights, the optimiser
+        "delta.devices",
+    ),  # files, unpickling, settings, progress, loss weights, the optimiser, the host's or a GPU's paths
     ("delta.body", "delta.cameras", "delta.geometry", "delta.fields", "delta.metrics", "delta.perceptual"),
     ("delta.data", "delta.losses", "delta.deformers"),
     ("delta.render",),

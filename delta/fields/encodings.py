@@ -12,7 +12,10 @@ import warnings
 import weakref
 
 import torch
+
 import torch.nn.functional as F
+
+from delta.devices import host_paths
 from torch import nn
 
 
@@ -97,7 +100,7 @@ class GridEncoding(nn.Module):
         level is a sparse (N, cells) matrix of the points' eight trilinear weights, built once, and the
         features its product with the grid (the backward pass the transpose's): the same values as
         ``grid_sample``'s, a third of its time forward and backward for a body's 55k vertices."""
-        if x.requires_grad or x.device.type != "cpu":
+        if x.requires_grad or not host_paths(x.device):
             return self.forward(x)
         if getattr(self, "_fixed", None) is None or not self._fixed[0].matches(x, self.lo):
             xn = 2 * (x - self.lo) / (self.hi - self.lo) - 1

@@ -18,6 +18,8 @@ from typing import Callable
 
 import torch
 
+from delta.devices import host_paths
+
 LEAF = 32
 """Primitives per leaf."""
 FANOUT = 16
@@ -64,15 +66,10 @@ def _group(lo: torch.Tensor, hi: torch.Tensor, size: int) -> tuple[torch.Tensor,
     return glo, ghi, index
 
 
-def walks(device: torch.device) -> bool:
-    """Whether queries on ``device`` walk the levels (the CPU) or test every leaf at once (:func:`descend`)."""
-    return device.type == "cpu"
-
-
 def build(lo: torch.Tensor, hi: torch.Tensor, leaf: int = LEAF, fanout: int = FANOUT,
           levels: bool | None = None) -> Hierarchy:  # fmt: skip
     """The hierarchy over primitives with boxes lo, hi (P, D), P >= 1 (a point: lo = hi). ``levels``
-    (default: where queries walk them, :func:`walks`) False: the leaves alone, for flat searches."""
+    (default: where queries walk them, on the host's paths) False: the leaves alone, for flat searches."""
     if lo.shape[0] == 0:
         raise ValueError("a hierarchy needs at least one primitive")
     order = torch.argsort(morton_codes((lo + hi) / 2))
@@ -80,7 +77,7 @@ def build(lo: torch.Tensor, hi: torch.Tensor, leaf: int = LEAF, fanout: int = FA
     members = torch.where(slots >= 0, order[slots.clamp_min(0)], -1)
     above = []
     node_lo, node_hi = leaf_lo, leaf_hi
-    while (levels if levels is not None else walks(lo.device)) and node_lo.shape[0] > fanout:
+    while (levels if levels is not None else host_paths(lo.device)) and node_lo.shape[0] > fanout:
         node_lo, node_hi, children = _group(node_lo, node_hi, fanout)
         above.insert(0, (node_lo, node_hi, children))
     return Hierarchy(members, above, leaf_lo, leaf_hi)
@@ -106,12 +103,12 @@ def descend(
     and leaf indices, grouped by query in ascending order (a query's leaves ascending), and the value of
     each pair's leaf.
 
-    ``flat`` (default: where queries do not walk, :func:`walks`: on any device but the CPU) tests every leaf
+    ``flat`` (default: off the host's paths, :func:`delta.devices.host_paths`: on a GPU) tests every leaf
     against every query instead of walking the levels: more arithmetic, but a fixed few operations, where
     the walk compacts its pairs at every level and a GPU waits for each. A test that passes a leaf passes
     every node above it (their boxes hold the leaf's), so both list the same pairs in the same order."""
     dev = h.leaf_lo.device
-    if flat if flat is not None else not walks(dev):
+    if flat if flat is not None else not host_paths(dev):
         return _flat(h, n, test)
     top_lo, top_hi = h.levels[0][:2] if h.levels else (h.leaf_lo, h.leaf_hi)
     N = top_lo.shape[0]

@@ -14,6 +14,8 @@ from typing import Optional
 
 import numpy as np
 import torch
+
+from delta.devices import host_paths
 from scipy import ndimage
 
 
@@ -43,7 +45,7 @@ def build(points: torch.Tensor, cell: float, pad: float, nearest: bool = False, 
     """
     points = points.detach()
     if method == "auto":
-        method = "scipy" if points.device.type == "cpu" else "torch"
+        method = "scipy" if host_paths(points.device) else "torch"
     if method not in ("scipy", "torch"):
         raise ValueError(f"unknown method {method!r}; expected 'auto', 'scipy' or 'torch'")
     # the grid's frame in float64 on the host, so both methods lay out the same voxels

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from delta.devices import host_paths
 from delta.geometry import clusters
 
 PARALLEL_QUERY = 20_000
@@ -31,7 +32,7 @@ DEVICE_CHUNKS = 8
 
 
 def _chunk(device: torch.device) -> int:
-    return _CHUNK if device.type == "cpu" else _CHUNK * DEVICE_CHUNKS
+    return _CHUNK if host_paths(device) else _CHUNK * DEVICE_CHUNKS
 
 
 class PointIndex:
@@ -41,7 +42,7 @@ class PointIndex:
         if points.shape[0] == 0:
             raise ValueError("a point index needs at least one point")
         if backend == "auto":
-            backend = "kdtree" if points.device.type == "cpu" else "torch"
+            backend = "kdtree" if host_paths(points.device) else "torch"
         if backend not in ("kdtree", "torch"):
             raise ValueError(f"unknown backend {backend!r}; expected 'auto', 'kdtree' or 'torch'")
         self.points = points.detach()

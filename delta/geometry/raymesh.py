@@ -21,6 +21,7 @@ from typing import Callable
 import numpy as np
 import torch
 
+from delta.devices import host_paths
 from delta.geometry import clusters, pencil
 
 FACE_LEAF = clusters.LEAF
@@ -236,7 +237,7 @@ queries are the faster (32k rays: 0.01 s against 0.5 s): a whole image's chunks 
 
 
 def _auto_backend(vertices, faces, origins, dirs) -> str:
-    if vertices.device.type != "cpu" or not embree_available():
+    if not host_paths(vertices.device) or not embree_available():
         return "torch"
     if _SCENES.holds(vertices, faces) or origins.shape[0] > TORCH_RAYS:
         return "embree"

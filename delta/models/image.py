@@ -18,6 +18,7 @@ import itertools
 import torch
 import torch.nn.functional as F
 
+from delta.devices import host_paths
 from delta.data.frames import FullFrames
 from delta.models.avatar import HybridAvatar
 from delta.render.hybrid import room_margin
@@ -151,7 +152,7 @@ def _render_pixels(model: HybridAvatar, frame: int, mesh, pixels: torch.Tensor, 
                    soft_silhouette: bool) -> dict[str, torch.Tensor]:  # fmt: skip
     """Every image of :func:`render_image` at ray positions (R, 2) (the model's pixels): (R, C) each."""
     dev = model.background.device
-    chunk = chunk or (CPU_CHUNK if dev.type == "cpu" else 8 * CPU_CHUNK)
+    chunk = chunk or (CPU_CHUNK if host_paths(dev) else 8 * CPU_CHUNK)
     live = torch.nonzero(live_rays(pixels, reach_box(model, frame, mesh.vertices))).squeeze(1)
     bg = model.background
     full = {"rgb": bg.expand(len(pixels), 3), "mesh": bg.expand(len(pixels), 3), "nerf": bg.expand(len(pixels), 3),

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import torch
 
+from delta.devices import host_paths
 from delta.geometry.nearest import PointIndex
 
 _LOGIT_BOUND = 1.0e4
@@ -69,7 +70,7 @@ def point_triangle_distance_2d(p, a, b, c) -> tuple[torch.Tensor, torch.Tensor]:
 def nearest_faces(uv, faces, pixels, k: int) -> torch.Tensor:
     """(R, min(k, F)) indices of the faces whose (detached) projected centroids are nearest each pixel."""
     centroids = uv.detach()[faces].mean(1)
-    if centroids.device.type == "cpu":
+    if host_paths(centroids.device):
         centroids = centroids.double()  # the KD-tree's precision, as the projected uv may be float32
     return PointIndex(centroids).query(pixels, k)[1].to(faces.device)
 

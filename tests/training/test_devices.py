@@ -1,8 +1,9 @@
 """Device handling: the avatar moves with its body model; CPU-generated samples drive any device.
 
-The CUDA comparison runs where a GPU is present (benchmarks/cuda_check.py does the same on a real
-subject; its CSV is in benchmarks/cuda_check.csv); the rest uses the ``meta`` device, which
-behaves like an accelerator for placement checks.
+A GPU's code paths (the tensor searches, ``grid_sample``, flat leaf tests: ``delta.devices``) run here on
+the CPU and must give the CPU's step. The CUDA comparison runs where a GPU is present
+(benchmarks/cuda_check.py does the same on a real subject; its CSV is in benchmarks/cuda_check.csv);
+the rest uses the ``meta`` device, which behaves like an accelerator for placement checks.
 """
 
 import copy
@@ -47,6 +48,43 @@ def test_moving_the_avatar_moves_its_body_model(tiny_avatar):
     body = model.body
     assert body.v_template.device.type == "meta" and body.weights.device.type == "meta"
     assert body.faces.device.type == "meta" and model.poses.device.type == "meta"
+
+
+def _step(model, batch, st, skin):
+    """Loss terms and every parameter's gradient of one step of ``model`` (a copy is stepped)."""
+    m = copy.deepcopy(model)
+    terms, _ = loss_terms(m, batch, st, skin, generator=torch.Generator().manual_seed(1))
+    L.total(terms, st.weights).backward()
+    return {k: float(v.detach()) for k, v in terms.items()}, {
+        n: p.grad for n, p in m.named_parameters() if p.grad is not None
+    }
+
+
+@pytest.mark.slow
+def test_a_gpus_code_paths_give_the_cpus_losses_and_gradients(tiny_avatar, monkeypatch):
+    """The step a GPU runs (tensor kNN and ray casting, flat leaf tests, the torch distance transform,
+    grid_sample for the vertex fields), run on the CPU, against the CPU's own step (KD-tree, Embree or the
+    binned search, SciPy, sparse matrices): the same losses and gradients up to float rounding."""
+    from delta.devices import tensor_paths
+    from delta.geometry import clusters, distance_grid
+
+    model, data, st = tiny_avatar
+    batch = sample_rays(data, int(data.train[0]), 256, torch.Generator().manual_seed(0))
+    calls = {"flat": 0, "torch transform": 0}
+    flat, transform = clusters._flat, distance_grid._transform_torch
+    monkeypatch.setattr(clusters, "_flat", lambda *a: calls.__setitem__("flat", calls["flat"] + 1) or flat(*a))
+    monkeypatch.setattr(distance_grid, "_transform_torch",
+                        lambda *a, **k: calls.__setitem__("torch transform", 1) or transform(*a, **k))  # fmt: skip
+    host = _step(model, batch, st, data.skin_color)
+    assert calls == {"flat": 0, "torch transform": 0}
+    with tensor_paths():
+        gpu = _step(model, batch, st, data.skin_color)
+    assert calls["flat"] > 0 and calls["torch transform"] == 1
+    assert host[0].keys() == gpu[0].keys() and host[1].keys() == gpu[1].keys()
+    for k, v in host[0].items():
+        assert gpu[0][k] == pytest.approx(v, rel=1e-4, abs=1e-7), k
+    for n, g in host[1].items():
+        torch.testing.assert_close(gpu[1][n], g, rtol=1e-3, atol=1e-6, msg=n)
 
 
 @pytest.mark.slow
