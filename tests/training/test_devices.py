@@ -88,6 +88,24 @@ def test_a_gpus_code_paths_give_the_cpus_losses_and_gradients(tiny_avatar, monke
 
 
 @pytest.mark.slow
+def test_a_gpus_code_paths_render_the_cpus_image(tiny_avatar):
+    """A whole image (the scoring render: chunks, supersampling where busy) on a GPU's code paths, on the
+    CPU: the CPU's image up to float rounding, and the same pixels hit."""
+    from delta.devices import tensor_paths
+    from delta.models.image import render_image
+
+    model, data, _ = tiny_avatar
+    frame = int(data.train[0])
+    with torch.no_grad():
+        host = render_image(model, frame, supersample=2)
+        with tensor_paths():
+            gpu = render_image(model, frame, supersample=2)
+    assert host.keys() == gpu.keys() and float(host["silhouette"].sum()) > 10
+    for k, v in host.items():
+        torch.testing.assert_close(gpu[k], v, rtol=1e-4, atol=1e-5, msg=k)
+
+
+@pytest.mark.slow
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_losses_and_gradients_match_the_cpu(tiny_avatar):
     model, data, st = tiny_avatar
