@@ -23,9 +23,9 @@ import torch
 
 from delta import losses as L
 from delta.body.model import load_body_model
-from delta.data.frames import load_frames, sample_rays
+from delta.data.frames import sample_rays
 from delta.training.presets import resolve
-from delta.training.run import build_avatar, load_init
+from delta.training.run import build_avatar, load_init, stage_frames
 from delta.training.trainer import _to, loss_terms, train_stage
 
 
@@ -120,7 +120,7 @@ def main() -> None:
         st = resolve(saved["preset"], saved["settings"], json.loads(a.override))
     else:
         st = resolve(a.preset, json.loads(a.override))
-    data = load_frames(a.record, st.resolution, st.background, st.box_margin, hair=st.layers == "split")
+    data = stage_frames(a.record, st)
     body = load_body_model(a.body)
     torch.manual_seed(0)
     model = build_avatar(body, st, load_init(a.init, data), data, 1, torch.device("cpu"))

@@ -58,16 +58,15 @@ def per_sample_cost(model, data, n: int = 20000) -> dict:
 
 def one(subject: str, occupancy: bool, a, work: Path) -> dict:
     from delta.body.model import load_body_model
-    from delta.data.frames import load_frames
     from delta.training.presets import resolve
-    from delta.training.run import build_avatar, load_init
+    from delta.training.run import build_avatar, load_init, stage_frames
     from delta.training.trainer import train_stage
 
     over = {"render": {"occupancy": {"enabled": occupancy, "warmup": a.warmup, "update_every": a.update_every}},
             "stage1": {"iterations": a.steps, "rays": a.rays, "checkpoint_every": 10**9, "preview_every": 0,
                        "log_every": 50}}  # fmt: skip
     st = resolve("fast", over)
-    data = load_frames(ROOT / f"results/synthetic/{subject}/frames.h5", st.resolution, st.background, st.box_margin)
+    data = stage_frames(ROOT / f"results/synthetic/{subject}/frames.h5", st)
     body = load_body_model(ROOT / "resources/body/anny_sub1.npz")
     init = load_init(ROOT / f"results/synthetic/{subject}/init/params.npz", data)
     model = build_avatar(body, st, init, data, 1, torch.device("cpu"))

@@ -34,9 +34,8 @@ import torch
 import delta.training.trainer as T
 from delta import losses as L
 from delta.body.model import load_body_model
-from delta.data.frames import load_frames
 from delta.training.presets import deep_merge, resolve
-from delta.training.run import build_avatar, load_init
+from delta.training.run import build_avatar, load_init, stage_frames
 from delta.training.trainer import train_stage
 
 QUANTILES = (0.01, 0.1, 0.5, 0.9, 0.99)
@@ -70,7 +69,7 @@ def run(args: argparse.Namespace, name: str, override: dict) -> list[dict]:
     raw["stage1"] = {**raw["stage1"], "iterations": last, "checkpoint_every": last + 1, "preview_every": 0,
                      "log_every": last + 1}  # fmt: skip
     st = resolve(saved["preset"], raw)
-    data = load_frames(args.record, st.resolution, st.background, st.box_margin)
+    data = stage_frames(args.record, st)
     model = build_avatar(load_body_model(args.body), st, load_init(args.init, data), data, 1, torch.device("cpu"))
     lo, hi = model.nerf.encoding.lo, model.nerf.encoding.hi
     points = lo + torch.rand(args.points, 3, generator=torch.Generator().manual_seed(0)) * (hi - lo)

@@ -38,13 +38,12 @@ import pandas as pd
 import torch
 
 from delta.body.model import load_body_model
-from delta.data.frames import load_frames
 from delta.eval.evaluate import evaluate, summarize
 from delta.eval.settings import EvalSettings
 from delta.eval.plots import smooth
 from delta.eval.tradeoff import PSNR_WINDOW
 from delta.training.presets import resolve
-from delta.training.run import build_avatar, load_init, load_trained, pick_device, save_model
+from delta.training.run import build_avatar, load_init, load_trained, pick_device, save_model, stage_frames
 from delta.training.trainer import train_stage
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -80,7 +79,7 @@ def main() -> None:
         raise SystemExit(f"--steps: {steps[-1]} is past the run's {st.stage1.iterations} iterations")
     torch.set_num_threads(args.threads)
     dev = pick_device(args.device)
-    data = load_frames(args.record, st.resolution, st.background, st.box_margin)
+    data = stage_frames(args.record, st)
     model = build_avatar(load_body_model(args.body), st, load_init(args.init, data), data, 1, dev)
     out = Path(args.out)
     scoring = EvalSettings(splits=("test_view",), max_frames=args.max_frames, refine_steps=0, supersample=2,

@@ -45,11 +45,10 @@ import pandas as pd
 import torch
 
 from delta.body.model import load_body_model
-from delta.data.frames import load_frames
 from delta.eval.plots import smooth
 from delta.eval.tradeoff import MIN_GAIN_DB, PSNR_WINDOW, hybrid_rows, psnr_gain, time_to_psnr
 from delta.training.presets import deep_merge, resolve
-from delta.training.run import build_avatar, load_init, pick_device, save_model
+from delta.training.run import build_avatar, load_init, pick_device, save_model, stage_frames
 from delta.training.trainer import train_stage
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -75,7 +74,7 @@ def train(args: argparse.Namespace) -> None:
         raise SystemExit("the curve is a prefix of a longer run only without learning-rate decay (lr_final 1)")
     torch.set_num_threads(args.threads)
     dev = pick_device(args.device)
-    data = load_frames(args.record, st.resolution, st.background, st.box_margin)
+    data = stage_frames(args.record, st)
     model = build_avatar(load_body_model(args.body), st, load_init(args.init, data), data, 1, dev)
     out = Path(args.out)
     t0, steps = time.time(), 0

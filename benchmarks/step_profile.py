@@ -196,13 +196,12 @@ def fresh_model(settings: str, override: str, record: str, body: str, init: str,
     from types import SimpleNamespace
 
     from delta.body.model import load_body_model
-    from delta.data.frames import load_frames
     from delta.training.presets import resolve
-    from delta.training.run import build_avatar, load_init, pick_device
+    from delta.training.run import build_avatar, load_init, pick_device, stage_frames
 
     saved = json.loads(Path(settings).read_text())
     st = resolve(saved["preset"], saved["settings"], json.loads(override))
-    data = load_frames(record, st.resolution, st.background, st.box_margin)
+    data = stage_frames(record, st)
     model = build_avatar(load_body_model(body), st, load_init(init, data), data, 1, pick_device(device))
     return SimpleNamespace(model=model, data=data, settings=st)
 

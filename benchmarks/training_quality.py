@@ -58,10 +58,9 @@ def config_overrides(subject: str) -> list[dict]:
 
 def one(subject: str, preset: str, out: Path, extra: dict, refine: int) -> dict:
     from delta.body.model import load_body_model
-    from delta.data.frames import load_frames
     from delta.eval.heldout import score_frames
     from delta.training.presets import resolve
-    from delta.training.run import build_avatar, load_init_from_state, run_stage
+    from delta.training.run import build_avatar, load_init_from_state, run_stage, stage_frames
 
     torch.set_num_threads(2)
     rec = ROOT / f"results/synthetic/{subject}/frames.h5"
@@ -78,7 +77,7 @@ def one(subject: str, preset: str, out: Path, extra: dict, refine: int) -> dict:
     row["stage2_s"] = round(time.time() - t, 1)
     row["peak_rss_mb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
     st = resolve(preset, *overrides)
-    data = load_frames(rec, st.resolution, st.background, st.box_margin)
+    data = stage_frames(rec, st)
     for stage in (1, 2):
         state = load_state(out / f"stage{stage}" / "model.pt")
         model = build_avatar(load_body_model(body), st, load_init_from_state(state["model"], data), data, stage,

@@ -111,6 +111,13 @@ def semantic_loss(st: TrainSettings, weights_dir: str | None, device):
     return SemanticLoss(kind=st.semantic, cache_dir=weights_dir).to(device)
 
 
+def stage_frames(record, st: TrainSettings, size: int | None = None) -> FrameData:
+    """A record's frames as a stage with settings ``st`` trains on them: at ``size`` (default the training
+    resolution), on the settings' background and box margin, with the hair mask where the exterior is
+    split into layers."""
+    return load_frames(record, size or st.resolution, st.background, st.box_margin, hair=st.layers == "split")
+
+
 def fine_frames(record, st: TrainSettings, stage: int) -> FrameData | None:
     """The frames a coarse-to-fine stage switches to (its ``fine_resolution``, or the record's own
     size), or None when the stage has no switch."""
@@ -123,7 +130,7 @@ def fine_frames(record, st: TrainSettings, stage: int) -> FrameData | None:
             size = rec.size
     log.info("stage %d: rays from %d x %d frames from step %d (of %d)", stage, size, size, cfg.fine_step() + 1,
              cfg.iterations)  # fmt: skip
-    return load_frames(record, size, st.background, st.box_margin, hair=st.layers == "split")
+    return stage_frames(record, st, size)
 
 
 def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str, preset: str,
@@ -140,7 +147,7 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
             log.info("from the scene analysis (%s): %s", scene, json.dumps(decided, sort_keys=True))
             st = resolve(preset, *overrides, decided)
     dev = pick_device(device)
-    data = load_frames(record, st.resolution, st.background, st.box_margin, hair=st.layers == "split")
+    data = stage_frames(record, st)
     body = load_body_model(body_path)  # on the CPU: the avatar's .to(dev) moves it
     if stage == 1:
         init = load_init(start, data)
@@ -258,7 +265,7 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
     dev = pick_device(device)
     state = migrate_model(load_state(model_path, map_location=dev), model_path)
     st = resolve(state["preset"], state["settings"])
-    data = load_frames(record, st.resolution, st.background, st.box_margin, hair=st.layers == "split")
+    data = stage_frames(record, st)
     spec = st.avatar if state.get("nerf", True) else dataclasses.replace(st.avatar, nerf=None)
     body = load_body_model(body_path)  # on the CPU: the avatar's .to(dev) moves it
     scope = _scope(state, model_path, body.num_vertices)
