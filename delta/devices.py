@@ -5,7 +5,7 @@ SciPy's KD-tree and distance transform, the grid encodings' sparse matrices, hie
 compact their pairs level by level, small chunks. On any other device the same work runs as tensor
 operations, as a GPU needs. Every such choice asks :func:`host_paths`, so one switch,
 :func:`tensor_paths`, runs a GPU's code on the CPU: the tests hold a GPU's training step to the CPU's
-without a GPU (``tests/training/test_device_paths.py``), and ``benchmarks/step_ops.py`` counts the
+without a GPU (``tests/training/test_devices.py``), and ``benchmarks/step_ops.py`` counts the
 operations a GPU's step dispatches.
 """
 

@@ -131,7 +131,7 @@ def _flat(h: Hierarchy, n: int, test: Callable) -> tuple[torch.Tensor, torch.Ten
     L, dev = h.leaf_lo.shape[0], h.leaf_lo.device
     step = max(1, FLAT_PAIRS // L)
     out = []
-    for s in range(0, n, step):
+    for s in range(0, max(n, 1), step):  # no query: one empty chunk, so the value keeps the test's dtype
         query = torch.arange(s, min(n, s + step), device=dev)[:, None]
         ok, value = test(query, h.leaf_lo[None], h.leaf_hi[None])  # (m, L)
         who, leaf = ok.nonzero(as_tuple=True)

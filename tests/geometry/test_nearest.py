@@ -121,6 +121,11 @@ def test_the_flat_search_lists_the_walks_pairs_in_its_order(monkeypatch, dtype):
     ]:  # fmt: skip
         assert len(walk[0]) > 1000 and torch.equal(walk[0], flat[0]) and torch.equal(walk[1], flat[1])
         assert torch.equal(walk[2], flat[2])
+    none = q[:0], reach[:0]  # no query at all: empty lists of the walk's dtypes
+    for a, b in zip(
+        clusters.near_leaf_pairs(tree, *none, flat=False), clusters.near_leaf_pairs(tree, *none, flat=True)
+    ):
+        assert a.shape == b.shape == (0,) and a.dtype == b.dtype
     leaves = clusters.build(pts, pts, leaf=16, fanout=4, levels=False)  # as a GPU builds it
     assert leaves.levels == [] and torch.equal(leaves.members, tree.members)
     for flat in (False, True):
