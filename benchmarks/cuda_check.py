@@ -7,6 +7,15 @@ gradient; then times training steps of the preset on each device. Writes one CSV
     python benchmarks/cuda_check.py --record results/synthetic/tight/frames.h5 \
         --body resources/body/anny_sub1.npz --init results/synthetic/tight/init/params.npz \
         --out benchmarks/cuda_check.csv --steps 30
+
+``--tensor-paths`` needs no GPU: the same comparison with a GPU's code run on the CPU
+(:func:`delta.devices.tensor_paths`: tensor searches, flat leaf tests, ``grid_sample``) in place of CUDA,
+so a subject's whole step on a GPU's paths is checked before a GPU is at hand (the ``cuda`` column then
+holds those values):
+
+    python benchmarks/cuda_check.py --tensor-paths --settings results/synthetic/talker/stage1/settings.json \
+        --record results/synthetic/talker/frames.h5 --body resources/body/anny_sub1_face.npz \
+        --init results/synthetic/talker/init/params.npz --label talker --out benchmarks/device_paths_check.csv
 """
 
 from __future__ import annotations
@@ -23,6 +32,7 @@ import torch
 
 from delta import losses as L
 from delta.body.model import load_body_model
+from delta.devices import tensor_paths
 from delta.data.frames import sample_rays
 from delta.training.presets import resolve
 from delta.training.run import build_avatar, load_init, stage_frames
@@ -37,12 +47,17 @@ def _terms_and_grads(model, batch, st, skin, seed):
     return {k: float(v.detach()) for k, v in terms.items()}, grads
 
 
-def agreement(model, data, st, rays: int, seed: int = 0) -> list[dict]:
-    """Loss terms and gradients on CPU and CUDA for one batch: relative differences."""
+def agreement(model, data, st, rays: int, seed: int = 0, paths_only: bool = False) -> list[dict]:
+    """Loss terms and gradients on CPU and CUDA for one batch (``paths_only``: on the CPU with a GPU's code):
+    relative differences."""
     batch = sample_rays(data, int(data.train[0]), rays, torch.Generator().manual_seed(seed))
-    t_cpu, g_cpu = _terms_and_grads(model, batch, st, data.skin_color, seed)
-    gpu = copy.deepcopy(model).to("cuda")
-    t_gpu, g_gpu = _terms_and_grads(gpu, _to(batch, torch.device("cuda")), st, data.skin_color.cuda(), seed)
+    t_cpu, g_cpu = _terms_and_grads(copy.deepcopy(model), batch, st, data.skin_color, seed)
+    if paths_only:
+        with tensor_paths():
+            t_gpu, g_gpu = _terms_and_grads(copy.deepcopy(model), batch, st, data.skin_color, seed)
+    else:
+        gpu = copy.deepcopy(model).to("cuda")
+        t_gpu, g_gpu = _terms_and_grads(gpu, _to(batch, torch.device("cuda")), st, data.skin_color.cuda(), seed)
     rows = []
     for k in t_cpu:
         rows.append({"check": f"loss:{k}", "cpu": t_cpu[k], "cuda": t_gpu[k],
@@ -106,14 +121,16 @@ def main() -> None:
     p.add_argument("--override", default="{}", help="JSON settings merged over the preset's or the run's")
     p.add_argument("--label", default="", help="the subject or variant, written in every row")
     p.add_argument("--out", default="benchmarks/cuda_check.csv")
+    p.add_argument("--append", action="store_true", help="add the rows to an existing --out")
     p.add_argument("--steps", type=int, default=30)
     p.add_argument("--model", default=None, help="a trained stage's model.pt: also time a whole-image render")
     p.add_argument("--render-size", type=int, default=512)
     p.add_argument(
         "--cpu-threads", type=int, nargs="*", default=[2], help="CPU thread counts to time (none: CUDA only)"
     )
+    p.add_argument("--tensor-paths", action="store_true", help="no GPU: a GPU's code on the CPU against the CPU's")
     a = p.parse_args()
-    if not torch.cuda.is_available():
+    if not a.tensor_paths and not torch.cuda.is_available():
         raise SystemExit("cuda_check: torch sees no CUDA device")
     if a.settings:
         saved = json.loads(Path(a.settings).read_text())
@@ -124,7 +141,10 @@ def main() -> None:
     body = load_body_model(a.body)
     torch.manual_seed(0)
     model = build_avatar(body, st, load_init(a.init, data), data, 1, torch.device("cpu"))
-    rows = agreement(model, data, st, st.stage1.rays)
+    rows = agreement(model, data, st, st.stage1.rays, paths_only=a.tensor_paths)
+    if a.tensor_paths:
+        _save(rows + [{"check": "device", "name": "cpu: its own paths against a GPU's (tensor_paths)"}], a)
+        return
     rows.append(step_time(model, data, st, "cuda", a.steps))
     if a.model:
         from delta.training.run import load_trained
@@ -136,8 +156,14 @@ def main() -> None:
         rows.append(step_time(model, data, st, "cpu", a.steps))
     rows.append({"check": "device", "cpu": float("nan"), "cuda": float("nan"), "rel_diff": float("nan"),
                  "name": torch.cuda.get_device_name()})  # fmt: skip
+    _save(rows, a)
+
+
+def _save(rows: list[dict], a) -> None:
     df = pd.DataFrame(rows)
     df["label"] = a.label
+    if a.append and Path(a.out).is_file():
+        df = pd.concat([pd.read_csv(a.out), df], ignore_index=True)
     df.to_csv(a.out, index=False)
     with pd.option_context("display.max_rows", 200, "display.width", 200):
         print(df.to_string(index=False))
