@@ -79,17 +79,18 @@ def _homogeneous(rot: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
 
 
 @functools.lru_cache(maxsize=32)
-def _chain_plan(parents: tuple[int, ...], device: str) -> tuple[torch.Tensor, torch.Tensor, list, torch.Tensor]:
-    """Index tensors of forward kinematics by depth, made once per tree and device: each joint's parent
-    (joint 0, the root, its own), the roots, per level below them (the level's joints, their parents'
-    places in the level above), and each joint's place in the levels laid end to end."""
-    levels = kinematic_levels(parents)
-    place = {j: i for level in levels for i, j in enumerate(level)}
-    as_index = functools.partial(torch.tensor, dtype=torch.int64, device=device)
-    steps = [(as_index(level), as_index([place[parents[j]] for j in level])) for level in levels[1:]]
-    order = [j for level in levels for j in level]
-    unsort = as_index(sorted(range(len(order)), key=order.__getitem__))
-    return as_index([max(p, 0) for p in parents]), as_index(levels[0]), steps, unsort
+def _chain_plan(parents: tuple[int, ...], device: str) -> tuple[torch.Tensor, list[torch.Tensor]]:
+    """Index tensors of forward kinematics by pointer jumping, made once per tree and device: each joint's
+    parent (a root its own: its offset is its position), and per round each joint's ancestor 2^r joints up
+    (J, a stand-in identity, above a root), for the rounds that cover the tree's depth."""
+    J = len(parents)
+    parent = [p if p >= 0 else j for j, p in enumerate(parents)]
+    up = [p if p >= 0 else J for p in parents] + [J]  # the stand-in's ancestor is itself
+    rounds = []
+    for _ in range(max(1, len(kinematic_levels(parents)) - 1).bit_length()):
+        rounds.append(torch.tensor(up, dtype=torch.int64, device=device))
+        up = [up[a] for a in up]
+    return torch.tensor(parent, dtype=torch.int64, device=device), rounds
 
 
 def rigid_transforms(
@@ -105,17 +106,20 @@ def rigid_transforms(
         posed_joints (B, J, 3) and relative transforms A (B, J, 4, 4) with
         A_j = G_j · [I | -J_j], which carry rest points to posed points.
 
-    The chain is composed a depth at a time (G_j = G_parent · L_j for all joints of one depth in one
-    product), with a handful of tensor operations a level whatever the joints' number: on a GPU each is a
-    kernel launch, forward and backward.
+    The chain G_j = L_root ··· L_parent · L_j is composed by pointer jumping: after round r each joint
+    holds the product of its 2^r nearest links, so ceil(log2 depth) rounds of one gather and one batched
+    product reach every root (Anny's 17 levels: 5 rounds). On a GPU each operation is a launch, forward
+    and backward, and their number does not grow with the joints'.
     """
-    parent, roots, steps, unsort = _chain_plan(tuple(parents.tolist()), str(joints.device))
-    rel = joints - torch.cat([torch.zeros_like(joints[:, :1]), joints[:, parent[1:]]], dim=1)
+    parent, rounds = _chain_plan(tuple(parents.tolist()), str(joints.device))
+    is_root = (parents < 0).to(joints.device)[None, :, None]
+    rel = torch.where(is_root, joints, joints - joints[:, parent])
     local = _homogeneous(rotmats, rel)  # 1. each joint's transform relative to its parent
-    world = [local[:, roots]]
-    for level, parent_place in steps:  # 2. compose by depth: G_j = G_parent · L_j
-        world.append(world[-1][:, parent_place] @ local[:, level])
-    G = torch.cat(world, dim=1)[:, unsort]
+    eye = torch.eye(4, dtype=local.dtype, device=local.device).expand(local.shape[0], 1, 4, 4)
+    G = torch.cat([local, eye], dim=1)  # (B, J + 1, 4, 4): the stand-in identity above the roots
+    for up in rounds:  # 2. G_j <- G_up(j) · G_j: the product of twice as many links
+        G = G[:, up] @ G
+    G = G[:, :-1]
     posed_joints = G[..., :3, 3]
     # 3. remove the rest joint position: A_j = G_j - [0 | G_j[:3,:3] J_j]
     shift = torch.einsum("bjik,bjk->bji", G[..., :3, :3], joints)

@@ -136,9 +136,10 @@ def _dispatched(fn) -> int:
     return Count.n
 
 
-def test_kinematics_cost_a_few_operations_a_level_not_a_joint():
+def test_kinematics_cost_a_few_operations_a_round_not_a_joint():
     """On a GPU each operation is a launch: two trees of the same depth, one with four times the joints,
-    dispatch the same operations forward and backward (and the gradients are the sequential chain's)."""
+    dispatch the same operations forward and backward (pointer jumping: ceil(log2 depth) rounds), and the
+    gradients check against finite differences."""
     narrow = [-1, *range(8)]  # a chain: 9 levels, one joint each
     wide = [-1] + [0 if d == 0 else 1 + 4 * (d - 1) for d in range(8) for _ in range(4)]  # 4 joints a level
     counts = []
