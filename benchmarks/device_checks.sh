@@ -8,10 +8,12 @@
 #   SUBJECT=results/synthetic/tight BODY=resources/body/anny_sub1.npz OUT=/tmp/gpu bash benchmarks/device_checks.sh
 #
 # SUBJECT holds frames.h5, init/params.npz and stage1/settings.json (a stage 1 started by the workflow);
-# CURVE (JSON settings over the run's) and STEPS choose the held-out curve's variant; PYTHONPATH may name
-# wheels installed beside the machine's own packages.
+# CURVE (JSON settings over the run's) and STEPS choose the held-out curve's variant; BASE is a folder
+# holding another tree's delta/; PYTHONPATH may name wheels installed beside the machine's own packages.
+# Run from the repository's root.
 set -u
-: "${SUBJECT:?a subject's results folder}" "${BODY:?the body model .npz}" "${OUT:?a folder for the results}"
+: "${SUBJECT:?the folder of the subject results}" "${BODY:?the body model npz}" "${OUT:?a folder for the results}"
+export PYTHONPATH=$PWD${PYTHONPATH:+:$PYTHONPATH}  # this tree's delta, where nothing is installed
 CURVE=${CURVE:-'{"nerf": {"levels": 6, "max_res": 192}, "albedo": {"levels": 6, "max_res": 192}, "render": {"samples": 32}, "stage1": {"iterations": 2000, "rays": 8192, "plateau_window": 0}}'}
 STEPS=${STEPS:-500,1000,2000}
 export PYTHONUNBUFFERED=1
@@ -22,9 +24,9 @@ python3 -c "import torch; print(torch.__version__, torch.cuda.get_device_name())
 timeout 150 python3 -m pytest -q -n 0 -p no:cacheprovider tests/geometry tests/deformers/test_round_trip.py \
     tests/body/test_lbs.py tests/synthetic/test_cameras.py 2>&1 | tail -15 | tee "$OUT/tests.txt"
 for code in current ${BASE:+base}; do
-    PP=${PYTHONPATH:-}
-    [ "$code" = base ] && PP=$PP:$BASE
-    PYTHONPATH=$PP timeout 120 python3 benchmarks/step_profile.py --settings "$S" --init "$SUBJECT/init/params.npz" \
+    TREE=$PWD
+    [ "$code" = base ] && TREE=$(cd "$BASE" && pwd)
+    PYTHONPATH=$TREE${PYTHONPATH:+:$PYTHONPATH} timeout 120 python3 benchmarks/step_profile.py --settings "$S" --init "$SUBJECT/init/params.npz" \
         --record "$SUBJECT/frames.h5" --body "$BODY" --device cuda --threads 8 --steps 20 \
         --out "$OUT/profile_$code.csv" --trace "$OUT/trace_$code.csv" 2>&1 | tail -14
 done
