@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import copy
 import json
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -32,11 +33,14 @@ import torch
 
 from delta import losses as L
 from delta.body.model import load_body_model
-from delta.devices import tensor_paths
 from delta.data.frames import sample_rays
+from delta.devices import tensor_paths
 from delta.training.presets import resolve
 from delta.training.run import build_avatar, load_init, stage_frames
 from delta.training.trainer import _to, loss_terms, train_stage
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from table import save_table  # noqa: E402
 
 
 def _terms_and_grads(model, batch, st, skin, seed):
@@ -162,9 +166,7 @@ def main() -> None:
 def _save(rows: list[dict], a) -> None:
     df = pd.DataFrame(rows)
     df["label"] = a.label
-    if a.append and Path(a.out).is_file():
-        df = pd.concat([pd.read_csv(a.out), df], ignore_index=True)
-    df.to_csv(a.out, index=False)
+    df = save_table(df, a.out, a.append)
     with pd.option_context("display.max_rows", 200, "display.width", 200):
         print(df.to_string(index=False))
 

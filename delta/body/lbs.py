@@ -79,18 +79,20 @@ def _homogeneous(rot: torch.Tensor, trans: torch.Tensor) -> torch.Tensor:
 
 
 @functools.lru_cache(maxsize=32)
-def _chain_plan(parents: tuple[int, ...], device: str) -> tuple[torch.Tensor, list[torch.Tensor]]:
+def _chain_plan(parents: tuple[int, ...], device: str) -> tuple[torch.Tensor, torch.Tensor, list[torch.Tensor]]:
     """Index tensors of forward kinematics by pointer jumping, made once per tree and device: each joint's
-    parent (a root its own: its offset is its position), and per round each joint's ancestor 2^r joints up
-    (J, a stand-in identity, above a root), for the rounds that cover the tree's depth."""
+    parent (a root its own), which joints are roots (J, 1) (their offset is their position), and per round
+    each joint's ancestor 2^r joints up (J, a stand-in identity, above a root), for the rounds that cover
+    the tree's depth."""
     J = len(parents)
-    parent = [p if p >= 0 else j for j, p in enumerate(parents)]
     up = [p if p >= 0 else J for p in parents] + [J]  # the stand-in's ancestor is itself
     rounds = []
     for _ in range(max(1, len(kinematic_levels(parents)) - 1).bit_length()):
         rounds.append(torch.tensor(up, dtype=torch.int64, device=device))
         up = [up[a] for a in up]
-    return torch.tensor(parent, dtype=torch.int64, device=device), rounds
+    parent = torch.tensor([p if p >= 0 else j for j, p in enumerate(parents)], dtype=torch.int64, device=device)
+    root = torch.tensor([[p < 0] for p in parents], device=device)
+    return parent, root, rounds
 
 
 def rigid_transforms(
@@ -111,9 +113,8 @@ def rigid_transforms(
     product reach every root (Anny's 17 levels: 5 rounds). On a GPU each operation is a launch, forward
     and backward, and their number does not grow with the joints'.
     """
-    parent, rounds = _chain_plan(tuple(parents.tolist()), str(joints.device))
-    is_root = (parents < 0).to(joints.device)[None, :, None]
-    rel = torch.where(is_root, joints, joints - joints[:, parent])
+    parent, root, rounds = _chain_plan(tuple(parents.tolist()), str(joints.device))
+    rel = torch.where(root, joints, joints - joints[:, parent])
     local = _homogeneous(rotmats, rel)  # 1. each joint's transform relative to its parent
     eye = torch.eye(4, dtype=local.dtype, device=local.device).expand(local.shape[0], 1, 4, 4)
     G = torch.cat([local, eye], dim=1)  # (B, J + 1, 4, 4): the stand-in identity above the roots

@@ -12,11 +12,10 @@ import warnings
 import weakref
 
 import torch
-
 import torch.nn.functional as F
+from torch import nn
 
 from delta.devices import host_paths
-from torch import nn
 
 
 def positional_encoding(x: torch.Tensor, num_freqs: int, include_input: bool = True) -> torch.Tensor:

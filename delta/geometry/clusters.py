@@ -77,7 +77,8 @@ def build(lo: torch.Tensor, hi: torch.Tensor, leaf: int = LEAF, fanout: int = FA
     members = torch.where(slots >= 0, order[slots.clamp_min(0)], -1)
     above = []
     node_lo, node_hi = leaf_lo, leaf_hi
-    while (levels if levels is not None else host_paths(lo.device)) and node_lo.shape[0] > fanout:
+    levels = host_paths(lo.device) if levels is None else levels
+    while levels and node_lo.shape[0] > fanout:
         node_lo, node_hi, children = _group(node_lo, node_hi, fanout)
         above.insert(0, (node_lo, node_hi, children))
     return Hierarchy(members, above, leaf_lo, leaf_hi)

@@ -14,9 +14,9 @@ from typing import Optional
 
 import numpy as np
 import torch
+from scipy import ndimage
 
 from delta.devices import host_paths
-from scipy import ndimage
 
 
 #: the largest ``render.max_dist`` (m) for which the avatar builds a per-frame distance grid (at 0.02 m

@@ -18,8 +18,8 @@ import itertools
 import torch
 import torch.nn.functional as F
 
-from delta.devices import host_paths
 from delta.data.frames import FullFrames
+from delta.devices import host_paths
 from delta.models.avatar import HybridAvatar
 from delta.render.hybrid import room_margin
 
