@@ -48,7 +48,7 @@ import pandas as pd
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from workflow_run import REPO, run_snakemake, workflow_copy, write_rows  # noqa: E402
+from workflow_run import REPO, job_rows, run_snakemake, workflow_copy, write_rows  # noqa: E402
 
 TARGET = "results/peoplesnapshot/metrics.csv"
 #: the columns of the metrics table's mean row kept in the total row
@@ -99,18 +99,6 @@ def copy_prepared(source: Path, work: Path) -> None:
                 shutil.copytree(src, dst, dirs_exist_ok=True)
             elif src.is_file():
                 shutil.copy2(src, dst)
-
-
-def job_rows(work: Path) -> list[dict]:
-    rows = []
-    for tsv in sorted((work / "results" / "benchmarks").rglob("*.tsv")):
-        df = pd.read_csv(tsv, sep="\t")
-        last = df.iloc[-1]
-        rel = tsv.relative_to(work / "results" / "benchmarks")
-        rows.append({"kind": "job", "rule": rel.parts[0], "job": str(rel.with_suffix("")),
-                     "seconds": round(float(last["s"]), 1), "cpu_seconds": round(float(last.get("cpu_time", float("nan"))), 1),
-                     "max_rss_mb": float(last.get("max_rss", float("nan")))})  # fmt: skip
-    return rows
 
 
 def main() -> None:

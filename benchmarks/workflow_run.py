@@ -12,6 +12,8 @@ import sys
 import time
 from pathlib import Path
 
+import pandas as pd
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -58,3 +60,19 @@ def train_benchmark(work: Path, dataset: str, subject: str, stage: int) -> Path:
 def eval_summary(work: Path, dataset: str, subject: str) -> Path:
     """A subject's evaluation summary in a run folder (rules/common.smk's ``eval_summary``)."""
     return work / f"results/{dataset}/{subject}/eval/summary.json"
+
+
+def job_rows(work: Path, rules: tuple[str, ...] = ()) -> list[dict]:
+    """One row per job of a run folder (``kind=job``), from its rules' Snakemake benchmark files
+    (``results/benchmarks/{rule}/{job}.tsv``, the last run of each): wall and CPU seconds, peak memory.
+    ``rules``: only these rules' jobs (default: every rule's)."""
+    rows = []
+    for tsv in sorted((work / "results" / "benchmarks").rglob("*.tsv")):
+        rel = tsv.relative_to(work / "results" / "benchmarks")
+        if rules and rel.parts[0] not in rules:
+            continue
+        last = pd.read_csv(tsv, sep="\t").iloc[-1]
+        rows.append({"kind": "job", "rule": rel.parts[0], "job": str(rel.with_suffix("")),
+                     "seconds": round(float(last["s"]), 1), "cpu_seconds": round(float(last.get("cpu_time", float("nan"))), 1),
+                     "max_rss_mb": float(last.get("max_rss", float("nan")))})  # fmt: skip
+    return rows

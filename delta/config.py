@@ -247,6 +247,10 @@ def _check_settings(config: dict) -> list[str]:
         attempt(fit_config, fit["settings"], fit["subjects"].get(s, {}), where=f"fitting (subject '{s}')")
         preset, overrides = subject_training(config, s)
         attempt(resolve, preset, *overrides, where=f"training (subject '{s}')")
+    for v in sorted(set(trade.get("only") or []) - set(trade["variants"])):
+        out.append(
+            f"config key 'tradeoff.only': '{v}' is not a variant of tradeoff.variants ({sorted(trade['variants'])})"
+        )
     for v, spec in trade["variants"].items():
         if not isinstance(spec.get("inherit_training", True), bool):
             out.append(

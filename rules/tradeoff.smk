@@ -55,12 +55,15 @@ def variant_stages(variant):
 
 
 def variant_is_main(subject, variant):
-    """True when a variant trains exactly what the main run trains: its stages are the main run's."""
+    """True when a variant trains exactly what the main run trains: its stages are the main run's (the
+    same settings, and the same of them set by the config over the scene analysis: a variant that sets
+    the preset's own resolution keeps it, where the main run takes the scene's)."""
     preset, overrides = variant_training(subject, variant)
-    main = subject_training(subject)[0]
+    main, main_overrides = subject_training(subject)
     return (
         preset == main
         and resolve_training(preset, *overrides).raw == TRAINING[subject].raw
+        and user_decided(set_keys(overrides)) == user_decided(set_keys(main_overrides))
     )
 
 
@@ -103,7 +106,7 @@ def tradeoff_manifest(wildcards):
     configured(wildcards)
     out = {}
     for s in tradeoff_subjects(wildcards.dataset):
-        for v in TRADE["variants"]:
+        for v in TRADE["only"] or TRADE["variants"]:
             if s not in variant_subjects(wildcards.dataset, v):
                 continue
             w = {"dataset": wildcards.dataset, "subject": s, "variant": v}

@@ -18,6 +18,7 @@ from delta.eval.runtime import evaluation_minutes, read_job, videos_minutes
 from delta.eval.settings import EvalSettings
 from delta.export.settings import ExportSettings
 from delta.settings import from_mapping
+from delta.training.presets import PRESETS
 from tests.conftest import ANNY_CACHE, MODELS_DIR
 
 REPO = Path(__file__).resolve().parents[1]
@@ -420,7 +421,10 @@ def test_tradeoff_variants_reuse_the_main_run_and_name_their_subjects(tmp_path):
     subjects = sorted(cfg["datasets"]["synthetic"]["subjects"])
     cfg["tradeoff"] = {"variants": {"fast": {"stages": 1}, "few_rays": {"stages": 1, "subjects": [subjects[0]],
                                                                         "stage1": {"rays": 64}},
-                                    "res_16": {"stages": 1, "subjects": [subjects[0]], "resolution": 16}},
+                                    "res_16": {"stages": 1, "subjects": [subjects[0]], "resolution": 16},
+                                    # the preset's own room, set: the scene analysis no longer decides it
+                                    "preset_room": {"stages": 1, "subjects": [subjects[0]],
+                                                    "render": {"max_dist": PRESETS["fast"]["render"]["max_dist"]}}},
                        "evaluation": {"max_frames": 2}}  # fmt: skip
     (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
     res = snakemake(
@@ -432,7 +436,7 @@ def test_tradeoff_variants_reuse_the_main_run_and_name_their_subjects(tmp_path):
     scored = {m.group(1): m.group(0) for m in re.finditer(r"delta evaluate --model results/synthetic/\w+/(?:tradeoff/(\w+)/)?stage1/model\.pt[^\n]*", out)}  # fmt: skip
     assert '"max_frames": 2' in scored["res_16"] and '"max_frames": 2' in scored["few_rays"]
     trained = set(re.findall(r"output: results/synthetic/(\w+)/tradeoff/(\w+)/stage1/model\.pt", out))
-    assert {v for _, v in trained} >= {"few_rays"} and "fast" not in {v for _, v in trained}
+    assert {v for _, v in trained} >= {"few_rays", "preset_room"} and "fast" not in {v for _, v in trained}
     assert {s for s, v in trained if v == "few_rays"} == {subjects[0]}
     # fast is scored from the main run's stage 1
     assert all(f"results/synthetic/{s}/stage1/model.pt" in out for s in subjects)
@@ -458,6 +462,18 @@ def test_tradeoff_variants_reuse_the_main_run_and_name_their_subjects(tmp_path):
         and "tradeoff.variants.ref.inherit_training': 'no' is not true or false" in res.stdout + res.stderr
     )
     del cfg["tradeoff"]["variants"]["ref"], cfg["training"]["subjects"]
+    # 'only' runs a part of the study; a name it lists must be a variant
+    cfg["tradeoff"]["only"] = ["few_rays"]
+    (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
+    res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run")
+    out = res.stdout + res.stderr
+    assert res.returncode == 0, out[-3000:]
+    assert set(re.findall(r"/tradeoff/(\w+)/eval/summary\.json", out)) == {"few_rays"}
+    cfg["tradeoff"]["only"] = ["few_rays", "turbo"]
+    (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
+    res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run")
+    assert res.returncode != 0 and "config key 'tradeoff.only': 'turbo' is not a variant" in res.stdout + res.stderr
+    del cfg["tradeoff"]["only"]
     cfg["tradeoff"]["variants"]["few_rays"]["subjects"] = ["nobody"]
     (work / "sweep.yaml").write_text(yaml.safe_dump(cfg))
     res = snakemake(work, "results/synthetic/tradeoff.csv", "--configfile", "sweep.yaml", "--dry-run")
