@@ -33,15 +33,17 @@ from workflow_run import REPO, job_rows  # noqa: E402
 BUDGET_MB = 4096.0
 
 
-def rendered_resolution(work: Path, rule: str, job: str) -> str:
-    """The ``WxH`` a job's summary says it rendered at (``results/{dataset}/{subject}/{rule}/{variant}/*.json``),
-    or "" where it names none."""
-    name = job.split("/", 1)[1]
-    for summary in sorted((work / "results").glob(f"*/*/{rule}/*/*.json")):
-        dataset, subject, _, variant = summary.parts[-5:-1]
-        if name == f"{dataset}_{subject}_{variant}":
-            return str(json.loads(summary.read_text()).get("resolution", ""))
-    return ""
+def rendered_resolutions(work: Path) -> dict[str, str]:
+    """Job -> the ``WxH`` its summary says it rendered at, for every summary
+    ``results/{dataset}/{subject}/{rule}/{variant}/*.json`` of a run folder that names one."""
+    out = {}
+    for summary in (work / "results").glob("*/*/*/*/*.json"):
+        dataset, subject, rule, variant = summary.parts[-5:-1]
+        data = json.loads(summary.read_text())
+        resolution = data.get("resolution") if isinstance(data, dict) else None
+        if isinstance(resolution, str):
+            out[f"{rule}/{dataset}_{subject}_{variant}"] = resolution
+    return out
 
 
 def main() -> None:
@@ -56,9 +58,10 @@ def main() -> None:
     if not rows:
         sys.exit(f"no benchmark file of {a.rules or 'any rule'} under {a.work / 'results' / 'benchmarks'}")
     machine = f"{platform.machine()} {os.cpu_count()} CPUs"
+    resolutions = rendered_resolutions(a.work)
     for row in rows:
-        row |= {"label": a.label, "under_budget": row["max_rss_mb"] < BUDGET_MB, "resolution": rendered_resolution(a.work, row["rule"], row["job"]),
-                "machine": machine}  # fmt: skip
+        row |= {"label": a.label, "under_budget": row["max_rss_mb"] < BUDGET_MB,
+                "resolution": resolutions.get(row["job"], ""), "machine": machine}  # fmt: skip
     table = pd.DataFrame(rows).drop(columns="kind")
     save_table(table, a.out, append=a.append)
     print(table.to_string(index=False))
