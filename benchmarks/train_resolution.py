@@ -14,10 +14,17 @@ workflow evaluates, or by ``--eval``); and a table of each variant's means.
     python benchmarks/train_resolution.py run --dataset synthetic --subject gen4 --first 2 \\
         --settings '{"stage2": {"plateau_window": 100}}' --work /tmp/gen4_plateau
 
-``--first 2`` retrains stage 2 alone, from the workflow's stage 1.
+``--first 2`` retrains stage 2 alone, from the workflow's stage 1. ``--fit`` runs the init fit again with other
+settings (the fit's silhouette on the dancer: ``docs/real_footage.md``) and trains from it:
+
+    python benchmarks/train_resolution.py run --dataset real --subject dress_dance --body resources/body/anny_sub1.npz \
+        --stages 1 --fit '{"static_weight": 10, "exterior_fill": 0.3, "still_torso": 0.05, "sil_weight": 3000}' \
+        --eval '{"splits": ["train", "test_view"], "refine_steps": 0, "max_frames": 3, "supersample": 2, "stage": 1, \
+        "worst": 3}' --work /tmp/dancer_sil3000
 
 Each row: subject, variant, held-out split, refined or not, the means of PSNR, SSIM, ST-LPIPS, the region PSNRs, the
-NeRF-mask IoU and the outline band's PSNR and error share over the held-out frames.
+NeRF-mask IoU, the outline band's PSNR and error share and (a synthetic subject's) body error over the held-out
+frames; a variant that ran its own init fit also its seconds and mean keypoint residual.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ import argparse
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pandas as pd
@@ -47,6 +55,8 @@ SCORES = [
     "nerf_iou",
     "psnr_outline",
     "outline_error_share",
+    "body_err_mm",
+    "body_err_pa_mm",
 ]
 EVAL = {"max_frames": 5, "refine_lr": 0.0005, "refine_rays": 4096, "refine_steps": 30, "refine_tol": 0.0,
         "report_unrefined": True, "splits": ["test_view", "test_pose"], "stage": 2, "supersample": 2, "worst": 0}  # fmt: skip
@@ -61,6 +71,18 @@ def run(a: argparse.Namespace) -> None:
     common = ["--record", str(res / "frames.h5"), "--body", a.body,
               "--perceptual", str(ROOT / "resources/models/stlpips"), "--threads", str(a.threads)]  # fmt: skip
     start = str(res / "init/params.npz" if a.first == 1 else res / "stage1/model.pt")
+    if a.fit is not None:  # the init fit again with these settings, the stages from it
+        if a.first != 1:
+            sys.exit("--fit retrains from the init fit: it needs --first 1")
+        clock = time.perf_counter()
+        with open(work / "fit.log", "w") as log:
+            subprocess.run(["delta", "fit-init", "--record", str(res / "frames.h5"), "--body", a.body, "--out",
+                            str(work / "init"), "--settings", a.fit, "--threads", str(a.threads)],
+                           check=True, stdout=log, stderr=log)  # fmt: skip
+        summary = json.loads((work / "init/summary.json").read_text())
+        (work / "fit.json").write_text(json.dumps({"fit_s": round(time.perf_counter() - clock, 1),
+                                                   "fit_residual_px": summary["residual_px_mean"]}))  # fmt: skip
+        start = str(work / "init/params.npz")
     for stage in range(a.first, a.stages + 1):
         saved = json.loads((res / f"stage{stage}/settings.json").read_text())
         settings = deep_merge(saved["settings"], json.loads(a.settings))
@@ -81,8 +103,10 @@ def run(a: argparse.Namespace) -> None:
 
 def stage_lengths(metrics: Path) -> dict:
     """The steps and the trainer's seconds of each stage beside a metrics.csv: a variant's (``work/stage{s}``)
-    or the workflow's (``eval/metrics.csv`` beside ``stage{s}``)."""
-    out = {}
+    or the workflow's (``eval/metrics.csv`` beside ``stage{s}``); a variant's own init fit's seconds and mean
+    keypoint residual (``work/fit.json``)."""
+    fit = metrics.parent / "fit.json"
+    out = json.loads(fit.read_text()) if fit.is_file() else {}
     for stage in (1, 2):
         for folder in (metrics.parent, metrics.parent.parent):
             losses = folder / f"stage{stage}" / "losses.csv"
@@ -125,6 +149,12 @@ def main() -> None:
         help="the first stage retrained (2: stage 2 alone, from the workflow's stage 1)",
     )
     r.add_argument("--eval", default=None, help="JSON of the evaluation's settings (default: the workflow's)")
+    r.add_argument(
+        "--fit",
+        default=None,
+        help="JSON of the init fit's settings (every key: FitConfig): the fit is "
+        "run again with them and the stages train from it (default: the workflow's fit)",
+    )
     r.add_argument("--work", required=True)
     r.add_argument("--threads", type=int, default=2)
     t = sub.add_parser("table")
