@@ -181,6 +181,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
     empty = small.flatten(1).amax(-1) <= 0 if small is not None else torch.zeros(F, dtype=torch.bool)
     outer = sil.downsample_masks(exterior, cfg.sil_size) if use_sil and exterior is not None else None
     fill = sil.fill_weights(outer, cfg.sil_fill, cfg.exterior_fill)
+    skin_scale = sil.skin_edge_scale(small, outer, cfg.skin_edge_weight) if use_sil else 1.0
     flagged = few | empty
     detected[flagged, :, 2] = 0.0
     coarse = sil.coarse_mesh(model, cfg.sil_cell) if use_sil else None
@@ -257,7 +258,8 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
             rendered = sil.frames_silhouette(uv, coarse.faces, cfg.sil_size, image_size, cfg.sil_sigma,
                                              masks=small[rows], supersample=cfg.sil_supersample)  # fmt: skip
             weights = fill[rows] if torch.is_tensor(fill) else fill
-            cost = cost + cfg.sil_weight * sil_w[rows] * sil.silhouette_term(rendered, small[rows], weights)
+            scale = skin_scale[rows] if torch.is_tensor(skin_scale) else skin_scale
+            cost = cost + cfg.sil_weight * sil_w[rows] * sil.silhouette_term(rendered, small[rows], weights, scale)
         return cost
 
     def loss(stage: int) -> torch.Tensor:

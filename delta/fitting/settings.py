@@ -65,6 +65,10 @@ class FitConfig:
     as body (tight clothing); near 0 lets the body stay inside them (a dress, long hair)."""
     sil_cell: float = 0.03
     """Vertex-clustering cell (metres) of the coarse silhouette mesh."""
+    skin_edge_weight: float = 1.0
+    """Weight of the silhouette's grid pixels within one pixel of the visible skin (the person mask less the
+    clothing and hair masks), either side of its edge: there the mask shows the body's own outline, which
+    under clothing it does not. 1: as any pixel (docs/fitting.md)."""
     forward_start: float = 0.0
     """With > 0, the body-pose stage also runs each frame from its arms, its legs and both swung this far
     forward (radians, ``limits.forward_directions``; 0.4 measured). A frame keeps the pose from rest unless

@@ -150,16 +150,32 @@ def frames_silhouette(uv: torch.Tensor, faces: torch.Tensor, size: int, image_si
     return out.reshape(F, size, size)
 
 
-def silhouette_term(rendered: torch.Tensor, masks: torch.Tensor, fill: float | torch.Tensor = 1.0) -> torch.Tensor:
-    """(F,) mean squared coverage error per frame: model outside the mask costs 1, mask left uncovered ``fill``.
+def silhouette_term(rendered: torch.Tensor, masks: torch.Tensor, fill: float | torch.Tensor = 1.0,
+                    scale: float | torch.Tensor = 1.0) -> torch.Tensor:  # fmt: skip
+    """(F,) mean squared coverage error per frame: model outside the mask costs 1, mask left uncovered ``fill``,
+    both times ``scale``.
 
     ``fill`` is a number or a per-pixel (F, r, r) weight (``fill_weights``): below 1 it tolerates
-    loose clothing and hair, which the person mask includes and the body mesh does not.
+    loose clothing and hair, which the person mask includes and the body mesh does not. ``scale`` is a
+    number or a per-pixel (F, r, r) weight on both (``skin_edge_scale``).
     """
     diff = rendered - masks
     fill = torch.as_tensor(fill, dtype=diff.dtype).expand_as(diff)
     w = torch.where(diff > 0, torch.ones_like(diff), fill)
-    return (w * diff.square()).flatten(1).mean(-1)
+    return (w * torch.as_tensor(scale, dtype=diff.dtype) * diff.square()).flatten(1).mean(-1)
+
+
+def skin_edge_scale(person: torch.Tensor, exterior: torch.Tensor | None, weight: float) -> torch.Tensor | float:
+    """Per-pixel weight (F, r, r): ``weight`` on the grid pixels within one pixel of the visible skin (coverage
+    of the person less the exterior over a half), 1 elsewhere; just ``weight`` without an exterior mask (all
+    of the person is then body). 1: a plain 1."""
+    if weight == 1.0:
+        return 1.0
+    if exterior is None:
+        return float(weight)
+    skin = ((person - exterior).clamp_min(0.0) > 0.5).double()
+    near = torch.nn.functional.max_pool2d(skin[:, None], 3, stride=1, padding=1)[:, 0] > 0
+    return torch.where(near, torch.full_like(person, float(weight)), torch.ones_like(person))
 
 
 def fill_weights(exterior: torch.Tensor | None, fill: float, exterior_fill: float) -> torch.Tensor | float:

@@ -38,6 +38,30 @@ def test_uncovered_exterior_costs_exterior_fill():
     torch.testing.assert_close(term, torch.tensor([0.5], dtype=D))
 
 
+def test_skin_edge_weight_lies_on_the_visible_skin_and_one_pixel_around_it():
+    # a 1 x 6 strip of person: skin in columns 0-1, a dress in 2-3 (coverage 0.6 in column 2), background 4-5
+    person = torch.tensor([[[1.0, 1.0, 1.0, 1.0, 0.0, 0.0]] * 3], dtype=D)
+    dress = torch.tensor([[[0.0, 0.0, 0.6, 1.0, 0.0, 0.0]] * 3], dtype=D)
+    w = sil.skin_edge_scale(person, dress, 8.0)
+    # skin where person less dress is over a half (columns 0, 1), widened by one pixel (column 2)
+    torch.testing.assert_close(w, torch.tensor([[[8.0, 8.0, 8.0, 1.0, 1.0, 1.0]] * 3], dtype=D))
+    assert sil.skin_edge_scale(person, dress, 1.0) == 1.0
+    assert sil.skin_edge_scale(person, None, 8.0) == 8.0  # no exterior mask: all of the person is body
+    assert FitConfig().skin_edge_weight == 1.0  # off by default: docs/fitting.md
+
+
+def test_silhouette_term_scales_both_errors_per_pixel():
+    rendered = torch.tensor([[[1.0, 0.0, 0.5, 1.0]]], dtype=D)  # over, under, half under, right
+    masks = torch.tensor([[[0.0, 1.0, 1.0, 1.0]]], dtype=D)
+    fill = 0.5
+    plain = sil.silhouette_term(rendered, masks, fill)
+    torch.testing.assert_close(plain, torch.tensor([(1.0 + 0.5 + 0.5 * 0.25) / 4], dtype=D))
+    scale = torch.tensor([[[3.0, 2.0, 1.0, 7.0]]], dtype=D)
+    torch.testing.assert_close(sil.silhouette_term(rendered, masks, fill, scale),
+                               torch.tensor([(3.0 + 2.0 * 0.5 + 0.5 * 0.25) / 4], dtype=D))  # fmt: skip
+    torch.testing.assert_close(sil.silhouette_term(rendered, masks, fill, 4.0), 4.0 * plain)
+
+
 def test_fit_config_merges_in_order_and_names_bad_keys():
     cfg = fit_config({"exterior_fill": 0.1, "sil_weight": 10}, {"sil_weight": 20.0, "iterations": [1, 2, 3]})
     assert (cfg.exterior_fill, cfg.sil_weight, cfg.iterations) == (0.1, 20.0, (1, 2, 3))
