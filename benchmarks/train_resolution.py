@@ -17,9 +17,9 @@ workflow evaluates, or by ``--eval``); and a table of each variant's means.
 ``--first 2`` retrains stage 2 alone, from the workflow's stage 1. ``--fit`` runs the init fit again with other
 settings (the fit's silhouette on the dancer: ``docs/real_footage.md``) and trains from it:
 
-    python benchmarks/train_resolution.py run --dataset real --subject dress_dance --body resources/body/anny_sub1.npz \
-        --stages 1 --fit '{"static_weight": 10, "exterior_fill": 0.3, "still_torso": 0.05, "sil_weight": 3000}' \
-        --eval '{"splits": ["train", "test_view"], "refine_steps": 0, "max_frames": 3, "supersample": 2, "stage": 1, \
+    python benchmarks/train_resolution.py run --dataset real --subject dress_dance --body resources/body/anny_sub1.npz \\
+        --stages 1 --fit '{"static_weight": 10, "exterior_fill": 0.3, "still_torso": 0.05, "sil_weight": 3000}' \\
+        --eval '{"splits": ["train", "test_view"], "refine_steps": 0, "max_frames": 3, "supersample": 2, "stage": 1, \\
         "worst": 3}' --work /tmp/dancer_sil3000
 
 Each row: subject, variant, held-out split, refined or not, the means of PSNR, SSIM, ST-LPIPS, the region PSNRs, the
