@@ -257,8 +257,7 @@ def fit(model: BodyModel, kp_map: KeypointMap, detected: torch.Tensor, camera, c
             uv = _project(camera, pinhole, cams, verts)
             rendered = sil.frames_silhouette(uv, coarse.faces, cfg.sil_size, image_size, cfg.sil_sigma,
                                              masks=small[rows], supersample=cfg.sil_supersample)  # fmt: skip
-            weights = fill[rows] if torch.is_tensor(fill) else fill
-            scale = skin_scale[rows] if torch.is_tensor(skin_scale) else skin_scale
+            weights, scale = (w[rows] if torch.is_tensor(w) else w for w in (fill, skin_scale))
             cost = cost + cfg.sil_weight * sil_w[rows] * sil.silhouette_term(rendered, small[rows], weights, scale)
         return cost
 
