@@ -166,7 +166,10 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
     sem = semantic_loss(st, perceptual_dir, dev) if stage == 2 else None
     fine = fine_frames(record, st, stage)
     t0 = time.time()
-    res = train_stage(stage, model, data, st, out, sem, origin=file_digest(start) if stage == 2 else "", fine=fine)
+    # a checkpoint belongs to what the stage starts from (the init fit, or stage 1's model) and the frames'
+    # record: a refitted body or re-prepared frames under unchanged settings is another run, not this one resumed
+    origin = f"{file_digest(start)}-{file_digest(record)}"
+    res = train_stage(stage, model, data, st, out, sem, origin=origin, fine=fine)
     save_model(out / "model.pt", model, stage, preset, st, res.steps)
     last = res.losses.tail(max(1, len(res.losses) // 20)).mean(numeric_only=True)
     summary = {"stage": stage, "steps": res.steps, "seconds": round(time.time() - t0, 1),

@@ -107,8 +107,8 @@ def _read_back(*scalars: torch.Tensor) -> list[float]:
 
 def fingerprint(stage: int, st: TrainSettings, data: FrameData, origin: str = "", model=None) -> str:
     """What a checkpoint must have been trained with to be resumed: the stage, the settings it reads
-    (:func:`stage_view`), the frames, for stage 2 ``origin`` (a digest of the stage-1 model it starts
-    from) and, given the ``model``, the shapes of its state (the same settings build other grids where
+    (:func:`stage_view`), the frames, ``origin`` (the workflow's: digests of what the stage starts from, the
+    init fit or the stage-1 model, and of the frames' record) and, given the ``model``, the shapes of its state (the same settings build other grids where
     the fields' boxes differ: a checkpoint of another version's boxes is not resumed, not half loaded)."""
     shapes = {} if model is None else {k: list(v.shape) for k, v in model.state_dict().items()}
     key = json.dumps({"stage": stage, "settings": stage_view(st.raw, stage), "frames": np.asarray(data.frame_ids).tolist(),
@@ -118,7 +118,7 @@ def fingerprint(stage: int, st: TrainSettings, data: FrameData, origin: str = ""
 
 
 def file_digest(path: str | Path) -> str:
-    """A digest of a file's bytes (a stage-2 checkpoint belongs to the stage-1 model it started from)."""
+    """A digest of a file's bytes (a checkpoint belongs to the init fit or stage-1 model it started from)."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):
@@ -131,7 +131,7 @@ def load_checkpoint(out_dir: Path, key: str, stage: int, device) -> Optional[dic
 
     A checkpoint that cannot be read (truncated, corrupt, or holding objects that could run code) is
     set aside as ``<name>.corrupt`` with a warning, and the one before it (``checkpoint.prev.pt``) is
-    tried; one written with other settings, frames or stage-1 model is stale and not resumed.
+    tried; one written with other settings, frames or start (init fit, stage-1 model) is stale and not resumed.
     """
     for name in (CHECKPOINT, PREVIOUS_CHECKPOINT):
         path = out_dir / name
@@ -148,8 +148,8 @@ def load_checkpoint(out_dir: Path, key: str, stage: int, device) -> Optional[dic
             log.warning("stage %d: %s; set aside as %s, trying the checkpoint before it", stage, exc, aside.name)
             continue
         if state.get("fingerprint") != key:
-            log.warning("stage %d: not resuming from %s: it was written with other settings, frames or stage-1 "
-                        "model; training from the start", stage, path)  # fmt: skip
+            log.warning("stage %d: not resuming from %s: it was written with other settings, frames or start (init "
+                        "fit, stage-1 model); training from the start", stage, path)  # fmt: skip
             return None
         return state
     return None

@@ -235,6 +235,30 @@ def test_both_stages_end_to_end(tiny_training, tmp_path, perceptual_weights):
     assert settings["stage"] == 2 and settings["settings"]["resolution"] == 32
 
 
+def test_a_refitted_body_is_trained_again_not_resumed(tiny_training, tmp_path, caplog):
+    """The same settings and frames from another init fit: the finished checkpoint of the first fit is not this
+    run's (it would write out an avatar of the old fit's body), so the stage trains from the start."""
+    inputs = tiny_training["tight"]
+    init = dict(np.load(inputs["init"]))
+    start = tmp_path / "params.npz"
+    np.savez(start, **init)
+    out = str(tmp_path / "stage1")
+    run_stage(1, inputs["record"], inputs["body"], str(start), out, "fast", [TINY])
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        run_stage(1, inputs["record"], inputs["body"], str(start), out, "fast", [TINY])
+    assert "the stage is finished" in caplog.text  # the same fit: finished work, written out
+    np.savez(start, **(init | {"betas": init["betas"] + 0.2}))
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        again = run_stage(1, inputs["record"], inputs["body"], str(start), out, "fast", [TINY])
+    assert "not resuming" in caplog.text and "the stage is finished" not in caplog.text
+    assert again["steps"] == 6
+    trained = load_state(tmp_path / "stage1" / "model.pt")["model"]["betas"].double().cpu().reshape(-1)
+    new, old = (torch.from_numpy(b).double().reshape(-1)[: len(trained)] for b in (init["betas"] + 0.2, init["betas"]))
+    assert (trained - new).norm() < (trained - old).norm()  # the avatar of the refitted body
+
+
 def test_no_exterior_means_no_nerf(tiny_training):
     st = resolve("fast", TINY, {"exterior": "no"})
     model, data = _model(tiny_training["tight"], st)
