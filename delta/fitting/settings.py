@@ -47,11 +47,23 @@ class FitConfig:
     min_keypoints: int = MIN_KEYPOINTS
     conf_threshold: float = CONF_THRESHOLD
     sil_weight: float = 300.0
-    """Silhouette term (mean squared coverage error a frame); 0 turns it off."""
+    """Silhouette term (mean squared coverage error a frame); 0 turns it off. Set for keypoints that scatter
+    ``sil_scatter``; a capture whose keypoints scatter more gets more (``delta.fitting.balance``)."""
+    sil_scatter: float = 0.001
+    """The keypoint scatter ``sil_weight`` is set for, as a fraction of the record's side (0.5 px at 512²: the
+    fit's median residual on clean synthetic renders, 0.45 px on tight, 0.50 on loose). Where the fitted
+    keypoints' median residual r exceeds it, the last stage is fitted again with the silhouette weighed
+    (r / reference)² more (the real dancer: 1.74 px, ×12; docs/fitting.md). 0: off."""
+    sil_scatter_cap: float = 20.0
+    """The most ``sil_scatter`` multiplies the silhouette's weight by."""
     sil_size: int = 64
     """Resolution (pixels a side) the masks and the mesh are compared at."""
     sil_sigma: float = 0.3
-    """Softness of the rasterised silhouette (grid pixels², of the supersampled grid)."""
+    """Softness of the rasterised silhouette (grid pixels², of the supersampled grid). Where several triangles
+    lie along the outline their joined coverage reaches outside it: the soft outline stands 0.50 grid px
+    outside the hard one at 0.3 (4 px of a 512² crop at 64²) and the fit's body lies that much inside the
+    mask; 0.11 at 0.03 fitted tight's body nearer the truth (38 against 43 mm) and scored 1.4 dB lower on its
+    held-out views (``benchmarks/silhouette_bias.csv``; docs/fitting.md)."""
     sil_supersample: int = 1
     """Points a pixel side the silhouette is rendered at, then area-averaged like the masks."""
     sil_fill: float = 1.0

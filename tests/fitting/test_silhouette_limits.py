@@ -141,3 +141,36 @@ def test_limits_cover_hinges_spine_and_neck_with_the_right_bend_sign(body):
     kp = kpm(betas, pose, torch.zeros(3, 3, dtype=torch.float64))
     assert kp[1, 13, 2] < kp[0, 13, 2] - 0.1
     assert terms.joint_limit_prior(pose, lo, hi)[1] == 0 and terms.joint_limit_prior(-pose, lo, hi)[1] > 0.9
+
+
+def test_the_fit_silhouette_stands_outside_the_outline_of_the_body_it_renders(body):
+    """The coarse body drawn hard at 256² and area-averaged to the fit's grid is the mask; drawn soft as the fit
+    draws it, the excess area over the outline's length is how far the soft outline stands outside. Where
+    several triangles lie along the outline, joining them as 1 - prod(1 - p) covers pixels outside it: at the
+    fit's softness (0.3 grid px²) about half a grid pixel (4 px of a 512² crop at 64², the margin by which the
+    fitted body lies inside a mask: docs/fitting.md), less the sharper it is drawn."""
+    from delta.body.lbs import lbs
+    from delta.cameras.models import OrthographicCamera
+    from delta.fitting.settings import FitConfig
+
+    model, _ = body
+    D, F, image = torch.float64, 2, 256
+    cfg = FitConfig()
+    pose = torch.zeros(F, model.num_joints, 3, dtype=D)
+    pose[1, 0, 1] = 1.2
+    cam = OrthographicCamera(torch.full((F,), 0.9, dtype=D), torch.tensor([[0.0, 0.05]] * F, dtype=D), image, image)
+    coarse = sil.coarse_mesh(model, cfg.sil_cell)
+    uv = cam.project(lbs(model, torch.zeros(F, model.num_shape, dtype=D), pose).vertices[:, coarse.vertex_ids])[0]
+    hard = (sil.frames_silhouette(uv, coarse.faces, image, (image, image), sigma=1e-4) > 0.5).double()
+    mask = sil.downsample_masks(hard, cfg.sil_size)
+    eroded = -torch.nn.functional.max_pool2d(-hard[:, None], 3, 1, 1)[:, 0]
+    length = (hard - eroded).flatten(1).sum(-1) * cfg.sil_size / image  # the outline, in grid pixels
+
+    def offset(sigma: float) -> torch.Tensor:
+        soft = sil.frames_silhouette(uv, coarse.faces, cfg.sil_size, (image, image), sigma=sigma, masks=mask,
+                                     supersample=cfg.sil_supersample)  # fmt: skip
+        return (soft - mask).flatten(1).sum(-1) / length
+
+    at_fit, sharper, sharpest = offset(cfg.sil_sigma), offset(0.1), offset(0.03)
+    assert ((at_fit > 0.35) & (at_fit < 0.8)).all(), at_fit
+    assert (sharpest < sharper).all() and (sharper < at_fit).all() and (sharpest.abs() < 0.2).all(), (sharper, sharpest)
