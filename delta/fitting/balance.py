@@ -5,11 +5,12 @@ and the silhouette's (``sil_weight`` times the mean squared coverage error). Rea
 log-likelihood of two Gaussian measurements, each term's weight is the inverse of its measurement's
 variance, so the silhouette's weight relative to the keypoints' grows with the keypoints' variance.
 ``FitConfig.sil_weight`` is set for a detector whose fitted keypoints scatter ``sil_scatter`` of the
-record's side (0.5 px at 512²: the fit's residual on clean renders of synthetic subjects, 0.45 px on
-tight). A capture whose fitted keypoints scatter more (a real dancer's motion blur and a dress over her
-hips: 1.74 px) says less with its keypoints than the weight assumes, and its outline relatively more:
-the last stage is fitted again with the silhouette weighed by the squared ratio, at most
-``sil_scatter_cap`` times.
+record's side (0.51 px at 512²: the fit's median residual on clean renders of synthetic subjects, 0.45 px
+on tight, 0.50 on loose). A capture whose fitted keypoints scatter more (the real dancer: 1.74 px) says
+less with its keypoints than the weight assumes, and its outline relatively more: the last stage is
+fitted again with the silhouette weighed by the squared ratio, at most ``sil_scatter_cap`` times. The
+Gaussian reading is the rationale; the evidence is the dancer's held-out tail (+1.25 dB refined) with the
+synthetic subjects left as they were (docs/fitting.md).
 
 A close-up is left as fitted: its outline is hair and shirt more than body, and a tracked face's
 points, not the body's keypoints, are what its residual measures.

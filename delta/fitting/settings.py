@@ -50,10 +50,10 @@ class FitConfig:
     """Silhouette term (mean squared coverage error a frame); 0 turns it off. Set for keypoints that scatter
     ``sil_scatter``; a capture whose keypoints scatter more gets more (``delta.fitting.balance``)."""
     sil_scatter: float = 0.001
-    """The keypoint scatter ``sil_weight`` is set for, as a fraction of the record's side (0.5 px at 512²: the
+    """The keypoint scatter ``sil_weight`` is set for, as a fraction of the record's side (0.51 px at 512²: the
     fit's median residual on clean synthetic renders, 0.45 px on tight, 0.50 on loose). Where the fitted
     keypoints' median residual r exceeds it, the last stage is fitted again with the silhouette weighed
-    (r / reference)² more (the real dancer: 1.74 px, ×12; docs/fitting.md). 0: off."""
+    (r / reference)² more (the real dancer: 1.74 px, × 11.5; docs/fitting.md). 0: off."""
     sil_scatter_cap: float = 20.0
     """The most ``sil_scatter`` multiplies the silhouette's weight by."""
     sil_size: int = 64

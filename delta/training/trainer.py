@@ -108,8 +108,9 @@ def _read_back(*scalars: torch.Tensor) -> list[float]:
 def fingerprint(stage: int, st: TrainSettings, data: FrameData, origin: str = "", model=None) -> str:
     """What a checkpoint must have been trained with to be resumed: the stage, the settings it reads
     (:func:`stage_view`), the frames, ``origin`` (the workflow's: digests of what the stage starts from, the
-    init fit or the stage-1 model, and of the frames' record) and, given the ``model``, the shapes of its state (the same settings build other grids where
-    the fields' boxes differ: a checkpoint of another version's boxes is not resumed, not half loaded)."""
+    init fit or the stage-1 model, and of the frames' record) and, given the ``model``, the shapes of its
+    state (the same settings build other grids where the fields' boxes differ: a checkpoint of another
+    version's boxes is not resumed, not half loaded)."""
     shapes = {} if model is None else {k: list(v.shape) for k, v in model.state_dict().items()}
     key = json.dumps({"stage": stage, "settings": stage_view(st.raw, stage), "frames": np.asarray(data.frame_ids).tolist(),
                       "resolution": data.resolution, "origin": origin, **({"shapes": shapes} if shapes else {})},
