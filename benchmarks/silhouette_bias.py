@@ -42,17 +42,6 @@ def poses(model, turns=(0.0, 0.6, 1.2, 1.57)) -> torch.Tensor:
     return pose
 
 
-def outline_offsets(uv: torch.Tensor, faces: torch.Tensor, size: int, sigma: float, supersample: int) -> torch.Tensor:
-    """(F,) the soft silhouette's excess area over the hard mask's, over the outline's length (grid pixels)."""
-    hard = (sil.frames_silhouette(uv, faces, IMAGE, (IMAGE, IMAGE), sigma=1e-4) > 0.5).double()
-    mask = sil.downsample_masks(hard, size)
-    # the outline's length in grid pixels: the hard mask's boundary pixels at 512², scaled to the grid
-    edge = hard - torch.nn.functional.max_pool2d(-hard[:, None], 3, 1, 1)[:, 0].neg()
-    length = edge.flatten(1).sum(-1) * size / IMAGE
-    soft = sil.frames_silhouette(uv, faces, size, (IMAGE, IMAGE), sigma=sigma, masks=mask, supersample=supersample)
-    return (soft - mask).flatten(1).sum(-1) / length
-
-
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--body", required=True)
@@ -72,7 +61,7 @@ def main(argv=None) -> None:
     for size in a.sizes:
         for sigma in a.sigmas:
             for ss in a.supersamples:
-                off = outline_offsets(uv, coarse.faces, size, sigma, ss)
+                off = sil.outline_offset(uv, coarse.faces, IMAGE, size, sigma, ss)
                 rows.append({"sil_size": size, "sil_sigma": sigma, "sil_supersample": ss,
                              "offset_grid_px": round(float(off.mean()), 4),
                              "offset_image_px": round(float(off.mean()) * IMAGE / size, 3),

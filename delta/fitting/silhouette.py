@@ -150,6 +150,22 @@ def frames_silhouette(uv: torch.Tensor, faces: torch.Tensor, size: int, image_si
     return out.reshape(F, size, size)
 
 
+def outline_offset(uv: torch.Tensor, faces: torch.Tensor, image: int, size: int, sigma: float,
+                   supersample: int = 1) -> torch.Tensor:  # fmt: skip
+    """(F,) how far the soft silhouette of (F, V, 2) projected meshes on an ``image`` x ``image`` frame stands
+    outside their hard outline, in grid pixels of ``size``: the mesh drawn hard at the image's pixels and
+    area-averaged to the grid (as the masks are) is subtracted from its soft drawing (``frames_silhouette`` at
+    ``sigma``, ``supersample``), and the excess area divided by the outline's length (the hard drawing's
+    boundary pixels, scaled to the grid). Where several triangles lie along the outline, joining them as
+    1 - prod(1 - p) covers pixels outside it (docs/fitting.md)."""
+    hard = (frames_silhouette(uv, faces, image, (image, image), sigma=1e-4) > 0.5).double()
+    mask = downsample_masks(hard, size)
+    eroded = -torch.nn.functional.max_pool2d(-hard[:, None], 3, 1, 1)[:, 0]
+    length = (hard - eroded).flatten(1).sum(-1) * size / image
+    soft = frames_silhouette(uv, faces, size, (image, image), sigma=sigma, masks=mask, supersample=supersample)
+    return (soft - mask).flatten(1).sum(-1) / length
+
+
 def silhouette_term(rendered: torch.Tensor, masks: torch.Tensor, fill: float | torch.Tensor = 1.0,
                     scale: float | torch.Tensor = 1.0) -> torch.Tensor:  # fmt: skip
     """(F,) mean squared coverage error per frame: model outside the mask costs 1, mask left uncovered ``fill``,

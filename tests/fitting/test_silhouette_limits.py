@@ -161,15 +161,9 @@ def test_the_fit_silhouette_stands_outside_the_outline_of_the_body_it_renders(bo
     cam = OrthographicCamera(torch.full((F,), 0.9, dtype=D), torch.tensor([[0.0, 0.05]] * F, dtype=D), image, image)
     coarse = sil.coarse_mesh(model, cfg.sil_cell)
     uv = cam.project(lbs(model, torch.zeros(F, model.num_shape, dtype=D), pose).vertices[:, coarse.vertex_ids])[0]
-    hard = (sil.frames_silhouette(uv, coarse.faces, image, (image, image), sigma=1e-4) > 0.5).double()
-    mask = sil.downsample_masks(hard, cfg.sil_size)
-    eroded = -torch.nn.functional.max_pool2d(-hard[:, None], 3, 1, 1)[:, 0]
-    length = (hard - eroded).flatten(1).sum(-1) * cfg.sil_size / image  # the outline, in grid pixels
 
     def offset(sigma: float) -> torch.Tensor:
-        soft = sil.frames_silhouette(uv, coarse.faces, cfg.sil_size, (image, image), sigma=sigma, masks=mask,
-                                     supersample=cfg.sil_supersample)  # fmt: skip
-        return (soft - mask).flatten(1).sum(-1) / length
+        return sil.outline_offset(uv, coarse.faces, image, cfg.sil_size, sigma, cfg.sil_supersample)
 
     at_fit, sharper, sharpest = offset(cfg.sil_sigma), offset(0.1), offset(0.03)
     assert ((at_fit > 0.35) & (at_fit < 0.8)).all(), at_fit
