@@ -247,9 +247,13 @@ def cmd_analyze_scene(args: argparse.Namespace) -> None:
     _threads(args.threads)
     configured = json_or_file(args.settings, "--settings")
     if not isinstance(configured, dict) or {"max_dist", "samples"} - set(configured):
-        raise DeltaError('--settings: expected {"max_dist": metres, "samples": count} (the configured render settings)')
+        raise DeltaError(
+            '--settings: expected {"max_dist": metres, "samples": count} (the configured render settings; '
+            'optionally stage 1\'s "rays" and "max_rays")'
+        )
     write_scene(args.out, analyze(args.record, args.init, args.body, float(configured["max_dist"]),
-                                  int(configured["samples"])))  # fmt: skip
+                                  int(configured["samples"]), preset_rays=int(configured.get("rays", 0)),
+                                  max_rays=int(configured.get("max_rays", 0))))  # fmt: skip
 
 
 def cmd_export(args: argparse.Namespace) -> None:
@@ -615,7 +619,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--settings",
         default='{"max_dist": 0.1, "samples": 16}',
-        help="the configured render settings: {max_dist (m), samples}: the room's floor and the sample spacing",
+        help="the configured render settings: {max_dist (m), samples}: the room's floor and the sample spacing; "
+        "optionally stage 1's {rays, max_rays}: the rays a step the scene may give",
     )
     p.add_argument("--out", required=True, help="scene.json")
     p.add_argument("--threads", type=int, default=1)

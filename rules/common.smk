@@ -491,10 +491,18 @@ def stage_training(wildcards):
 
 
 def scene_settings_json(wildcards):
-    """The configured room and samples of a subject's exterior: the scene analysis's floor and spacing."""
-    render = TRAINING[wildcards.subject].avatar.render
+    """The configured room and samples of a subject's exterior (the scene analysis's floor and spacing)
+    and its stage 1's rays (the most the scene may give)."""
+    st = TRAINING[wildcards.subject]
+    render = st.avatar.render
     return json.dumps(
-        {"max_dist": render.max_dist, "samples": render.samples}, sort_keys=True
+        {
+            "max_dist": render.max_dist,
+            "samples": render.samples,
+            "rays": st.stage1.rays,
+            "max_rays": st.stage1.max_rays,
+        },
+        sort_keys=True,
     )
 
 

@@ -20,6 +20,7 @@ DECIDED = (
     "resolution",
     "render.max_dist",
     "render.samples",
+    "stage1.rays",
     "stage2.iterations",
     "weights.semantic",
     "weights.skin_inside",
@@ -32,6 +33,9 @@ HEAD_WEIGHTS = {"semantic": 0.015, "skin_inside": 0.001}
 FRAME_BUDGET = 1 << 30
 #: Keys decided as a multiple of the resolved setting: the key -> the scene's factor for it.
 SCALED = {"stage2.iterations": "stage2.length_factor"}
+#: Keys decided from another decided key: taken only where the user set neither (stage 1's rays spend what
+#: the scene's samples a ray leave of a step; a user's own samples keep the preset's rays).
+DEPENDS = {"stage1.rays": ("render.samples",)}
 #: Keys decided only where the resolved settings leave them ``auto``.
 AUTO = ("exterior", "capture")
 #: Each stage's own keys, which the other stage does not read.
@@ -65,7 +69,8 @@ def _decided(decisions: dict, resolved: dict, key: str):
 def scene_settings(scene_path: str | Path, resolved: dict, user_set: list[str]) -> dict:
     """The training settings the scene decides, as an override: every decision of ``scene.json`` whose
     key the user did not set (``user_set``: dotted keys of the config's overrides); :data:`AUTO` keys only
-    where ``resolved`` leaves them ``auto``; :data:`SCALED` keys as ``resolved``'s times the scene's factor."""
+    where ``resolved`` leaves them ``auto``; :data:`SCALED` keys as ``resolved``'s times the scene's factor;
+    :data:`DEPENDS` keys only where the user set none of the keys they follow."""
     try:
         decisions = json.loads(Path(scene_path).read_text())["decisions"]
     except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
@@ -73,7 +78,8 @@ def scene_settings(scene_path: str | Path, resolved: dict, user_set: list[str]) 
     out: dict = {}
     for key in DECIDED:
         value = _decided(decisions, resolved, key)
-        if value is None or key in user_set or (key in AUTO and resolved.get(key) != "auto"):
+        overruled = key in user_set or any(k in user_set for k in DEPENDS.get(key, ()))
+        if value is None or overruled or (key in AUTO and resolved.get(key) != "auto"):
             continue
         *parents, leaf = key.split(".")
         node = out

@@ -40,7 +40,9 @@ PRESETS: dict[str, dict] = {
         "freeze_rest": 1e-6,
         # stage 1 stops once its training-ray PSNR has flattened (benchmarks/plateau_stop.csv, at 512²:
         # upper 580 steps, +0.1 dB and -20 %; loose 680, -0.1 dB and -8 %; tight never flattened)
-        "stage1": {"iterations": 800, "rays": 4096, "lr_final": 0.1, "plateau_window": 100},
+        # up to twice the rays where the scene's samples leave room (tight at 512²: held-out views +0.34 dB,
+        # poses +0.49 dB refined, stage 1 +20 % time; benchmarks/scene_rays.csv)
+        "stage1": {"iterations": 800, "rays": 4096, "max_rays": 8192, "lr_final": 0.1, "plateau_window": 100},
         # stage 2 too (benchmarks/plateau_stop_stage2.csv, at 512²: gen4 900 -> 290 steps, gen2 666 -> 267,
         # loose 873 -> 388; held-out views and poses within 0.04 dB, stage 2's time -57 to -69 %)
         "stage2": {
@@ -128,6 +130,10 @@ class StageSettings:
     lr: dict
     """Learning rates by group: ``fields`` (offsets, albedo), ``nerf``, ``deformation`` (F_e; default: ``nerf``'s),
     ``pose``, ``camera``, ``shape``, ``trajectory``, ``nerf_warmup``."""
+    max_rays: int = 0
+    """Stage 1: the most rays a step the scene analysis may give it (0: ``rays``, which it then keeps).
+    Where the scene's samples a ray are fewer than the most it gives, more rays fit in the step the
+    preset's costliest scene makes (:func:`delta.scene.analysis.step_rays`)."""
     lr_final: float = 1.0
     """Every learning rate decays exponentially to this fraction of itself at the last step (1: constant)."""
     nerf_warmup: int = 0
@@ -272,7 +278,8 @@ RANGES = {
     "render.occupancy.resolution": (4, 512, _INT), "render.occupancy.update_every": (1, None, _INT),
     "render.occupancy.threshold": (0, None, _NUM), "render.occupancy.decay": (0, 1, _NUM),
     "render.occupancy.warmup": (0, None, _INT),
-    "stage*.iterations": (1, 10_000_000, _INT), "stage*.rays": (1, 1_000_000, _INT), "stage*.patch": (0, 512, _INT),
+    "stage*.iterations": (1, 10_000_000, _INT), "stage*.rays": (1, 1_000_000, _INT),
+    "stage*.max_rays": (0, 1_000_000, _INT), "stage*.patch": (0, 512, _INT),
     "stage*.checkpoint_every": (1, None, _INT), "stage*.preview_every": (0, None, _INT), "stage*.log_every": (1, None, _INT),
     "stage*.lr.*": (1e-12, 10, _NUM), "weights.*": (0, None, _NUM), "stage*.plateau_window": (0, None, _INT),
     "stage*.plateau_gain": (None, None, _NUM), "stage*.anneal": (1e-6, 1, _NUM),

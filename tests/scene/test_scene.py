@@ -8,7 +8,15 @@ import numpy as np
 import pytest
 
 from delta.data.frames import BYTES_PER_PIXEL
-from delta.scene.analysis import SAMPLE_PIXELS, analyze, room_and_samples, stage2_factor, training_resolution
+from delta.scene.analysis import (
+    MAX_SAMPLE_FACTOR,
+    SAMPLE_PIXELS,
+    analyze,
+    room_and_samples,
+    stage2_factor,
+    step_rays,
+    training_resolution,
+)
 from delta.scene.settings import FRAME_BUDGET, HEAD_WEIGHTS, scene_settings, user_decided
 from delta.training.presets import resolve
 from delta.scene.reach import beyond_body, region_reach
@@ -69,6 +77,29 @@ def test_samples_are_no_sparser_than_the_training_pixels(footprint, room):
     assert samples - 1 < max(16 * room / 0.1, room / (SAMPLE_PIXELS * footprint)) or samples == 16  # the fewest
     assert room_and_samples(reach, 0.1, 16, footprint / 2)[1] >= samples  # a finer capture: never fewer
     assert room_and_samples(reach, 0.1, 16, 0.0)[1] == room_and_samples(reach, 0.1, 16)[1]  # footprint unknown
+
+
+@pytest.mark.parametrize("samples", [1, 8, 16, 26, 27, 32, 33, 40, 63, 64, 200])
+def test_stage_one_spends_what_its_samples_leave_of_the_costliest_step_on_rays(samples):
+    rays = step_rays(samples, 16, 4096, 8192)
+    assert 4096 <= rays <= 8192  # between the preset's rays and its most
+    costliest = 4096 * MAX_SAMPLE_FACTOR * 16  # the preset's rays at the most samples a scene gets
+    assert rays * samples <= costliest or rays == 4096  # never a costlier step than the preset allows
+    assert (rays + 1) * samples > costliest or rays == 8192  # and no fewer rays than fit
+    assert step_rays(samples + 1, 16, 4096, 8192) <= rays  # more samples a ray: never more rays
+    assert step_rays(samples, 16, 4096, 0) == step_rays(samples, 16, 4096, 2048) == 4096  # no room: the preset's
+
+
+def test_the_scenes_rays_reach_stage_one_only_where_the_config_is_silent(tmp_path):
+    assert step_rays(27, 16, 4096, 8192) == 8192  # tight at 512² (27 samples): twice the rays
+    assert step_rays(64, 16, 4096, 8192) == 4096  # loose's dress room (64 samples): the preset's
+    assert step_rays(40, 16, 4096, 8192) == 6553
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps({"decisions": {"stage1": {"rays": 8192}}}))
+    assert scene_settings(path, {"stage1": {"rays": 4096}}, []) == {"stage1": {"rays": 8192}}
+    assert scene_settings(path, {"stage1": {"rays": 4096}}, ["stage1.rays"]) == {}  # the user's wins
+    assert scene_settings(path, {"stage1": {"rays": 4096}}, ["render.samples"]) == {}  # the user's samples too
+    assert user_decided(["stage1.rays"], 2) == [] and user_decided(["stage1.rays"], 1) == ["stage1.rays"]
 
 
 def test_stage_two_grows_with_the_room_from_the_configured_length(tmp_path):
@@ -162,6 +193,11 @@ def test_a_dress_reaches_farther_than_trousers_and_a_wider_silhouette_reaches_fa
     assert half["pixel_footprint_mm"] == pytest.approx(foot, rel=0.05)
     assert 10 < foot < 60  # a 1.5-m body across most of 64 pixels
     assert tight["decisions"]["render"]["samples"] == room_and_samples(r_tight, 0.1, 16, foot / 1000)[1]
+    assert "stage1" not in tight["decisions"]  # no preset's rays given: stage 1 keeps its own
+    rays = analyze(t["record"], t["init"], t["body"], 0.1, 16, size=64, frames=6, preset_rays=4096, max_rays=8192)
+    samples = rays["decisions"]["render"]["samples"]
+    assert rays["decisions"]["stage1"]["rays"] == step_rays(samples, 16, 4096, 8192)
+    assert rays["evidence"]["rays"]["samples"] == samples and str(samples) in rays["evidence"]["rays"]["why"]
     # the same capture with every person mask grown by 3 pixels (about 9 cm at this size) reaches farther
     wide = tmp_path / "wide.h5"
     shutil.copy(t["record"], wide)
