@@ -22,6 +22,13 @@ settings (the fit's silhouette on the dancer: ``docs/real_footage.md``) and trai
         --eval '{"splits": ["train", "test_view"], "refine_steps": 0, "max_frames": 3, "supersample": 2, "stage": 1, \\
         "worst": 3}' --work /tmp/dancer_sil3000
 
+``--truth`` trains from the synthetic capture's true body in place of the init fit: the generator's shape,
+poses and translations written over the fit's ``params.npz`` (what a perfect init fit would buy the avatar):
+
+    python benchmarks/train_resolution.py run --dataset synthetic --subject tight --body resources/body/anny_sub1.npz \\
+        --stages 1 --truth data/synthetic/tight/gt --eval '{"splits": ["train", "test_view"], "refine_steps": 0, \\
+        "max_frames": 4, "supersample": 2, "stage": 1, "worst": 0}' --work /tmp/tight_true_body
+
 Each row: subject, variant, held-out split, refined or not, the means of PSNR, SSIM, ST-LPIPS, the region PSNRs, the
 NeRF-mask IoU, the outline band's PSNR and error share and (a synthetic subject's) body error over the held-out
 frames; a variant that ran its own init fit also its seconds and mean keypoint residual.
@@ -36,6 +43,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -83,6 +91,10 @@ def run(a: argparse.Namespace) -> None:
         (work / "fit.json").write_text(json.dumps({"fit_s": round(time.perf_counter() - clock, 1),
                                                    "fit_residual_px": summary["residual_px_mean"]}))  # fmt: skip
         start = str(work / "init/params.npz")
+    if a.truth is not None:
+        if a.first != 1 or a.fit is not None:
+            sys.exit("--truth replaces the init fit: it needs --first 1 and no --fit")
+        start = str(true_body_start(res / "init/params.npz", Path(a.truth), work / "init"))
     for stage in range(a.first, a.stages + 1):
         saved = json.loads((res / f"stage{stage}/settings.json").read_text())
         settings = deep_merge(saved["settings"], json.loads(a.settings))
@@ -99,6 +111,24 @@ def run(a: argparse.Namespace) -> None:
                         "--subject", a.subject, "--out", str(work / "metrics.csv"), "--settings", a.eval or json.dumps(EVAL),
                         "--perceptual", str(ROOT / "resources/models/stlpips"), "--threads", str(a.threads)],
                        check=True, stdout=log, stderr=log)  # fmt: skip
+
+
+def true_body_start(fit: Path, truth: Path, out: Path) -> Path:
+    """``out/params.npz``: the init fit's file with the synthetic truth's shape, poses and translations of the
+    same frames in place of the fitted ones (the truth's camera is the record's: a synthetic capture's)."""
+    params = dict(np.load(fit))
+    gt = np.load(truth / "params.npz")
+    ids = params["frame_ids"]
+    if gt["poses"].shape[1:] != params["poses"].shape[1:] or gt["betas"].shape != params["betas"].shape:
+        sys.exit(f"{truth}: not the truth of this fit's body (poses {gt['poses'].shape[1:]} against "
+                 f"{params['poses'].shape[1:]}, shape {gt['betas'].shape} against {params['betas'].shape})")  # fmt: skip
+    if ids.max() >= len(gt["poses"]):
+        sys.exit(f"{truth}: holds {len(gt['poses'])} frames; the fit names frame {int(ids.max())}")
+    for key, value in (("betas", gt["betas"]), ("poses", gt["poses"][ids]), ("transl", gt["transl"][ids])):
+        params[key] = value.astype(params[key].dtype)
+    out.mkdir(parents=True, exist_ok=True)
+    np.savez(out / "params.npz", **params)
+    return out / "params.npz"
 
 
 def stage_lengths(metrics: Path) -> dict:
@@ -154,6 +184,12 @@ def main() -> None:
         default=None,
         help="JSON of the init fit's settings (every key: FitConfig): the fit is "
         "run again with them and the stages train from it (default: the workflow's fit)",
+    )
+    r.add_argument(
+        "--truth",
+        default=None,
+        help="a synthetic capture's gt/ folder: train from its true body "
+        "(shape, poses, translations) in place of the init fit",
     )
     r.add_argument("--work", required=True)
     r.add_argument("--threads", type=int, default=2)
