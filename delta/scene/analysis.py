@@ -121,7 +121,7 @@ def room_and_samples(reach: float, preset_room: float, preset_samples: int,
 def step_rays(samples: int, preset_samples: int, preset_rays: int, max_rays: int) -> int:
     """Stage 1's rays a step for ``samples`` a ray: as many as keep the step within the preset's costliest
     (``preset_rays`` rays of :data:`MAX_SAMPLE_FACTOR` × ``preset_samples``), at least the preset's rays and
-    at most ``max_rays`` (not above ``preset_rays``: the preset's own)."""
+    at most ``max_rays`` (one at or below ``preset_rays`` keeps the preset's)."""
     budget = preset_rays * MAX_SAMPLE_FACTOR * preset_samples
     return int(min(max(budget // max(samples, 1), preset_rays), max(max_rays, preset_rays)))
 
