@@ -36,6 +36,10 @@ SCALED = {"stage2.iterations": "stage2.length_factor"}
 #: Keys decided from another decided key: taken only where the user set neither (stage 1's rays spend what
 #: the scene's samples a ray leave of a step; a user's own samples keep the preset's rays).
 DEPENDS = {"stage1.rays": ("render.samples",)}
+#: Keys decided within what the resolved settings allow: key -> (its floor, its ceiling) among them (the
+#: floor also where the ceiling is lower or unset). A run of another preset than the one the scene was
+#: analysed for (a sweep's variant) keeps its own rays where that preset allows no more, never fewer.
+CAPPED = {"stage1.rays": ("stage1.rays", "stage1.max_rays")}
 #: Keys decided only where the resolved settings leave them ``auto``.
 AUTO = ("exterior", "capture")
 #: Each stage's own keys, which the other stage does not read.
@@ -58,8 +62,12 @@ def _get(d: dict, dotted: str):
 
 
 def _decided(decisions: dict, resolved: dict, key: str):
-    """The scene's value for ``key`` (None: not decided): as written, or the resolved setting times the
-    scene's factor (:data:`SCALED`)."""
+    """The scene's value for ``key`` (None: not decided): as written, at most the resolved settings allow
+    (:data:`CAPPED`), or the resolved setting times the scene's factor (:data:`SCALED`)."""
+    if key in CAPPED:
+        value = _get(decisions, key)
+        floor, ceiling = (_get(resolved, k) or 0 for k in CAPPED[key])
+        return None if value is None else max(min(value, max(floor, ceiling)), floor)
     if key not in SCALED:
         return _get(decisions, key)
     factor, base = _get(decisions, SCALED[key]), _get(resolved, key)

@@ -96,9 +96,15 @@ def test_the_scenes_rays_reach_stage_one_only_where_the_config_is_silent(tmp_pat
     assert step_rays(40, 16, 4096, 8192) == 6553
     path = tmp_path / "scene.json"
     path.write_text(json.dumps({"decisions": {"stage1": {"rays": 8192}}}))
-    assert scene_settings(path, {"stage1": {"rays": 4096}}, []) == {"stage1": {"rays": 8192}}
-    assert scene_settings(path, {"stage1": {"rays": 4096}}, ["stage1.rays"]) == {}  # the user's wins
-    assert scene_settings(path, {"stage1": {"rays": 4096}}, ["render.samples"]) == {}  # the user's samples too
+    fast = {"stage1": {"rays": 4096, "max_rays": 8192}}
+    assert scene_settings(path, fast, []) == {"stage1": {"rays": 8192}}
+    assert scene_settings(path, fast, ["stage1.rays"]) == {}  # the user's wins
+    assert scene_settings(path, fast, ["render.samples"]) == {}  # the user's samples too
+    # a run of a preset that allows no more than its own rays (a sweep's balanced variant) keeps them
+    assert scene_settings(path, {"stage1": {"rays": 4096}}, []) == {"stage1": {"rays": 4096}}
+    assert scene_settings(path, {"stage1": {"rays": 4096, "max_rays": 6000}}, []) == {"stage1": {"rays": 6000}}
+    path.write_text(json.dumps({"decisions": {"stage1": {"rays": 4096}}}))  # and one with more keeps its own
+    assert scene_settings(path, {"stage1": {"rays": 16384}}, []) == {"stage1": {"rays": 16384}}
     assert user_decided(["stage1.rays"], 2) == [] and user_decided(["stage1.rays"], 1) == ["stage1.rays"]
 
 
