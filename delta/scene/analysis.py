@@ -118,11 +118,15 @@ def room_and_samples(reach: float, preset_room: float, preset_samples: int,
     return round(room, 3), int(min(max(samples, preset_samples), MAX_SAMPLE_FACTOR * preset_samples))
 
 
+def step_budget(preset_rays: int, preset_samples: int) -> int:
+    """The samples of the preset's costliest step: its rays at :data:`MAX_SAMPLE_FACTOR` × its samples a ray."""
+    return preset_rays * MAX_SAMPLE_FACTOR * preset_samples
+
+
 def step_rays(samples: int, preset_samples: int, preset_rays: int, max_rays: int) -> int:
-    """Stage 1's rays a step for ``samples`` a ray: as many as keep the step within the preset's costliest
-    (``preset_rays`` rays of :data:`MAX_SAMPLE_FACTOR` × ``preset_samples``), at least the preset's rays and
-    at most ``max_rays`` (one at or below ``preset_rays`` keeps the preset's)."""
-    budget = preset_rays * MAX_SAMPLE_FACTOR * preset_samples
+    """Stage 1's rays a step for ``samples`` a ray: as many as keep the step within :func:`step_budget`, at
+    least the preset's rays and at most ``max_rays`` (one at or below ``preset_rays`` keeps the preset's)."""
+    budget = step_budget(preset_rays, preset_samples)
     return int(min(max(budget // max(samples, 1), preset_rays), max(max_rays, preset_rays)))
 
 
@@ -201,7 +205,7 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
                            f"at the body), at most {MAX_SAMPLE_FACTOR}x the preset's"},
     }  # fmt: skip
     if rays is not None:
-        budget = preset_rays * MAX_SAMPLE_FACTOR * preset_samples
+        budget = step_budget(preset_rays, preset_samples)
         evidence["rays"] = {"preset": preset_rays, "max": max_rays, "samples": samples, "step_samples": budget,
                             "why": f"{samples} samples a ray: {rays} rays keep a step within {budget} samples (the "
                                    f"preset's {preset_rays} rays at {MAX_SAMPLE_FACTOR}x its {preset_samples}), "
