@@ -83,6 +83,29 @@ def pareto_front(cost: np.ndarray, gain: np.ndarray) -> np.ndarray:
     return out
 
 
+def curve_time_to(seconds: np.ndarray, psnr: np.ndarray, target: float) -> float:
+    """Seconds at which a held-out curve (scores of a run's snapshots, in the order trained) first reaches
+    ``target``, linear between the snapshots around the crossing (nan: never). A first snapshot already at
+    or above it gives that snapshot's seconds: the crossing lies before it, where nothing was scored."""
+    seconds, psnr = np.asarray(seconds, float), np.asarray(psnr, float)
+    hit = np.flatnonzero(psnr >= target)
+    if not len(hit):
+        return math.nan
+    i = int(hit[0])
+    if i == 0:
+        return float(seconds[0])
+    t0, t1, p0, p1 = seconds[i - 1], seconds[i], psnr[i - 1], psnr[i]
+    return float(t0 + (t1 - t0) * (target - p0) / (p1 - p0))
+
+
+def front_at(seconds: np.ndarray, psnr: np.ndarray, t: float) -> float:
+    """The measured front at time ``t``: the best PSNR of any point trained for at most ``t`` seconds
+    (nan: none)."""
+    seconds, psnr = np.asarray(seconds, float), np.asarray(psnr, float)
+    ok = np.isfinite(psnr) & (seconds <= t)
+    return float(psnr[ok].max()) if ok.any() else math.nan
+
+
 def knobs(settings: dict) -> dict:
     """The knobs of a trained variant, from its profile.json (preset and merged settings)."""
     raw = settings.get("settings", {})

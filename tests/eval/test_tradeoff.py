@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 import torch
 
-from delta.eval.tradeoff import pareto_front, place_labels, time_to_psnr, tradeoff
+from delta.eval.tradeoff import curve_time_to, front_at, pareto_front, place_labels, time_to_psnr, tradeoff
 from delta.eval.tradeoff import psnr_gain as tradeoff_gain
 from delta.training.profile import matmul_peak, profile_steps
 
@@ -43,6 +43,24 @@ def test_pareto_front():
     gain = np.array([20.0, 25.0, 24.0, 22.0, 30.0])
     # 3 is slower and worse than 2; 4 costs as much as 2 and is worse; nan is never on the front
     assert pareto_front(cost, gain).tolist() == [True, True, False, False, False]
+
+
+def test_time_to_a_held_out_psnr_between_snapshots():
+    """Linear between the two snapshots around the first crossing; a dip after it does not move it."""
+    seconds = np.array([100.0, 200.0, 400.0, 800.0])
+    psnr = np.array([24.0, 26.0, 27.0, 26.5])
+    assert curve_time_to(seconds, psnr, 26.5) == pytest.approx(300.0)  # halfway from 26 to 27 dB
+    assert curve_time_to(seconds, psnr, 26.0) == pytest.approx(200.0)  # on a snapshot
+    assert curve_time_to(seconds, psnr, 23.0) == pytest.approx(100.0)  # before the first: its time
+    assert math.isnan(curve_time_to(seconds, psnr, 27.5))  # never
+
+
+def test_the_front_at_a_time_is_the_best_of_what_was_trained_as_long():
+    seconds = np.array([100.0, 300.0, 200.0, 50.0])
+    psnr = np.array([25.0, 27.0, 26.0, np.nan])
+    assert front_at(seconds, psnr, 250.0) == 26.0
+    assert front_at(seconds, psnr, 300.0) == 27.0
+    assert math.isnan(front_at(seconds, psnr, 60.0))  # only an unscored point so soon
 
 
 def test_plot_labels_do_not_overlap():
