@@ -137,7 +137,7 @@ class HybridAvatar(nn.Module):
         self.occupancy = None
         if self.nerf is not None and occ.enabled:
             dilation = spec.deformation_scale if self.deformation is not None else 0.0
-            self.occupancy = OccupancyGrid(nbox, occ, dilation)
+            self.occupancy = OccupancyGrid(nbox, occ, dilation, body=self.canonical_vertices[region])
 
     def _apply(self, fn, recurse: bool = True):
         """``.to(device)`` and friends also move the body model (a dataclass, not a module)."""
@@ -262,9 +262,10 @@ class HybridAvatar(nn.Module):
         return render_rays(mesh, origins, dirs, pixels, self.background, self.spec.render, self.nerf,
                            nonrigid, generator, occupied, through_mesh, soft)  # fmt: skip
 
-    def update_occupancy(self, seed: int) -> None:
-        """Re-evaluate the occupancy grid's densities (a training step calls this every few steps)."""
-        self.occupancy.update(self.nerf.density, seed)
+    def update_occupancy(self, seed: int, early: bool = False) -> None:
+        """Re-evaluate the occupancy grid's densities (a training step calls this every few steps;
+        ``early``: before the warm-up's end, the body's shell of cells kept)."""
+        self.occupancy.update(self.nerf.density, seed, early=early)
 
     def mask_frozen_pose_gradient(self) -> None:
         """Zero the pose gradient of frozen joints: Adam then never moves them (exactly)."""

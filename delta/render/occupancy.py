@@ -40,8 +40,11 @@ from delta.render.settings import OccupancySettings
 
 
 class OccupancyGrid(nn.Module):
-    def __init__(self, bounds: torch.Tensor, settings: OccupancySettings, dilation: float = 0.0):
-        """``bounds`` (2, 3) box; ``dilation``: grow the occupied set by this much (m) around occupied cells."""
+    def __init__(self, bounds: torch.Tensor, settings: OccupancySettings, dilation: float = 0.0,
+                 body: torch.Tensor | None = None):  # fmt: skip
+        """``bounds`` (2, 3) box; ``dilation``: grow the occupied set by this much (m) around occupied cells;
+        ``body``: (V, 3) canonical body vertices, whose cells within ``settings.early_shell`` an early
+        update keeps (:meth:`update`)."""
         super().__init__()
         self.threshold, self.decay = float(settings.threshold), float(settings.decay)
         lo, hi = bounds[0].float(), bounds[1].float()
@@ -54,6 +57,11 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("density", torch.zeros(self.shape))
         self.register_buffer("occupied", torch.ones(self.shape, dtype=torch.bool))
         self.register_buffer("active", torch.tensor(False))
+        # derived from the body, not saved: checkpoints from before it load unchanged
+        shell = torch.zeros(self.shape, dtype=torch.bool)
+        if body is not None and settings.early:
+            shell = _grow(self.cells_holding(body.detach().float().cpu()), int(math.ceil(settings.early_shell / cell)))
+        self.register_buffer("shell", shell.to(lo.device), persistent=False)
 
     @property
     def cell(self) -> torch.Tensor:
@@ -66,6 +74,15 @@ class OccupancyGrid(nn.Module):
         ijk = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
         return self.lo + ijk * self.cell
 
+    def cells_holding(self, points: torch.Tensor) -> torch.Tensor:
+        """A boolean grid of the cells that hold at least one of ``points`` (N, 3) (those outside are not counted)."""
+        shape = torch.tensor(self.shape, device=points.device)
+        ijk = torch.floor((points - self.lo.to(points)) / self.cell.to(points)).long()
+        ijk = ijk[((ijk >= 0) & (ijk < shape)).all(-1)]
+        out = torch.zeros(self.shape, dtype=torch.bool, device=points.device)
+        out[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
+        return out
+
     def reset(self) -> None:
         """Forget everything (a stage's start): every cell occupied, the grid not used until the next update."""
         self.density.zero_()
@@ -73,9 +90,11 @@ class OccupancyGrid(nn.Module):
         self.active.fill_(False)
 
     @torch.no_grad()
-    def update(self, density_fn: Callable[[torch.Tensor], torch.Tensor], seed: int, chunk: int = 65536) -> None:
+    def update(self, density_fn: Callable[[torch.Tensor], torch.Tensor], seed: int, chunk: int = 65536,
+               early: bool = False) -> None:  # fmt: skip
         """Fold σ at jittered cell centres into the decaying maximum; the grid is used from now on.
 
+        ``early``: an update before the warm-up's end, which keeps the body's shell of cells occupied too.
         The jitter comes from ``seed`` alone (the step), so a resumed run makes the same update.
         """
         gen = torch.Generator().manual_seed(int(seed))
@@ -83,7 +102,7 @@ class OccupancyGrid(nn.Module):
         x = x + ((torch.rand(x.shape, generator=gen) - 0.5).to(x) * self.cell)
         new = torch.cat([density_fn(x[s : s + chunk]).float() for s in range(0, len(x), chunk)])
         self.density.copy_(torch.maximum(self.density * self.decay, new.view(self.shape)))
-        self._mark()
+        self._mark(early)
 
     def carry_over(self) -> bool:
         """Start a stage from the grid as loaded (the previous stage's), its occupied set re-derived
@@ -94,9 +113,11 @@ class OccupancyGrid(nn.Module):
         self._mark()
         return True
 
-    def _mark(self) -> None:
-        """The occupied set from the kept densities, grown by the dilation; the grid is used from now on."""
-        self.occupied.copy_(_grow(self._core(), self.dilation))
+    def _mark(self, early: bool = False) -> None:
+        """The occupied set from the kept densities (and, ``early``, the body's shell), grown by the
+        dilation; the grid is used from now on."""
+        core = self._core() | self.shell if early else self._core()
+        self.occupied.copy_(_grow(core, self.dilation))
         self.active.fill_(True)
 
     def _core(self) -> torch.Tensor:

@@ -18,7 +18,15 @@ class OccupancySettings:
     decay: float = 0.95
     """Per update, the kept maximum decays by this factor before the new density is folded in."""
     warmup: int = 100
-    """Steps of each stage before the first update; no sample is skipped before it."""
+    """Steps of each stage before the grid marks cells from the NeRF's density alone; without ``early``
+    no sample is skipped before it."""
+    early: int = 0
+    """Steps before a first, guarded use of the grid (0, or at or past ``warmup``: none, the grid waits
+    for ``warmup``). From ``early`` to ``warmup`` the cells within ``early_shell`` of the canonical body
+    stay occupied whatever the young field's density there, so a wide room's empty space is skipped
+    early and a thin garment's cells, not yet dense, are not emptied for good."""
+    early_shell: float = 0.05
+    """How far from the canonical body (m) the cells stay occupied until ``warmup`` (with ``early``)."""
     carry: bool = True
     """Stage 2 starts from stage 1's grid (its kept densities, the occupied set re-grown by F_e's
     reach) instead of every cell occupied until its own ``warmup``."""

@@ -31,6 +31,7 @@ from delta.models.avatar import HybridAvatar
 from delta.models.image import render_image
 from delta.optim import Adam
 from delta.progress import Progress
+from delta.render.settings import RenderSettings
 from delta.training.presets import StageSettings, TrainSettings, find_plateau, stage_view
 
 log = logging.getLogger(__name__)
@@ -341,15 +342,35 @@ def _start_occupancy(model: HybridAvatar, st: TrainSettings, stage: int) -> None
                  occ.dilation, 100 * occ.fraction())  # fmt: skip
         return
     occ.reset()
+    render = st.avatar.render
+    start = occupancy_start(render, stage)
+    if start < render.occupancy.warmup:
+        log.info("stage %d: the occupancy grid in use from step %d, the body's %.2f-m shell kept until step %d "
+                 "(the room, %.2f m, reaches past twice the shell)", stage, start, render.occupancy.early_shell,
+                 render.occupancy.warmup, render.max_dist)  # fmt: skip
+
+
+def occupancy_start(render: RenderSettings, stage: int) -> int:
+    """The step of a stage's first occupancy update: ``early`` where the grid starts young (stage 1, or a
+    stage 2 not ``carry``-ing stage 1's grid) and more than half the room (``render.max_dist``, the scene's
+    reach) lies beyond the body's shell that the early updates keep (a narrower room's cells past the shell
+    are the garment's and hair's outer ones, and little empty space is left to skip); else ``warmup``."""
+    occ = render.occupancy
+    young = stage == 1 or not occ.carry
+    if occ.early and young and render.max_dist > 2 * occ.early_shell:
+        return min(occ.early, occ.warmup)
+    return occ.warmup
 
 
 def _maybe_update_occupancy(model: HybridAvatar, st: TrainSettings, stage: int, step: int) -> None:
-    """From ``warmup`` on, every ``update_every`` steps (a function of the step alone: resumes stay exact)."""
+    """From :func:`occupancy_start` on, every ``update_every`` steps (a function of the step alone: resumes
+    stay exact); before ``warmup`` the body's shell of cells stays occupied."""
     occ = st.avatar.render.occupancy
-    if model.occupancy is None or step < occ.warmup or (step - occ.warmup) % occ.update_every:
+    start = occupancy_start(st.avatar.render, stage)
+    if model.occupancy is None or step < start or (step - start) % occ.update_every:
         return
-    model.update_occupancy(seed=_step_seed(st, stage, step))
-    if step == occ.warmup or (step - occ.warmup) % (occ.update_every * 16) == 0:
+    model.update_occupancy(seed=_step_seed(st, stage, step), early=step < occ.warmup)
+    if step in (start, occ.warmup) or (step - start) % (occ.update_every * 16) == 0:
         log.info("stage %d step %d: occupancy grid %s, %.1f%% of cells occupied", stage, step,
                  "x".join(map(str, model.occupancy.shape)), 100 * model.occupancy.fraction())  # fmt: skip
 

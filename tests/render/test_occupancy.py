@@ -104,6 +104,31 @@ def test_carry_over_regrows_the_loaded_grid_by_its_own_dilation():
     assert stage2.occupied[4:].all() and not stage2.occupied[:4].any()
 
 
+def test_an_early_update_keeps_the_body_shell_a_later_one_does_not():
+    """Before the warm-up's end the cells within ``early_shell`` of the body stay occupied whatever the young
+    field's density there; the empty space beyond them and the slab are marked from the density."""
+    body = torch.tensor([[-0.35, 0.0, 0.0], [-0.25, 0.0, 0.0]])  # in cells 1 and 2 along x, 5 along y and z
+    g = OccupancyGrid(BOX, OccupancySettings(enabled=True, resolution=10, threshold=1.0, early=2, warmup=4,
+                                             early_shell=0.1), body=body)  # fmt: skip
+    assert g.shell.sum() == 4 * 3 * 3  # cells 0-3 along x, 4-6 along y and z: one cell (0.1 m) around each
+    assert torch.equal(g.shell[:, 5, 5], torch.tensor([True] * 4 + [False] * 6))
+    g.update(slab_density, seed=0, early=True)
+    slab = torch.zeros(10, 10, 10, dtype=torch.bool)
+    slab[6:] = True
+    assert torch.equal(g.occupied, slab | g.shell) and 0.4 < g.fraction() < 1
+    assert g.contains(torch.tensor([[-0.3, 0.0, 0.0], [-0.3, 0.4, 0.0]])).tolist() == [True, False]
+    g.update(slab_density, seed=1)  # the warm-up is over: the density alone
+    assert torch.equal(g.occupied, slab)
+
+
+def test_without_early_updates_the_shell_is_empty_and_not_saved():
+    body = torch.zeros(1, 3)
+    g = OccupancyGrid(BOX, OccupancySettings(enabled=True, resolution=10, threshold=1.0), body=body)
+    assert not g.shell.any() and "shell" not in g.state_dict()
+    g.update(slab_density, seed=0, early=True)
+    assert g.fraction() == 0.4
+
+
 def test_reset_forgets_everything():
     g = grid()
     g.update(slab_density, seed=0)
