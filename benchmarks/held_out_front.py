@@ -9,8 +9,8 @@ PSNR less each ``--below-best`` (dB), so the same command sets them on any subje
 as a point of the front like a run of that many steps (its learning rate had not yet fallen as a
 run that short would have let it).
 
-    python benchmarks/held_out_front.py --curves benchmarks/held_out_curve_512.csv \\
-        --out benchmarks/held_out_front_512.csv
+    python benchmarks/held_out_front.py --curves benchmarks/held_out_curve_capture.csv \\
+        --out benchmarks/held_out_front_capture.csv
 """
 
 from __future__ import annotations

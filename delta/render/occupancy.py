@@ -58,9 +58,12 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("occupied", torch.ones(self.shape, dtype=torch.bool))
         self.register_buffer("active", torch.tensor(False))
         # derived from the body, not saved: checkpoints from before it load unchanged
+        grow = int(math.ceil(settings.early_shell / cell - 1e-9))
+        #: how far from the body the shell's cells may reach (m): the vertex's own cell and the cells grown
+        self.shell_reach = (grow + 1) * cell
         shell = torch.zeros(self.shape, dtype=torch.bool)
         if body is not None and settings.early:
-            shell = _grow(self.cells_holding(body.detach().float().cpu()), int(math.ceil(settings.early_shell / cell)))
+            shell = _grow(self.cells_holding(body.detach().float().cpu()), grow)
         self.register_buffer("shell", shell.to(lo.device), persistent=False)
 
     @property

@@ -36,8 +36,9 @@ PRESETS: dict[str, dict] = {
         "offsets": _GRID_OFFSETS,
         "albedo": _GRID_ALBEDO,
         "deformation": _PE_DEFORM,
-        # the grid in use from step 20, the body's 5-cm shell kept until step 100 (loose at 512²: stage 1
-        # -25 % time, the same held-out PSNR; tight -0.06 dB, no time saved: benchmarks/held_out_front_512.csv)
+        # the grid in use from step 20 where the room is wide, the body's 5-cm shell kept until step 100 (loose
+        # at 512²: stage 1 -25 % time, the same held-out PSNR; not on tight's or the dancer's narrower rooms,
+        # where it saved nothing: benchmarks/held_out_front_capture.csv)
         "render": {"samples": 16, "sil_sigma": 0.5, "max_dist": 0.1, "occupancy": {"enabled": True, "early": 20}},
         "freeze_rest": 1e-6,
         # stage 1 stops once its training-ray PSNR has flattened (benchmarks/plateau_stop.csv, at 512²:

@@ -343,21 +343,22 @@ def _start_occupancy(model: HybridAvatar, st: TrainSettings, stage: int) -> None
         return
     occ.reset()
     render = st.avatar.render
-    start = occupancy_start(render, stage)
+    start = occupancy_start(render, stage, occ.shell_reach)
     if start < render.occupancy.warmup:
-        log.info("stage %d: the occupancy grid in use from step %d, the body's %.2f-m shell kept until step %d "
-                 "(the room, %.2f m, reaches past twice the shell)", stage, start, render.occupancy.early_shell,
+        log.info("stage %d: the occupancy grid in use from step %d, the body's shell of cells (%.2f m) kept until "
+                 "step %d (the room, %.2f m, reaches past twice it)", stage, start, occ.shell_reach,
                  render.occupancy.warmup, render.max_dist)  # fmt: skip
 
 
-def occupancy_start(render: RenderSettings, stage: int) -> int:
+def occupancy_start(render: RenderSettings, stage: int, shell_reach: float) -> int:
     """The step of a stage's first occupancy update: ``early`` where the grid starts young (stage 1, or a
     stage 2 not ``carry``-ing stage 1's grid) and more than half the room (``render.max_dist``, the scene's
-    reach) lies beyond the body's shell that the early updates keep (a narrower room's cells past the shell
-    are the garment's and hair's outer ones, and little empty space is left to skip); else ``warmup``."""
+    reach) lies beyond ``shell_reach``, how far the body's shell of cells that the early updates keep may
+    reach (a narrower room's cells past the shell are the garment's and hair's outer ones, with little empty
+    space left to skip); else ``warmup``."""
     occ = render.occupancy
     young = stage == 1 or not occ.carry
-    if occ.early and young and render.max_dist > 2 * occ.early_shell:
+    if occ.early and young and render.max_dist > 2 * shell_reach:
         return min(occ.early, occ.warmup)
     return occ.warmup
 
@@ -366,8 +367,10 @@ def _maybe_update_occupancy(model: HybridAvatar, st: TrainSettings, stage: int, 
     """From :func:`occupancy_start` on, every ``update_every`` steps (a function of the step alone: resumes
     stay exact); before ``warmup`` the body's shell of cells stays occupied."""
     occ = st.avatar.render.occupancy
-    start = occupancy_start(st.avatar.render, stage)
-    if model.occupancy is None or step < start or (step - start) % occ.update_every:
+    if model.occupancy is None:
+        return
+    start = occupancy_start(st.avatar.render, stage, model.occupancy.shell_reach)
+    if step < start or (step - start) % occ.update_every:
         return
     model.update_occupancy(seed=_step_seed(st, stage, step), early=step < occ.warmup)
     if step in (start, occ.warmup) or (step - start) % (occ.update_every * 16) == 0:

@@ -111,6 +111,7 @@ def test_an_early_update_keeps_the_body_shell_a_later_one_does_not():
     g = OccupancyGrid(BOX, OccupancySettings(enabled=True, resolution=10, threshold=1.0, early=2, warmup=4,
                                              early_shell=0.1), body=body)  # fmt: skip
     assert g.shell.sum() == 4 * 3 * 3  # cells 0-3 along x, 4-6 along y and z: one cell (0.1 m) around each
+    assert g.shell_reach == pytest.approx(0.2)  # a vertex's own cell and one more
     assert torch.equal(g.shell[:, 5, 5], torch.tensor([True] * 4 + [False] * 6))
     g.update(slab_density, seed=0, early=True)
     slab = torch.zeros(10, 10, 10, dtype=torch.bool)

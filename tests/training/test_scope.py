@@ -70,14 +70,14 @@ def test_occupancy_skips_samples_after_warmup_and_resumes_exactly(tiny_training,
 
 def test_an_early_grid_skips_samples_before_the_warmup_and_keeps_the_body_shell(tiny_training, tmp_path):
     inputs = tiny_training["loose"]
-    early = {"render": {"occupancy": {"warmup": 4, "early": 2, "early_shell": 0.0, "resolution": 48}}}
+    early = {"render": {"max_dist": 0.15, "occupancy": {"warmup": 4, "early": 2, "early_shell": 0.0, "resolution": 48}}}
     model_e, data, st = _model(inputs, early)
     train_stage(1, model_e, data, st, tmp_path / "e", max_steps=3)  # one early update (step 2)
     occ = model_e.occupancy
     assert occ.shell.any() and bool(occ.active) and (occ.occupied | ~occ.shell).all()
     assert (occ.shell & ~occ._core()).any()  # cells the young density alone would have emptied
     train_stage(1, model_e, data, st, tmp_path / "e")
-    model_n, _, st_n = _model(inputs, {"render": {"occupancy": {"enabled": False}}})
+    model_n, _, st_n = _model(inputs, {"render": {"max_dist": 0.15, "occupancy": {"enabled": False}}})
     train_stage(1, model_n, data, st_n, tmp_path / "n")
     le, ln = (pd.read_csv(tmp_path / x / "losses.csv") for x in ("e", "n"))
     assert list(le["samples"][:2]) == list(ln["samples"][:2])  # before the early update: nothing skipped
@@ -89,7 +89,7 @@ def test_the_grid_updates_from_early_on_except_a_carried_stage_2():
 
     from delta.training.trainer import _maybe_update_occupancy
 
-    grid = types.SimpleNamespace(shape=(1, 1, 1), fraction=lambda: 1.0)
+    grid = types.SimpleNamespace(shape=(1, 1, 1), fraction=lambda: 1.0, shell_reach=0.1)
 
     def updates(stage=1, carry=True, early=2, room=0.3):
         """{step: early} of the updates in steps 0-7 (warm-up 4, every 2 steps; the preset's 5-cm shell)."""
@@ -106,8 +106,8 @@ def test_the_grid_updates_from_early_on_except_a_carried_stage_2():
     assert updates() == updates(stage=2, carry=False) == {2: True, 4: False, 6: False}
     assert updates(stage=2) == {4: False, 6: False}  # stage 1's grid is not young
     assert updates(early=4) == updates(early=9) == updates(early=0) == {4: False, 6: False}  # no early phase
-    # a room at most twice the shell: its cells past the shell are the exterior's outer ones, none early
-    assert updates(room=0.1) == {4: False, 6: False} and updates(room=0.11) == updates()
+    # a room at most twice the shell's reach: its cells past the shell are the exterior's outer ones, none early
+    assert updates(room=0.2) == {4: False, 6: False} and updates(room=0.21) == updates()
 
 
 def test_stage2_starts_from_stage1s_grid_grown_by_fe_reach(tiny_training, tmp_path):
