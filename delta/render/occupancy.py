@@ -53,18 +53,18 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("lo", lo.clone())
         self.register_buffer("hi", hi.clone())
         cell = float((extent / torch.tensor(self.shape)).min())
-        self.dilation = int(math.ceil(dilation / cell - 1e-9)) if dilation > 0 else 0
+        self.dilation = _cells(dilation, cell)
         self.register_buffer("density", torch.zeros(self.shape))
         self.register_buffer("occupied", torch.ones(self.shape, dtype=torch.bool))
         self.register_buffer("active", torch.tensor(False))
         # derived from the body, not saved: checkpoints from before it load unchanged
-        grow = int(math.ceil(settings.early_shell / cell - 1e-9))
+        grow = _cells(settings.early_shell, cell)
         #: how far from the body the shell's cells may reach (m): the vertex's own cell and the cells grown
         self.shell_reach = (grow + 1) * cell
-        shell = torch.zeros(self.shape, dtype=torch.bool)
+        shell = torch.zeros(self.shape, dtype=torch.bool, device=lo.device)
         if body is not None and settings.early:
-            shell = _grow(self.cells_holding(body.detach().float().cpu()), grow)
-        self.register_buffer("shell", shell.to(lo.device), persistent=False)
+            shell = _grow(self.cells_holding(body.detach().to(lo)), grow)
+        self.register_buffer("shell", shell, persistent=False)
 
     @property
     def cell(self) -> torch.Tensor:
@@ -77,11 +77,17 @@ class OccupancyGrid(nn.Module):
         ijk = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
         return self.lo + ijk * self.cell
 
+    def cell_index(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(N, 3) integer cells of ``points`` (N, 3) (0 where outside the grid) and (N,) whether inside."""
+        shape = torch.tensor(self.shape, device=points.device)
+        fijk = torch.floor((points.detach() - self.lo) / self.cell)
+        inside = ((fijk >= 0) & (fijk < shape)).all(-1)
+        return torch.where(inside[:, None], fijk, torch.zeros_like(fijk)).long(), inside
+
     def cells_holding(self, points: torch.Tensor) -> torch.Tensor:
         """A boolean grid of the cells that hold at least one of ``points`` (N, 3) (those outside are not counted)."""
-        shape = torch.tensor(self.shape, device=points.device)
-        ijk = torch.floor((points - self.lo.to(points)) / self.cell.to(points)).long()
-        ijk = ijk[((ijk >= 0) & (ijk < shape)).all(-1)]
+        ijk, inside = self.cell_index(points)
+        ijk = ijk[inside]
         out = torch.zeros(self.shape, dtype=torch.bool, device=points.device)
         out[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = True
         return out
@@ -145,10 +151,7 @@ class OccupancyGrid(nn.Module):
             occupied = _grow(self._settled(), grow)
         else:
             occupied = self._grown(grow) if grow > 0 else self.occupied
-        shape = torch.tensor(self.shape, device=points.device)
-        fijk = torch.floor((points.detach() - self.lo) / self.cell)
-        inside = ((fijk >= 0) & (fijk < shape)).all(-1)
-        ijk = torch.where(inside[:, None], fijk, torch.zeros_like(fijk)).long()
+        ijk, inside = self.cell_index(points)
         occ = occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
         return occ | ~inside
 
@@ -172,6 +175,11 @@ class OccupancyGrid(nn.Module):
     def fraction(self) -> float:
         """Share of the cells that are occupied."""
         return float(self.occupied.sum()) / self.occupied.numel()
+
+
+def _cells(length: float, cell: float) -> int:
+    """Whole cells that cover ``length`` (m) (0 for none)."""
+    return int(math.ceil(length / cell - 1e-9)) if length > 0 else 0
 
 
 def _grow(occupied: torch.Tensor, cells: int) -> torch.Tensor:
