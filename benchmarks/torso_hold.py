@@ -14,7 +14,16 @@ The committed rows: ``limbs`` (the limbs' hold, the fit turning the whole body w
 tracking's translation frozen) and ``torso-tied`` (one torso for every frame, the workflow's; its face
 tracking kept the body's place, where the workflow's fit corrects it once for every frame), all of the short-haired
 talker, and ``long-hair-torso-tied`` (the long-haired talker, ``results/synthetic/talker``, fitted and
-trained the workflow's way; its stage 1 ran beside other jobs: its seconds are not a measure).
+trained the workflow's way; its stage 1 ran beside other jobs: its seconds are not a measure). Rows of the
+short-haired talker from one fit, each retrained through both stages (docs/heads.md, "The shirt's collar
+and the chin"): ``short-base`` (the workflow's before the head stopped carrying clothing), ``short-tied-training``
+(the fit's tied torso kept one value for every frame through training and refinement; not adopted: its
+held-out scores are those of a throwaway patch, the same fit), ``short-canonical-bar`` (the clothing layer
+barred from the canonical space nearest the head's vertices; not adopted) and ``short-head-carries-none``
+(the clothing layer has no density at points the head's vertices carry: the workflow's). Their metrics are
+``delta evaluate``'s at 2 frames a split (30 refinement steps, supersample 2, no ST-LPIPS); the first three
+ran one at a time except ``short-tied-training``'s stage 1, which ran beside an evaluation. The rows ending
+``-six-unrefined`` score ``short-base``'s and ``short-head-carries-none``'s models on 6 held-out frames unrefined.
 
     python benchmarks/torso_hold.py --truth data/synthetic/talker-short/gt/params.npz \\
         --record results/synthetic/talker-short/frames.h5 --body resources/body/anny_sub1_face.npz \\

@@ -30,3 +30,10 @@ def lower_body_vertices(body: BodyModel) -> torch.Tensor:
     if not ids:
         return torch.zeros(body.num_vertices, dtype=torch.bool, device=body.weights.device)
     return body.weights[:, ids].sum(1) > 0.5
+
+
+def head_vertices(body: BodyModel) -> torch.Tensor:
+    """(V,) bool: vertices skinned mostly (> 1/2) to the head and the joints it carries (jaw, eyes,
+    tongue), not the neck; none for a body model without a ``head`` joint."""
+    head = body.subtree("head").to(body.weights.device)
+    return body.weights[:, head].sum(1) > 0.5

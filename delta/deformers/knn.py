@@ -110,6 +110,8 @@ class Other:
     """(M,) bool: the other surface is within ``max_dist``."""
     posed_ref: torch.Tensor
     """(M, 3) the other surface's kNN-weighted posed point."""
+    nearest: Optional[torch.Tensor] = None
+    """(M,) int64: the other surface's vertex that carries the point (its blend's reference)."""
 
 
 @dataclasses.dataclass
@@ -122,6 +124,8 @@ class Deformed:
     """(N, 3) kNN-weighted posed body point (the pose cue of the deformation network F_e)."""
     distance: torch.Tensor
     """(N,) distance to the nearest posed vertex."""
+    nearest: Optional[torch.Tensor] = None
+    """(N,) int64: the nearest posed vertex, whose part carries the point (the blend's reference)."""
     other: Optional[Other] = None
     """Second candidates where the point is near two surfaces in contact (a frame with ``contact_cell``)."""
 
@@ -290,14 +294,14 @@ def deform(frame: SkinningFrame, points: torch.Tensor, k: int = 6, sigma: float 
     when the frame was prepared with ``contact_cell``: the module's note)."""
     if len(points) == 0:
         empty = points.new_zeros((0,))
-        return Deformed(points, empty.bool(), points, empty)
+        return Deformed(points, empty.bool(), points, empty, empty.long())
     idx, dist = knn(frame, points, k)
     keep = None
     if frame.sparse_index is not None:
         keep = same_surface(frame, idx, dist.detach(), idx[:, 0], dist[:, 0].detach())
     canonical, posed_ref = _blend(frame, points, idx, blend_weights(frame, idx, dist, sigma, keep=keep))
     valid = (dist[:, 0] < max_dist) & round_trip_holds(frame, points, canonical, dist[:, 0])
-    out = Deformed(canonical, valid, posed_ref, dist[:, 0])
+    out = Deformed(canonical, valid, posed_ref, dist[:, 0], idx[:, 0])
     if frame.sparse_index is not None:
         out.other = _other_surface(frame, points, idx[:, 0], dist[:, 0].detach(), sigma, max_dist)
     return out
@@ -325,7 +329,7 @@ def _other_surface(frame: SkinningFrame, points, nearest, nearest_dist, sigma: f
     alpha = blend_weights(frame, i2, d2, sigma, ref=ref, keep=same_surface(frame, i2, d2.detach(), ref, ref_dist))
     c2, p2 = _blend(frame, points[rows], i2, alpha)
     valid = (ref_dist < max_dist) & round_trip_holds(frame, points[rows], c2, ref_dist)
-    return Other(rows, c2, valid, p2)
+    return Other(rows, c2, valid, p2, ref)
 
 
 @torch.no_grad()

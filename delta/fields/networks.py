@@ -74,6 +74,8 @@ class NeRFField(nn.Module):
         with torch.no_grad():  # exp: start nearly empty; relu: the MLP's own start, noise keeps it alive
             self.head.out.bias[-1] = 0.0 if self.relu else density_bias
         self.noise_std, self.noise_generator = 0.0, None  # set per training step (set_noise); 0 elsewhere
+        # (V,) bool: the body vertices that may not carry this field's density (None: any); derived, not saved
+        self.register_buffer("barred_carriers", None, persistent=False)
 
     def set_noise(self, std: float, seed: int | None = None) -> None:
         """Noise on raw density for the next forward calls (a training step), drawn from ``seed``."""
@@ -150,9 +152,14 @@ class LayeredNeRF(nn.Module):
         """(N, 3) -> rgb (N, 3), sigma (N,) of the layers together."""
         return self.with_layers(x)[:2]
 
-    def with_layers(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(N, 3) -> rgb (N, 3), sigma (N,) together, and each layer's sigma (N, L) in ``names`` order."""
+    def with_layers(self, x: torch.Tensor, carriers: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
+        """(N, 3) -> rgb (N, 3), sigma (N,) together, and each layer's sigma (N, L) in ``names`` order.
+        ``carriers`` (N,): the body vertex that carries each point (backward skinning's nearest); a layer
+        has no density at points carried by its ``barred_carriers`` (a clothing layer by the head)."""
         outs = [self.layers[n](x) for n in self.names]
+        if carriers is not None:
+            outs = [(c, s if layer.barred_carriers is None else s.masked_fill(layer.barred_carriers[carriers], 0.0))
+                    for (c, s), layer in zip(outs, (self.layers[n] for n in self.names))]  # fmt: skip
         sigmas = torch.stack([s for _, s in outs], -1)
         sigma = sigmas.sum(-1)
         share = sigmas / sigma.clamp_min(torch.finfo(sigma.dtype).tiny)[:, None]

@@ -16,7 +16,7 @@ from torch import nn
 
 from delta.body.lbs import batch_rodrigues, lbs, posed_joints
 from delta.body.model import BodyModel
-from delta.body.parts import lower_body_vertices
+from delta.body.parts import head_vertices, lower_body_vertices
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.deformers import knn as deformer
 from delta.fields.networks import DeformationField, LayeredNeRF, NeRFField, VertexField, time_features
@@ -121,6 +121,9 @@ class HybridAvatar(nn.Module):
             part = bool((modelled & ~region).any())  # no exterior beyond the box around what is framed
             self.nerf = (LayeredNeRF(spec.nerf, nbox, tuple(spec.layers), bounded=part) if spec.layers
                          else NeRFField(spec.nerf, nbox, bounded=part))  # fmt: skip
+        if spec.clothing_off_head and "clothing" in spec.layers and self.nerf is not None:
+            # the head's vertices carry no clothing (backward skinning's nearest vertex of a point)
+            self.nerf.layers["clothing"].barred_carriers = head_vertices(body).to(self.knn_ids.device)[self.knn_ids]
         self.deformation = None
         if spec.deformation is not None:
             self.deformation = DeformationField(spec.deformation, nbox, spec.deformation_scale,

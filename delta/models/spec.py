@@ -34,6 +34,11 @@ class AvatarSpec:
     """``full`` or ``upper``: the lower body is left out of backward skinning and the NeRF's box."""
     frozen_joints: tuple[int, ...] = ()
     """Joints whose pose is not optimised (their gradient is zeroed)."""
+    clothing_off_head: bool = False
+    """The clothing layer holds no density at the points the head's vertices carry (backward skinning's
+    nearest vertex; a capture whose clothing never covers the head): a collar is carried by the neck and
+    chest, not the chin (:meth:`delta.fields.networks.LayeredNeRF.with_layers`). Only with a ``clothing``
+    layer."""
     layers: tuple[str, ...] = ()
     """The exterior's layers, each its own NeRF (``clothing``, ``hair``: :class:`LayeredNeRF`); empty:
     one NeRF for the whole exterior."""

@@ -229,10 +229,11 @@ def _query_points(mesh: PosedMesh, flat, idx, settings: RenderSettings, nerf: Ne
         return none
     d = deformer.deform(mesh.skinning, flat[idx], settings.k, settings.sigma, settings.max_dist)
     x_c, ref, rows = d.canonical, d.posed_ref, torch.arange(len(idx), device=idx.device)
-    valid = d.valid
+    valid, carrier = d.valid, d.nearest
     if d.other is not None:  # second candidates near surfaces in contact: evaluated beside the first
         x_c, ref = torch.cat([x_c, d.other.canonical]), torch.cat([ref, d.other.posed_ref])
         rows, valid = torch.cat([rows, d.other.rows]), torch.cat([valid, d.other.valid])
+        carrier = torch.cat([carrier, d.other.nearest])
     if occupied is not None:
         valid = valid & occupied(x_c)
     keep = torch.nonzero(valid).squeeze(1)
@@ -246,7 +247,7 @@ def _query_points(mesh: PosedMesh, flat, idx, settings: RenderSettings, nerf: Ne
         return none
     s_layers = None
     if layered:
-        c, s, s_layers = nerf.with_layers(x_c)
+        c, s, s_layers = nerf.with_layers(x_c, carrier[keep])
     else:
         c, s = nerf(x_c)
     at, pick = rows[keep], slice(None)  # one candidate a point: each is its point's own

@@ -23,10 +23,11 @@ from delta.data.record import FrameRecord
 from delta.io import atomic_path, load_state, save_json
 from delta.models.avatar import HybridAvatar, InitParams
 from delta.models.init import load_init
+from delta.models.spec import AvatarSpec
 from delta.render.settings import OccupancySettings
 from delta.scene.analysis import MIN_EXTERIOR_FRACTION
 from delta.scene.settings import scene_settings
-from delta.scene.framing import detect_capture, framed_vertices
+from delta.scene.framing import MAX_CLOTHING_ON_HEAD, clothing_on_head, detect_capture, framed_vertices
 from delta.training.presets import TrainSettings, deep_merge, resolve
 from delta.training.scope import frozen_joints
 from delta.training.trainer import file_digest, train_stage
@@ -83,7 +84,33 @@ def resolve_scope(body, st: TrainSettings, init: InitParams, data: FrameData) ->
     framed = framed_vertices(body, init.betas, init.poses, init.transl, init.camera, data.train, data.resolution)
     log.info("the training frames frame %d of the body's %d vertices: the fields' boxes hold those modelled",
              int(framed.sum()), len(framed))  # fmt: skip
-    return {"capture": capture, "frozen_joints": frozen, "layers": exterior_layers(st, data), "framed": framed}
+    layers = exterior_layers(st, data)
+    return {"capture": capture, "frozen_joints": frozen, "layers": layers,
+            "clothing_off_head": clothing_off_head(body, st, init, data, layers), "framed": framed}  # fmt: skip
+
+
+def clothing_off_head(body, st: TrainSettings, init: InitParams, data: FrameData, layers) -> bool:
+    """Whether the clothing layer is barred from the head (``training.clothing_on_head``; ``auto``: where the
+    capture's clothing covers at most :data:`MAX_CLOTHING_ON_HEAD` of the fitted head's projected vertices)."""
+    if "clothing" not in layers or st.clothing_on_head == "yes":
+        return False
+    if st.clothing_on_head == "no":
+        return True
+    share = clothing_on_head(body, init.betas, init.poses, init.transl, init.camera, data.train, data.resolution,
+                             lambda f: (data.exterior[f] - data.hair[f]) > 0.5)  # fmt: skip
+    off = share is not None and share <= MAX_CLOTHING_ON_HEAD
+    shown = "no head in view" if share is None else f"{100 * share:.1f}% of the fitted head's projected vertices"
+    log.info("clothing on the head: %s (at most %g%% bars the clothing layer from the head) -> %s", shown,
+             100 * MAX_CLOTHING_ON_HEAD, "barred" if off else "allowed")  # fmt: skip
+    return off
+
+
+def scoped(spec: AvatarSpec, scope: dict) -> AvatarSpec:
+    """``spec`` with a scope's capture, frozen joints and exterior layers (and whether its clothing is barred
+    from the head)."""
+    return dataclasses.replace(spec, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]),
+                               layers=tuple(scope.get("layers", ())),
+                               clothing_off_head=bool(scope.get("clothing_off_head", False)))  # fmt: skip
 
 
 def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, stage: int, device,
@@ -91,8 +118,7 @@ def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, sta
     """The avatar of a stage; ``scope`` (capture, frozen_joints and optionally the exterior's layers, none
     when not given) as resolved earlier, else resolved here."""
     scope = scope or resolve_scope(body, st, init, data)
-    spec = dataclasses.replace(st.avatar, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]),
-                               layers=tuple(scope.get("layers", ())))  # fmt: skip
+    spec = scoped(st.avatar, scope)
     if not wants_exterior(st, data):
         spec = dataclasses.replace(spec, nerf=None)
     if stage == 2 and spec.nerf is not None:
@@ -187,7 +213,8 @@ def save_model(path: str | Path, model: HybridAvatar, stage: int, preset: str, s
     final = {"format": MODEL_FORMAT, "model": model.state_dict(), "stage": stage, "preset": preset, "settings": st.raw,
              "nerf": model.nerf is not None, "deformation": model.deformation is not None,
              "pinhole": model.pinhole, "steps": steps, "capture": model.spec.capture,
-             "frozen_joints": list(model.spec.frozen_joints), "layers": list(model.spec.layers),
+             "frozen_joints": list(model.spec.frozen_joints),
+             "layers": list(model.spec.layers), "clothing_off_head": model.spec.clothing_off_head,
              "framed": model.framed.cpu().clone()}  # fmt: skip
     with atomic_path(path) as tmp:
         torch.save(final, tmp)
@@ -235,7 +262,8 @@ def _scope(state: dict, path: str | Path = "model.pt", num_vertices: int | None 
                              f"{num_vertices}")  # fmt: skip
         framed = framed.cpu().bool()
     return {"capture": state["capture"], "frozen_joints": list(state["frozen_joints"]),
-            "layers": list(state.get("layers", [])), "framed": framed}  # fmt: skip
+            "layers": list(state.get("layers", [])),
+            "clothing_off_head": bool(state.get("clothing_off_head", False)), "framed": framed}  # fmt: skip
 
 
 def load_init_from_state(state: dict, data: FrameData) -> InitParams:
@@ -272,8 +300,7 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
     spec = st.avatar if state.get("nerf", True) else dataclasses.replace(st.avatar, nerf=None)
     body = load_body_model(body_path)  # on the CPU: the avatar's .to(dev) moves it
     scope = _scope(state, model_path, body.num_vertices)
-    spec = dataclasses.replace(spec, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]),
-                               layers=tuple(scope["layers"]))  # fmt: skip
+    spec = scoped(spec, scope)
     if state.get("deformation"):
         spec = dataclasses.replace(spec, deformation=st.deformation)
     bg = torch.tensor(st.background, dtype=torch.float32)

@@ -140,7 +140,7 @@ class TwoLayers(torch.nn.Module):
         super().__init__()
         self.sigma = sigma
 
-    def with_layers(self, x):
+    def with_layers(self, x, carriers=None):  # the carriers bar nothing here
         r, y = x.norm(dim=-1), x[:, 1]
         shell = ((r > 0.3) & (r < 0.38)).float() * self.sigma
         sig = torch.stack([shell * (y < 0.05), shell * (y > -0.05)], -1)
@@ -199,7 +199,9 @@ def test_empty_layers_give_zero_opacity_and_finite_gradients():
     scale = torch.tensor(0.0, requires_grad=True)
     layers = TwoLayers(1.0)
     inner = layers.with_layers
-    layers.with_layers = lambda x: tuple(v * scale if k else v for k, v in enumerate(inner(x)))  # σ → 0·σ
+    layers.with_layers = lambda x, carriers=None: tuple(
+        v * scale if k else v for k, v in enumerate(inner(x, carriers))
+    )  # σ → 0·σ
     out = render_rays(mesh, o, d, o[:, :2] * 100, BG, st, layers)
     assert bool((out.layer_masks == 0).all()) and bool((out.nerf_mask == 0).all())
     (out.layer_masks.sum() + out.rgb.sum()).backward()

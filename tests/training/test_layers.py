@@ -37,6 +37,9 @@ def test_clothing_and_hair_train_as_layers_and_load_back(layered, tmp_path):
     assert losses["exterior_layers"].notna().all() and (losses["exterior_layers"] > 0).all()
     tr = load_trained(tmp_path / "s1" / "model.pt", inputs["record"], inputs["body"])
     assert isinstance(tr.model.nerf, LayeredNeRF) and tr.model.nerf.names == ("clothing", "hair")
+    # the head may carry clothing (the presets' clothing_on_head: yes), in the file and loaded back
+    assert state["clothing_off_head"] is False and not tr.model.spec.clothing_off_head
+    assert tr.model.nerf.layers["clothing"].barred_carriers is None
     img = render_image(tr.model, int(tr.data.train[0]))
     assert bool(torch.isfinite(img["rgb"]).all()) and {"layer_clothing", "layer_hair"} <= set(img)
     torch.testing.assert_close(img["layer_clothing"] + img["layer_hair"], img["nerf_mask"], rtol=0, atol=1e-5)
