@@ -157,9 +157,9 @@ class LayeredNeRF(nn.Module):
         ``carriers`` (N,): the body vertex that carries each point (backward skinning's nearest); a layer
         has no density at points carried by its ``barred_carriers`` (a clothing layer by the head)."""
         outs = [self.layers[n](x) for n in self.names]
-        if carriers is not None:
-            outs = [(c, s if layer.barred_carriers is None else s.masked_fill(layer.barred_carriers[carriers], 0.0))
-                    for (c, s), layer in zip(outs, (self.layers[n] for n in self.names))]  # fmt: skip
+        if carriers is not None:  # a layer may be any field (a confined one, another avatar's)
+            barred = [getattr(self.layers[n], "barred_carriers", None) for n in self.names]
+            outs = [(c, s if b is None else s.masked_fill(b[carriers], 0.0)) for (c, s), b in zip(outs, barred)]
         sigmas = torch.stack([s for _, s in outs], -1)
         sigma = sigmas.sum(-1)
         share = sigmas / sigma.clamp_min(torch.finfo(sigma.dtype).tiny)[:, None]

@@ -212,6 +212,11 @@ class Confined(nn.Module):
         self.register_buffer("lo", support.lo.float())
         self.register_buffer("cells", support.cells)
 
+    @property
+    def barred_carriers(self) -> torch.Tensor | None:
+        """The confined field's (:meth:`delta.fields.networks.LayeredNeRF.with_layers`)."""
+        return getattr(self.field, "barred_carriers", None)
+
     def inside(self, x: torch.Tensor) -> torch.Tensor:
         """(N, 3) -> (N,) bool: in the support."""
         return in_cells(x, self.lo, self.cell, self.cells)

