@@ -21,7 +21,9 @@ and the chin"): ``short-base`` (the workflow's before the head stopped carrying 
 held-out scores are those of a throwaway patch, the same fit), ``short-canonical-bar`` (the clothing layer
 barred from the canonical space nearest the head's vertices; not adopted) and ``short-head-carries-none``
 (the clothing layer has no density at points the head's vertices carry: the workflow's). Their metrics are
-``delta evaluate``'s at 2 frames a split (30 refinement steps, supersample 2, no ST-LPIPS); the first three
+the evaluation's (``delta.eval.evaluate.evaluate``, which ``delta evaluate`` runs; ``short-base``'s and
+``short-tied-training``'s called it from a script) at 2 frames a split (30 refinement steps, supersample 2,
+no ST-LPIPS); the first three
 ran one at a time except ``short-tied-training``'s stage 1, which ran beside an evaluation. The rows ending
 ``-six-unrefined`` score ``short-base``'s and ``short-head-carries-none``'s models on 6 held-out frames unrefined.
 

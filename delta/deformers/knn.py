@@ -110,7 +110,7 @@ class Other:
     """(M,) bool: the other surface is within ``max_dist``."""
     posed_ref: torch.Tensor
     """(M, 3) the other surface's kNN-weighted posed point."""
-    nearest: Optional[torch.Tensor] = None
+    nearest: torch.Tensor
     """(M,) int64: the other surface's vertex that carries the point (its blend's reference)."""
 
 
@@ -124,7 +124,7 @@ class Deformed:
     """(N, 3) kNN-weighted posed body point (the pose cue of the deformation network F_e)."""
     distance: torch.Tensor
     """(N,) distance to the nearest posed vertex."""
-    nearest: Optional[torch.Tensor] = None
+    nearest: torch.Tensor
     """(N,) int64: the nearest posed vertex, whose part carries the point (the blend's reference)."""
     other: Optional[Other] = None
     """Second candidates where the point is near two surfaces in contact (a frame with ``contact_cell``)."""
