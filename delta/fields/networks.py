@@ -67,8 +67,8 @@ class NeRFField(nn.Module):
         self.split = spec.encoding == "grid"
         self.encoding, self.head = _encoder_and_head(spec, bounds, 1 if self.split else 4)
         if self.split:
-            color = dataclasses.replace(spec, max_res=spec.color_max_res or spec.max_res,
-                                        levels=spec.color_levels or spec.levels)  # fmt: skip
+            res, levels = spec.color_grid(tuple((bounds[1] - bounds[0]).tolist()))
+            color = dataclasses.replace(spec, max_res=res, levels=levels)
             self.color_encoding, self.color_head = _encoder_and_head(color, bounds, 3)
         self.relu = spec.density_activation == "relu"
         with torch.no_grad():  # exp: start nearly empty; relu: the MLP's own start, noise keeps it alive

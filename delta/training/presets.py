@@ -276,7 +276,8 @@ def _fields(d: dict, key: str) -> FieldSpec:
 
 _INT, _NUM = True, False
 _FIELD_RANGES = {"num_freqs": (0, 32, _INT), "levels": (1, 32, _INT), "features": (1, 64, _INT), "base_res": (1, 4096, _INT),
-                 "max_res": (1, 4096, _INT), "depth": (0, 64, _INT), "width": (1, 4096, _INT), "skip": (-1, 64, _INT)}  # fmt: skip
+                 "max_res": (1, 4096, _INT), "depth": (0, 64, _INT), "width": (1, 4096, _INT), "skip": (-1, 64, _INT),
+                 "color_max_res": (0, 4096, _INT), "color_levels": (0, 32, _INT), "color_cell": (0, 1, _NUM)}  # fmt: skip
 #: (low, high, integer) of every number a training setting holds (high None: unbounded); keys with ``*``
 #: stand for every name at that level.
 RANGES = {

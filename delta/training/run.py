@@ -125,8 +125,12 @@ def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, sta
         spec = dataclasses.replace(spec, deformation=st.deformation)
     bg = torch.tensor(st.background, dtype=torch.float32)
     torch.manual_seed(st.seed)  # network initialisation
-    return HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution,
-                        frame_times(data.frame_ids, data.train, data.split), scope.get("framed")).to(device)  # fmt: skip
+    avatar = HybridAvatar(body, spec, init, data.skin_color, bg, data.resolution,
+                          frame_times(data.frame_ids, data.train, data.split), scope.get("framed")).to(device)  # fmt: skip
+    if avatar.nerf is not None:
+        log.info("the exterior's colour: finest cell %.1f mm (nerf.color_cell %s)", 1000 * avatar.nerf.color_cell(),
+                 f"{1000 * spec.nerf.color_cell:g} mm" if spec.nerf.color_cell else "unset")  # fmt: skip
+    return avatar
 
 
 def semantic_loss(st: TrainSettings, weights_dir: str | None, device):

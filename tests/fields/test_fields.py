@@ -321,6 +321,40 @@ def test_nerf_colour_grid_can_be_finer_than_the_density_grid():
     assert rgb.shape == (5, 3) and sigma.shape == (5,)
 
 
+@pytest.mark.parametrize("cell", [0.3, 0.1, 0.04, 0.013])
+def test_a_colour_cell_sets_the_colour_grids_finest_node_spacing_at_the_grids_own_growth(cell):
+    """``color_cell``: the colour grids' finest node spacing is at most the cell and less than a node finer
+    (the longest side, 3 long, over the spacing), never coarser than the configured grid, and each level is at
+    most the configured growth finer than the one before; the density's grids are untouched."""
+    spec = FieldSpec("grid", levels=3, features=2, base_res=4, max_res=16, depth=1, width=8, color_cell=cell)
+    nerf = NeRFField(spec, BOUNDS)
+    assert nerf.encoding.resolutions == [4, 8, 16]
+    res = nerf.color_encoding.resolutions
+    if 3.0 / cell + 1 <= 16:  # the configured grid is finer already
+        assert res == [4, 8, 16]
+        return
+    assert nerf.color_cell() <= cell + 1e-9 and 3.0 / (res[-1] - 2) > cell  # as coarse as the cell allows
+    assert all(b / a <= 2.0 + 0.05 for a, b in zip(res, res[1:])), res  # growth 16/4 over two levels: 2
+    assert len(res) > 3
+    rgb, sigma = nerf(inside_points(7, 3, torch.float32))
+    assert rgb.shape == (7, 3) and sigma.shape == (7,)
+
+
+def test_a_colour_cell_is_capped_by_the_grids_nodes_and_a_configured_grid_wins_where_finer():
+    from delta.fields.spec import MAX_COLOR_NODES
+
+    spec = FieldSpec("grid", levels=5, features=2, base_res=12, max_res=96, color_cell=1e-4)
+    fine, levels = spec.color_grid((1.0, 0.5, 0.5))
+    nodes = fine * math.ceil(fine * 0.5) ** 2
+    assert nodes <= MAX_COLOR_NODES * 1.02 and (fine + 1) * math.ceil((fine + 1) * 0.5) ** 2 > MAX_COLOR_NODES * 0.98
+    assert levels > 5
+    assert FieldSpec(max_res=96, color_max_res=300, color_cell=0.01).color_grid((1.0, 1.0, 1.0)) == (300, 6)
+    assert FieldSpec(max_res=96).color_grid((1.0, 1.0, 1.0)) == (96, 6)  # no cell: as configured
+    for bad in (-0.01, float("nan"), "fine"):
+        with pytest.raises(ValueError, match="color_cell"):
+            FieldSpec(color_cell=bad)
+
+
 def test_finest_cell_is_the_grids_node_spacing_and_the_encodings_half_period():
     """A grid's finest cell is the distance between its finest level's nodes: a field that is 1 at one
     node and 0 at the others reads 1 there, 0.5 half a cell away and 0 a cell away. A PE's is half the
