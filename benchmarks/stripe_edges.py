@@ -7,10 +7,12 @@ truth and in the render. Each truth edge is matched to the nearest render edge w
 its offset (render minus truth, pixels down the image) says whether the render draws the edge in its place,
 and the edge's 10-90 % rise (pixels) says how sharp it is. A render whose edges are as sharp as the truth's
 but scattered by a pixel or two is misregistered (the frames disagree where the stripe lies); one whose
-edges are in place but wide is blurred (cells coarser than the stripe's edge).
+edges are in place but wide is blurred (cells coarser than the stripe's edge). The truth's own cloth
+texture moves its crossings too: ``--floor SIGMA`` adds, for each image, a row of the truth against itself
+blurred by a Gaussian of SIGMA pixels (as sharp as a render), the offset a render in place would still show.
 
     python benchmarks/stripe_edges.py --subject talker-short --image base=eval/worst/test_view_frame_00004.png \\
-        cells=/tmp/cells/worst/test_view_frame_00004.png --rows 340:512 --cols 120:400 \\
+        cells=/tmp/cells/worst/test_view_frame_00004.png --rows 340:512 --cols 120:400 --floor 0.8 \\
         --out benchmarks/stripe_edges.csv
 """
 
@@ -94,6 +96,7 @@ def main() -> None:
     ap.add_argument("--cols", type=span, required=True, help="its columns, a:b")
     ap.add_argument("--threshold", type=float, default=0.3, help="the stripe signal's edge level")
     ap.add_argument("--step", type=int, default=4, help="columns between sampled columns")
+    ap.add_argument("--floor", type=float, default=0.0, help="also the truth against itself blurred by this σ (px)")
     ap.add_argument("--out", required=True)
     ap.add_argument("--append", action="store_true")
     a = ap.parse_args()
@@ -104,7 +107,12 @@ def main() -> None:
         region = (a.rows, a.cols)
         row = stripe_edges(truth[region], render[region], blue_minus_red, a.threshold, a.step)
         rows.append({"subject": a.subject, "variant": variant, "image": Path(path).name, **row})
-    print(save_table(pd.DataFrame(rows), a.out, a.append).to_string(index=False))
+        if a.floor > 0:
+            blurred = cv2.GaussianBlur(truth, (0, 0), a.floor)
+            row = stripe_edges(truth[region], blurred[region], blue_minus_red, a.threshold, a.step)
+            rows.append({"subject": a.subject, "variant": f"the truth blurred by {a.floor:g} px",
+                         "image": Path(path).name, **row})  # fmt: skip
+    print(save_table(pd.DataFrame(rows).drop_duplicates(), a.out, a.append).to_string(index=False))
 
 
 if __name__ == "__main__":
