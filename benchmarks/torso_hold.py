@@ -16,11 +16,12 @@ tracking kept the body's place, where the workflow's fit corrects it once for ev
 talker, and ``long-hair-torso-tied`` (the long-haired talker, ``results/synthetic/talker``, fitted and
 trained the workflow's way; its stage 1 ran beside other jobs: its seconds are not a measure). Rows of the
 short-haired talker from one fit, each retrained through both stages (docs/heads.md, "The shirt's collar
-and the chin"): ``short-base`` (the workflow's before the head stopped carrying clothing), ``short-tied-training``
+and the chin"): ``short-base`` (the presets' ``clothing_on_head: yes``: any vertex carries the clothing), ``short-tied-training``
 (the fit's tied torso kept one value for every frame through training and refinement; not adopted: its
 held-out scores are those of a throwaway patch, the same fit), ``short-canonical-bar`` (the clothing layer
 barred from the canonical space nearest the head's vertices; not adopted) and ``short-head-carries-none``
-(the clothing layer has no density at points the head's vertices carry: the workflow's). Their metrics are
+(``clothing_on_head: no``, what ``auto`` decides here: the clothing layer has no density at points the head's
+vertices carry; not the presets'). Their metrics are
 the evaluation's (``delta.eval.evaluate.evaluate``, which ``delta evaluate`` runs; ``short-base``'s and
 ``short-tied-training``'s called it from a script) at 2 frames a split (30 refinement steps, supersample 2,
 no ST-LPIPS); the first three
