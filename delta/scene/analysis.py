@@ -24,9 +24,10 @@ From the frame record (person, clothing and hair masks) and the init fit, before
   preset's: stage 2 learns the exterior's motion about the body (F_e), and a garment hanging farther
   from the body sways farther (on the loose dress, 300 -> 600 stage-2 steps lifted held-out views
   25.5 -> 26.3 dB; a T-shirt's stage 2 keeps the configured length);
-- ``weights``: for a tracked face (the init fit tracked its expressions: a talking head), the paper's
-  head weights where they differ from its body weights (:data:`HEAD_WEIGHTS`: the stage-2 semantic term
-  30 times the body's, the hidden skin's pull to the visible skin colour a tenth).
+- ``weights`` and ``semantic``: for a tracked face (the init fit tracked its expressions: a talking head),
+  the paper's head weights where they differ from its body weights (:data:`HEAD_WEIGHTS`: the stage-2
+  semantic term 30 times the body's, the hidden skin's pull to the visible skin colour a tenth) and the
+  semantic loss that weight belongs to (:data:`HEAD_SEMANTIC`: the perceptual loss, not the body's ID-MRF).
 
 Written to ``results/{dataset}/{subject}/scene.json`` and read by both training stages: a decision
 applies where the user's config does not set that key itself (``training.overrides`` or
@@ -55,7 +56,7 @@ from delta.models.image import pixel_grid
 from delta.models.init import load_init
 from delta.scene.framing import MAX_LOWER_IN_VIEW, frame_camera, lower_body_in_view
 from delta.scene.reach import Beyond, beyond_body, region_reach
-from delta.scene.settings import FRAME_BUDGET, HEAD_WEIGHTS
+from delta.scene.settings import FRAME_BUDGET, HEAD_SEMANTIC, HEAD_WEIGHTS
 
 log = logging.getLogger(__name__)
 
@@ -185,6 +186,7 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
     face = init.expression is not None
     if face:
         decisions["weights"] = dict(HEAD_WEIGHTS)
+        decisions["semantic"] = HEAD_SEMANTIC
     evidence = {
         "frames": picked, "size": size,
         "exterior": {"shares": shares, "min_share": MIN_EXTERIOR_FRACTION,
@@ -213,7 +215,8 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
     if face:
         evidence["weights"] = {"expressions": int(init.expression.shape[1]),
                                "why": f"a tracked face ({init.expression.shape[1]} expression coefficients a "
-                                      "frame): the paper's head weights"}  # fmt: skip
+                                      f"frame): the paper's head weights and its head's semantic loss, "
+                                      f"{HEAD_SEMANTIC}"}  # fmt: skip
     if "stage2" in decisions:
         evidence["stage2"] = {"room_over_preset": round(room / preset_room, 3), "max_factor": MAX_STAGE2_FACTOR,
                               "why": f"stage 2 learns the exterior's motion about the body, which grows with its "

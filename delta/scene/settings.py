@@ -22,12 +22,17 @@ DECIDED = (
     "render.samples",
     "stage1.rays",
     "stage2.iterations",
+    "semantic",
     "weights.semantic",
     "weights.skin_inside",
 )
 #: The paper's head weights (DELTA §Implementation, head videos) where they differ from its body weights
 #: (:class:`delta.loss_weights.LossWeights`: semantic 0.0005, skin_inside 0.01); a tracked face takes them.
 HEAD_WEIGHTS = {"semantic": 0.015, "skin_inside": 0.001}
+#: The paper's stage-2 semantic loss for a head: the perceptual loss (its body's is ID-MRF), the loss its
+#: head weight 0.015 was chosen for (ID-MRF at that weight lowered the short-haired talker's stage 2 by
+#: 0.6-0.9 dB, docs/heads.md).
+HEAD_SEMANTIC = "perceptual"
 #: The most memory the training frames may hold (bytes) where the scene decides their size: 400 frames
 #: fit up to 579² pixels. The workflow sizes a training job's memory by it.
 FRAME_BUDGET = 1 << 30
@@ -35,21 +40,22 @@ FRAME_BUDGET = 1 << 30
 SCALED = {"stage2.iterations": "stage2.length_factor"}
 #: Keys decided from another decided key: taken only where the user set neither (stage 1's rays spend what
 #: the scene's samples a ray leave of a step; a user's own samples keep the preset's rays).
-DEPENDS = {"stage1.rays": ("render.samples",)}
+#: The semantic loss and its weight are one decision: a config that sets either keeps its own pair.
+DEPENDS = {"stage1.rays": ("render.samples",), "semantic": ("weights.semantic",), "weights.semantic": ("semantic",)}
 #: Keys decided within what the resolved settings allow: key -> (its floor, its ceiling) among them (the
 #: floor also where the ceiling is lower or unset). A run of another preset than the one the scene was
 #: analysed for (a sweep's variant) keeps its own rays where that preset allows no more, never fewer.
 CAPPED = {"stage1.rays": ("stage1.rays", "stage1.max_rays")}
 #: Keys decided only where the resolved settings leave them ``auto``.
 AUTO = ("exterior", "capture")
-#: Each stage's own keys, which the other stage does not read.
-STAGE_PREFIX = {1: "stage1.", 2: "stage2."}
+#: Each stage's own keys, which the other stage does not read (the semantic loss is stage 2's).
+STAGE_PREFIX = {1: ("stage1.",), 2: ("stage2.", "semantic")}
 
 
 def user_decided(user_set: list[str], stage: int | None = None) -> list[str]:
     """The config's own keys (``user_set``, dotted) that overrule a scene decision, sorted; with a
     ``stage``, only those that stage reads (another stage's key must not rerun it)."""
-    others = tuple(p for s, p in STAGE_PREFIX.items() if stage is not None and s != stage)
+    others = tuple(p for s, ps in STAGE_PREFIX.items() if stage is not None and s != stage for p in ps)
     return sorted(k for k in set(user_set) if k in DECIDED and not k.startswith(others))
 
 

@@ -17,7 +17,7 @@ from delta.scene.analysis import (
     step_rays,
     training_resolution,
 )
-from delta.scene.settings import FRAME_BUDGET, HEAD_WEIGHTS, scene_settings, user_decided
+from delta.scene.settings import FRAME_BUDGET, HEAD_SEMANTIC, HEAD_WEIGHTS, scene_settings, user_decided
 from delta.training.presets import resolve
 from delta.scene.reach import beyond_body, region_reach
 
@@ -149,16 +149,22 @@ def test_decisions_apply_only_where_the_config_is_silent(tmp_path):
 
 def test_a_tracked_faces_head_weights_reach_the_loss_weights_unless_the_config_sets_them(tmp_path):
     path = tmp_path / "scene.json"
-    path.write_text(json.dumps({"decisions": {"resolution": 64, "weights": HEAD_WEIGHTS}}))
+    decisions = {"resolution": 64, "weights": HEAD_WEIGHTS, "semantic": HEAD_SEMANTIC}
+    path.write_text(json.dumps({"decisions": decisions}))
     taken = scene_settings(path, {"exterior": "auto"}, [])
-    assert taken == {"resolution": 64, "weights": {"semantic": 0.015, "skin_inside": 0.001}}
-    body = resolve("fast").weights
-    weights = resolve("fast", taken).weights
-    assert (weights.semantic, weights.skin_inside) == (0.015, 0.001)
-    assert (body.semantic, body.skin_inside) == (0.0005, 0.01)  # the paper's body weights otherwise
-    assert weights.inside == body.inside and weights.offset == body.offset  # the rest as for a body
-    assert scene_settings(path, {}, ["weights.semantic"]) == {"resolution": 64, "weights": {"skin_inside": 0.001}}
+    assert taken == {"resolution": 64, "semantic": "perceptual", "weights": {"semantic": 0.015, "skin_inside": 0.001}}
+    body = resolve("fast")
+    head = resolve("fast", taken)
+    assert (head.weights.semantic, head.weights.skin_inside, head.semantic) == (0.015, 0.001, "perceptual")
+    assert (body.weights.semantic, body.weights.skin_inside, body.semantic) == (0.0005, 0.01, "idmrf")
+    assert head.weights.inside == body.weights.inside and head.weights.offset == body.weights.offset
+    # the semantic loss and its weight are one decision: a config setting either keeps its own pair
+    for own in (["weights.semantic"], ["semantic"]):
+        assert scene_settings(path, {}, own) == {"resolution": 64, "weights": {"skin_inside": 0.001}}
     assert user_decided(["weights.skin_inside", "weights.edge"], 1) == ["weights.skin_inside"]
+    # the semantic loss is stage 2's: setting it does not touch stage 1's job
+    assert user_decided(["semantic", "stage2.iterations"], 1) == []
+    assert user_decided(["semantic", "stage1.rays"], 2) == ["semantic"]
 
 
 @pytest.mark.slow
@@ -172,9 +178,10 @@ def test_a_tracked_face_takes_the_head_weights_and_a_body_does_not(tiny_training
     face_init = tmp_path / "face_params.npz"
     np.savez(face_init, **arrays)
     face = analyze(t["record"], face_init, t["body"], 0.1, 16, size=32, frames=3)
-    assert face["decisions"]["weights"] == HEAD_WEIGHTS
+    assert face["decisions"]["weights"] == HEAD_WEIGHTS and face["decisions"]["semantic"] == "perceptual"
+    assert "semantic" not in body["decisions"]
     assert "a tracked face (3 expression coefficients a frame)" in face["evidence"]["weights"]["why"]
-    assert {k: v for k, v in face["decisions"].items() if k != "weights"} == body["decisions"]
+    assert {k: v for k, v in face["decisions"].items() if k not in ("weights", "semantic")} == body["decisions"]
 
 
 @pytest.mark.slow
