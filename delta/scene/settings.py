@@ -30,8 +30,8 @@ DECIDED = (
 #: (:class:`delta.loss_weights.LossWeights`: semantic 0.0005, skin_inside 0.01); a tracked face takes them.
 HEAD_WEIGHTS = {"semantic": 0.015, "skin_inside": 0.001}
 #: The paper's stage-2 semantic loss for a head: the perceptual loss (its body's is ID-MRF), the loss its
-#: head weight 0.015 was chosen for (ID-MRF at that weight lowered the short-haired talker's stage 2 by
-#: 0.6-0.9 dB, docs/heads.md).
+#: head weight 0.015 was chosen for (ID-MRF at that weight scored the short-haired talker's held-out
+#: frames 0.3-0.6 dB under it, and its stage 2 under its stage 1: docs/heads.md).
 HEAD_SEMANTIC = "perceptual"
 #: The most memory the training frames may hold (bytes) where the scene decides their size: 400 frames
 #: fit up to 579² pixels. The workflow sizes a training job's memory by it.
