@@ -48,15 +48,16 @@ DEPENDS = {"stage1.rays": ("render.samples",), "semantic": ("weights.semantic",)
 CAPPED = {"stage1.rays": ("stage1.rays", "stage1.max_rays")}
 #: Keys decided only where the resolved settings leave them ``auto``.
 AUTO = ("exterior", "capture")
-#: Each stage's own keys, which the other stage does not read (the semantic loss is stage 2's).
-STAGE_PREFIX = {1: ("stage1.",), 2: ("stage2.", "semantic")}
+#: Top-level training settings a stage never reads: changing them leaves that stage's work valid (its job's
+#: parameters and checkpoint fingerprint hash the rest: :func:`delta.training.presets.stage_view`).
+NOT_READ_BY_STAGE = {1: ("stage2", "deformation", "semantic"), 2: ("stage1",)}
 
 
 def user_decided(user_set: list[str], stage: int | None = None) -> list[str]:
     """The config's own keys (``user_set``, dotted) that overrule a scene decision, sorted; with a
     ``stage``, only those that stage reads (another stage's key must not rerun it)."""
-    others = tuple(p for s, ps in STAGE_PREFIX.items() if stage is not None and s != stage for p in ps)
-    return sorted(k for k in set(user_set) if k in DECIDED and not k.startswith(others))
+    unread = NOT_READ_BY_STAGE.get(stage, ())
+    return sorted(k for k in set(user_set) if k in DECIDED and k.split(".")[0] not in unread)
 
 
 def _get(d: dict, dotted: str):

@@ -19,6 +19,7 @@ from delta.loss_weights import LossWeights
 from delta.models.spec import AvatarSpec
 from delta.render.settings import RenderSettings
 from delta.render.settings import OccupancySettings
+from delta.scene.settings import NOT_READ_BY_STAGE
 
 _GRID_NERF = {"encoding": "grid", "levels": 5, "features": 2, "base_res": 12, "max_res": 96, "depth": 2, "width": 64}
 _GRID_OFFSETS = {"encoding": "grid", "levels": 3, "features": 2, "base_res": 8, "max_res": 32, "depth": 1, "width": 32}
@@ -242,10 +243,6 @@ class TrainSettings:
     :data:`delta.scene.framing.MAX_CLOTHING_ON_HEAD` of the fitted head's projected vertices. ``yes`` in every
     preset: on the short-haired talker ``auto`` mended the collar and raised the head region of six held-out
     frames by 0.9 dB, and lowered their whole image by 0.4 dB where the head tilted down (docs/heads.md)."""
-
-
-#: Top-level settings a stage never reads: changing them leaves that stage's work valid.
-NOT_READ_BY_STAGE = {1: ("stage2", "deformation", "semantic"), 2: ("stage1",)}
 
 
 def stage_view(raw: dict, stage: int) -> dict:
