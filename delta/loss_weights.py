@@ -19,6 +19,8 @@ class LossWeights:
     exterior_layers: float = 0.5
     """L1 between each exterior layer's opacity and its own mask (clothing, hair), averaged over the
     layers, where the exterior is in layers."""
+    empty_background: float = 0.0
+    """The exterior's optical depth on rays the person mask puts on the background (off: 0)."""
     silhouette: float = 0.001
     """Huber between the soft mesh silhouette and the person mask."""
     interior_mask: float = 30.0

@@ -42,6 +42,19 @@ def exterior_layers(layer_masks: torch.Tensor, names: tuple[str, ...], exterior_
     return torch.stack([exterior(layer_masks[:, k], targets[n]) for k, n in enumerate(names)]).mean()
 
 
+def empty_background(optical_depth: torch.Tensor, person: torch.Tensor) -> torch.Tensor:
+    """Mean over rays of β τ: the exterior's optical depth τ = Σ σ_k Δ_k on rays the person mask puts on
+    the background, β = clamp(1 - 2 M, 0, 1) (1 on the background, 0 from half the person's alpha on).
+
+    The opacity's terms (:func:`exterior`, :func:`pixel`) reach a sample's density through e^-τ, which
+    vanishes once a ray is opaque: density that a moving outline (hair, a hem) put where other frames see
+    background stays there, and the exterior's silhouette grows to the union of its frames' outlines.
+    τ's gradient, Δ_k, does not vanish (0 for no rays, as :func:`huber`)."""
+    if optical_depth.numel() == 0:
+        return optical_depth.sum()
+    return ((1 - 2 * person).clamp(0.0, 1.0) * optical_depth).mean()
+
+
 def layer_targets(exterior_mask: torch.Tensor, hair_mask: torch.Tensor) -> dict[str, torch.Tensor]:
     """Each exterior layer's mask: the hair mask, and the rest of the exterior as clothing."""
     return {"hair": hair_mask, "clothing": (exterior_mask - hair_mask).clamp_min(0.0)}

@@ -106,6 +106,21 @@ def test_inside():
     close(losses.inside(sil, person, 0.1), (0.095 + 0.0008) / 4, atol=1e-12)
 
 
+def test_empty_background():
+    tau = t(2.0, 3.0, 5.0, 40.0)
+    person = t(0.0, 0.25, 0.5, 1.0)
+    # β = clamp(1 - 2 M): 1, 0.5, 0, 0 -> 2 + 1.5 + 0 + 0
+    close(losses.empty_background(tau, person), 3.5 / 4)
+    # its gradient in τ is β / R on every ray, however large τ is
+    tau = tau.clone().requires_grad_(True)
+    losses.empty_background(tau, person).backward()
+    close(tau.grad, [0.25, 0.125, 0.0, 0.0])
+    empty = torch.zeros(0, dtype=D, requires_grad=True)
+    value = losses.empty_background(empty, torch.zeros(0, dtype=D))
+    close(value, 0.0)
+    value.backward()
+
+
 def test_skin_inside():
     mesh_rgb = t([0.7, 0.5, 0.3], [0.0, 0.0, 0.0])
     skin_color = t(0.6, 0.5, 0.9)

@@ -63,6 +63,9 @@ class RayRender:
     """(R, L) where along the ray each layer is seen: the depth t of its opacity's weighted mean
     Σ_k w_k (σ_l,k / σ_k) t_k / S_l (the far bound where the layer has no opacity; not differentiated),
     None for one NeRF."""
+    optical_depth: Optional[torch.Tensor] = None
+    """(R,) the exterior's optical depth τ = Σ σ_k Δ_k along the ray (``nerf_mask`` = 1 - e^-τ), None
+    without an exterior."""
 
 
 #: cells the occupied set grows by for the early cull: the rough canonical point lies within 3 cm of
@@ -127,7 +130,8 @@ def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixe
         with torch.no_grad():  # a readout: where the layer lies, nothing to differentiate
             at = (seen * t[:, :-1, None]).sum(1) / layer_masks.clamp_min(torch.finfo(t.dtype).tiny)
             layer_depths = torch.where(layer_masks > 0, at, t[:, -1:])
-    return RayRender(out.rgb, out.nerf_mask, nerf_rgb, mesh_rgb, hits.hit, sil, n, layer_masks, layer_depths)
+    return RayRender(out.rgb, out.nerf_mask, nerf_rgb, mesh_rgb, hits.hit, sil, n, layer_masks, layer_depths,
+                     out.optical_depth)  # fmt: skip
 
 
 @torch.no_grad()

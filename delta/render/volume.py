@@ -35,6 +35,8 @@ class Composite:
     """(R, S) per-sample weights; the last column is the leftover transmittance."""
     depth: torch.Tensor
     """(R,) expected depth Σ w_k t_k (the last sample at t_f)."""
+    optical_depth: torch.Tensor
+    """(R,) the NeRF samples' optical depth τ = Σ_k σ_k Δ_k (s_v = 1 - e^-τ)."""
 
 
 def sample_deltas(t: torch.Tensor) -> torch.Tensor:
@@ -76,9 +78,17 @@ def composite(
         end_rgb: (R, 3) colour of the last sample: the mesh colour where the ray hits
             the mesh, the background colour where it does not.
     """
-    w = nerf_weights(sigma, sample_deltas(t))
+    deltas = sample_deltas(t)
+    w = nerf_weights(sigma, deltas)
     rgb = (w[..., :-1, None] * nerf_rgb).sum(-2) + w[..., -1:] * end_rgb
-    return Composite(rgb=rgb, nerf_mask=w[..., :-1].sum(-1), weights=w, depth=(w * t).sum(-1))
+    return Composite(rgb=rgb, nerf_mask=w[..., :-1].sum(-1), weights=w, depth=(w * t).sum(-1),
+                     optical_depth=optical_depth(sigma, deltas))  # fmt: skip
+
+
+def optical_depth(sigma: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
+    """(R,) τ = Σ_k σ_k Δ_k of (R, S - 1) densities and spacings. Its gradient in σ_k is Δ_k however
+    opaque the ray is, where the opacity's, e^-τ Δ_k, vanishes once the ray is opaque."""
+    return (sigma.clamp_min(0.0) * deltas).sum(-1)
 
 
 def stratified_samples(

@@ -67,6 +67,8 @@ def loss_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, skin_col
         terms["vertex_detail"] = L.vertex_detail(details)
     if model.nerf is not None:
         terms["exterior"] = L.exterior(r.nerf_mask, batch.exterior)
+        if st.weights.empty_background > 0:
+            terms["empty_background"] = L.empty_background(r.optical_depth, batch.person)
     if r.layer_masks is not None:
         terms["exterior_layers"] = L.exterior_layers(r.layer_masks, model.nerf.names, batch.exterior, batch.hair)
     if semantic is not None and batch.patch:

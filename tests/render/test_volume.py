@@ -39,6 +39,9 @@ def test_docstring_worked_example():
     torch.testing.assert_close(out.rgb[0], torch.tensor([0.462094, 0.349088, 0.459212], dtype=D), rtol=0, atol=2e-6)
     # depth: 0 w0 + 0.5 w1 + 1.0 w2
     torch.testing.assert_close(out.depth[0], torch.tensor(0.5 * exact[1] + exact[2], dtype=D), rtol=0, atol=1e-14)
+    # optical depth: 1 * 0.5 + 2 * 0.5, and the NeRF mask is 1 - e^-τ
+    torch.testing.assert_close(out.optical_depth, torch.tensor([1.5], dtype=D), rtol=0, atol=1e-15)
+    torch.testing.assert_close(out.nerf_mask, 1 - torch.exp(-out.optical_depth), rtol=0, atol=1e-15)
 
 
 def test_sample_deltas_and_clamp():
@@ -290,3 +293,20 @@ def test_ray_box_origin_inside_and_misses():
     torch.testing.assert_close(t_out[:2], torch.tensor([1.0, 1.25], dtype=D), rtol=0, atol=1e-12)
     # going away in y, box behind the origin, passing the corner region above the box
     assert hit.tolist() == [True, True, False, False, False]
+
+
+def test_optical_depth_keeps_its_gradient_where_the_opacity_saturates():
+    """On an opaque ray (τ = 40) the opacity's gradient in a density is e^-τ Δ (~1e-18): nothing the
+    optimiser can act on. The optical depth's is Δ, whatever τ is (finite differences agree)."""
+    t = torch.linspace(0.0, 1.0, 17, dtype=D)[None]
+    sigma = torch.full((1, 16), 40.0, dtype=D, requires_grad=True)
+    out = composite(t, sigma, torch.zeros(1, 16, 3, dtype=D), torch.ones(1, 3, dtype=D))
+    (g_mask,) = torch.autograd.grad(out.nerf_mask.sum(), sigma, retain_graph=True)
+    (g_tau,) = torch.autograd.grad(out.optical_depth.sum(), sigma)
+    assert float(g_mask.abs().max()) < 1e-16
+    torch.testing.assert_close(g_tau, torch.full((1, 16), 1 / 16, dtype=D), rtol=0, atol=1e-15)
+    h = 1e-6
+    bumped = sigma.detach().clone()
+    bumped[0, 5] += h
+    fd = (volume.optical_depth(bumped, sample_deltas(t)) - volume.optical_depth(sigma.detach(), sample_deltas(t))) / h
+    torch.testing.assert_close(fd, torch.tensor([1 / 16], dtype=D), rtol=0, atol=1e-8)
