@@ -86,6 +86,25 @@ def test_per_vertex_albedo_detail_is_trained_and_held_to_zero(tiny_training):
     assert float(terms["vertex_detail"].detach()) == pytest.approx(3 * 0.25)
 
 
+def test_empty_background_term_is_the_background_rays_optical_depth(tiny_training):
+    """With weights.empty_background the objective holds β τ over the batch (β = 1 - 2 M clamped, τ the
+    exterior's optical depth, 1 - e^-τ the NeRF mask); its gradient reaches the NeRF and not the albedo."""
+    st = resolve("fast", TINY, {"weights": {"empty_background": 0.3}})
+    model, data = _model(tiny_training["loose"], st)
+    batch = sample_rays(data, int(data.train[0]), 256, torch.Generator().manual_seed(0))
+    terms, r = loss_terms(model, batch, st, data.skin_color)
+    assert "empty_background" not in loss_terms(model, batch, resolve("fast", TINY), data.skin_color)[0]
+    torch.testing.assert_close(r.nerf_mask, 1 - torch.exp(-r.optical_depth), rtol=0, atol=1e-6)
+    beta = (1 - 2 * batch.person).clamp(0, 1)
+    assert float((beta * r.optical_depth).sum()) > 0  # the tiny model has density on background rays
+    torch.testing.assert_close(terms["empty_background"], (beta * r.optical_depth).mean())
+    model.zero_grad()
+    terms["empty_background"].backward()
+    nerf = torch.cat([p.grad.flatten() for p in model.nerf.parameters() if p.grad is not None])
+    assert torch.isfinite(nerf).all() and nerf.abs().sum() > 0
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in model.albedo_field.parameters())
+
+
 _RELU_NOISE = {"nerf": {"density_activation": "relu", "density_noise": 1.0, "density_noise_steps": 4}}
 
 
