@@ -155,9 +155,16 @@ def phenotype_betas(space: ShapeSpace, anny_model, phenotype: dict[str, float]) 
     if unknown:
         raise DeltaError(f"unknown phenotype label(s) {sorted(unknown)}; known: {space.phenotype_labels}")
     values = torch.tensor([[phenotype.get(k, 0.5) for k in space.phenotype_labels]], dtype=torch.float64)
-    with torch.no_grad():
-        rest = anny_rest(anny_model, values)
-    return project_shape(space, rest["rest_vertices"], rest["rest_bone_heads"])[0]
+    # on one thread: a reduction split over threads rounds otherwise, and a subject's β (its generated
+    # capture's bytes) would change in the last bit with the process's thread count
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with torch.no_grad():
+            rest = anny_rest(anny_model, values)
+        return project_shape(space, rest["rest_vertices"], rest["rest_bone_heads"])[0]
+    finally:
+        torch.set_num_threads(threads)
 
 
 def sample_phenotypes(n: int, num_labels: int, seed: int) -> torch.Tensor:

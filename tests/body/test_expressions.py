@@ -55,8 +55,8 @@ def test_posed_expressions_match_anny(anny_face_model, anny_conversion, space):
     transl = torch.zeros(3, 3, dtype=torch.float64)
     ref, rest_acted = anny_forward(anny_face_model, ph, pose, transl, acts)
     neutral, _ = anny_forward(anny_face_model, ph, pose, transl)
-    # the facial actions move no bone, which is why expressions need no joints_exprdirs
-    assert (rest_acted["rest_bone_heads"] - rest["rest_bone_heads"]).abs().max() == 0
+    # the facial actions move no bone (to round-off), which is why expressions need no joints_exprdirs
+    assert (rest_acted["rest_bone_heads"] - rest["rest_bone_heads"]).abs().max() < 1e-12
     assert (posed(exact, pose, acts) - ref).norm(dim=-1).max() < 1e-9
     assert (ref - neutral).norm(dim=-1).max() > 5e-3  # the faces did change
 
