@@ -14,8 +14,7 @@ probe loss before and after, and the evaluation's process seconds.
 
 A setting is STEPS:LR, or STEPS:LR:LR_END for a rate falling geometrically to LR_END by the last step;
 a suffix @CHECK keeps the pose of the lowest probe loss measured every CHECK steps (``refine_check``), e.g.
-150:2e-3:1e-4@10, and a further /FALLS lets each frame stop once it has settled (``refine_settle``), e.g.
-300:2e-3@10/3. With ``--device cuda`` the scores are the same evaluation's on a GPU (the refinement's
+150:2e-3:1e-4@10. With ``--device cuda`` the scores are the same evaluation's on a GPU (the refinement's
 losses match the CPU's to float rounding) and the seconds are wall-clock there.
 """
 
@@ -44,10 +43,7 @@ SCORES = ("psnr", "ssim", "stlpips_alex", "nerf_iou", "body_err_mm", "body_err_v
 def main(argv=None) -> None:
     ap = trained_model_arguments(argparse.ArgumentParser(description=__doc__.split("\n\n")[0]))
     ap.add_argument(
-        "--settings",
-        nargs="+",
-        required=True,
-        help="STEPS:LR[:LR_END][@CHECK[/FALLS]], e.g. 30:5e-4 150:2e-3:1e-4@10 300:2e-3@10/3",
+        "--settings", nargs="+", required=True, help="STEPS:LR[:LR_END][@CHECK], e.g. 30:5e-4 150:2e-3:1e-4@10"
     )
     ap.add_argument("--gt-meshes", default=None, help="the subject's gt/meshes.h5: body error columns too")
     ap.add_argument("--csv", required=True)
@@ -56,14 +52,12 @@ def main(argv=None) -> None:
     torch.set_num_threads(2)
     rows, before = [], pd.read_csv(a.csv) if a.append and Path(a.csv).is_file() else None
     for setting in a.settings:
-        schedule, _, checked = setting.partition("@")
-        check, _, settle = checked.partition("/")
+        schedule, _, check = setting.partition("@")
         steps, lr, *end = schedule.split(":")
         lr_end = float(end[0]) if end else None
         for split in a.splits:  # one split a pass: each pass's seconds are that split's
             st = EvalSettings(splits=(split,), max_frames=a.max_frames, refine_steps=int(steps), refine_lr=float(lr),
-                              refine_lr_end=lr_end, refine_check=int(check or 0), refine_settle=int(settle or 0),
-                              report_unrefined=False,
+                              refine_lr_end=lr_end, refine_check=int(check or 0), report_unrefined=False,
                               supersample=a.supersample, worst=0, perceptual_dir=a.perceptual_dir)  # fmt: skip
             # fresh: refinement moves the frames' poses
             trained = load_trained(a.model, a.record, a.body, device=a.device)
@@ -71,7 +65,7 @@ def main(argv=None) -> None:
             df = evaluate(trained, a.record, st, subject=a.subject, gt_meshes=a.gt_meshes)
             row = {"subject": a.subject, "refine_steps_budget": int(steps), "refine_lr": float(lr),
                    "refine_lr_end": lr_end if lr_end is not None else float(lr), "refine_check": int(check or 0),
-                   "refine_settle": int(settle or 0), "split": split,
+                   "split": split,
                    "frames": len(df), **{c: float(df[c].mean()) for c in SCORES if c in df},
                    "eval_cpu_s": round(time.process_time() - t0, 1), "eval_wall_s": round(time.perf_counter() - w0, 1),
                    "device": device_name(a.device, torch.get_num_threads()), "model": a.model, "host": platform.node()}  # fmt: skip

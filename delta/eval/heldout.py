@@ -11,7 +11,6 @@ import dataclasses
 
 import torch
 
-from delta import DeltaError
 from delta import losses as L
 from delta.body.lbs import rigid_transforms, shaped_joints
 from delta.body.rotations import matrix_to_axis_angle
@@ -30,8 +29,6 @@ SIDE_MARGIN = 0.05
 """A limb swung to its other side along the view is taken where the loss over its box falls by this fraction."""
 SIDE_RAYS = 4096
 """At most this many rays (a regular grid of pixel centres) score a limb's sides, over the box around it."""
-SETTLE_FALL = 0.25
-"""A settling refinement's rate is multiplied by this at each check that finds no lower probe loss."""
 
 
 @dataclasses.dataclass
@@ -64,8 +61,7 @@ class Refinement:
 
 def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, rays: int = 4096,
                  lr: float = 5e-4, seed: int = 0, tol: float = 0.0, window: int = 5,
-                 lr_end: float | None = None, check: int = 0, sides: bool = False,
-                 settle: int = 0) -> Refinement:  # fmt: skip
+                 lr_end: float | None = None, check: int = 0, sides: bool = False) -> Refinement:  # fmt: skip
     """Fit one frame's pose, translation and camera with everything else frozen.
 
     At most ``steps`` steps; with ``tol`` > 0 it stops once the mean loss of the last ``window`` steps
@@ -85,15 +81,7 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
     along the view (:func:`delta.body.sides.other_sides`: the same keypoints, which the steps' small moves
     cannot cross to) and kept so where the loss over the limb's box falls by :data:`SIDE_MARGIN`
     (:func:`choose_sides`); the probe's best pose then starts from there.
-
-    With ``settle`` > 0 (and ``check``) each frame decides how long it refines: at a check that finds no lower
-    probe loss than the best so far, the frame returns to its best pose and the rate falls by
-    :data:`SETTLE_FALL` (a step that overshoots is taken again shorter); the ``settle``-th such fall ends the
-    refinement, ``converged``. A frame near its pose stops after a few checks, one far off runs on while its
-    probe keeps falling, up to ``steps``.
     """
-    if settle and not check:
-        raise DeltaError("evaluation.refine_settle needs evaluation.refine_check > 0 (the probe it settles on)")
     params = model.per_frame_parameters()
     frozen = {p: p.requires_grad for p in model.parameters()}
     for p in model.parameters():
@@ -110,11 +98,10 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
     with torch.no_grad():
         chosen = _loss(model, frame, probe, seed + 2) if swung else start
     best = (float(chosen), 0, [p.detach()[frame].clone() for p in params]) if check else None
-    scale, falls = 1.0, 0
     try:
         for step, rate in enumerate(rates, 1):
             for group in opt.param_groups:
-                group["lr"] = rate * scale
+                group["lr"] = rate
             loss = _loss(model, frame, sample_rays(data, frame, rays, g), g)
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -131,14 +118,6 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
                     converged = True
             if check and (step % check == 0 or step == len(rates) or converged):
                 best = _better(model, frame, probe, seed + 2, params, step, best)
-                if settle and best[1] != step:  # no lower probe loss: back to the best, shorter steps
-                    falls += 1
-                    converged = falls >= settle
-                    scale *= SETTLE_FALL
-                    with torch.no_grad():
-                        for p, kept in zip(params, best[2]):
-                            p[frame] = kept
-                    opt = Adam(params, lr=rate * scale)  # the moments belong to the pose left
             if converged:
                 break
     finally:

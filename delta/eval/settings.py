@@ -47,10 +47,6 @@ class EvalSettings:
     """Every this many steps (and after the last) the refinement measures its probe loss and keeps the pose of
     the lowest, the given pose included (0: the last step's pose, unchecked). On tight's held-out views the
     unchecked 30 steps ended 0.23 dB apart on a CPU and a GPU, checked 0.04 apart (docs/evaluation.md)."""
-    refine_settle: int = _f(default=0, metadata={"minimum": 0, "maximum": 10})
-    """Each frame refines until it settles, ``refine_steps`` at most: at a check (``refine_check``) that finds no
-    lower probe loss the frame returns to its best pose and the rate falls fourfold; the this-many-th fall ends
-    it (0: every frame takes ``refine_steps``). Each refined row states the steps taken and the residual."""
     refine_sides: bool = False
     """Before the refinement's steps, try each arm and leg with its upper bone, its lower bone or both swung
     to their other side along the view (the same keypoints: one view does not tell them apart, and the steps

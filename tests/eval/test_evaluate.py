@@ -310,30 +310,6 @@ def test_a_checked_refinement_keeps_the_pose_of_its_lowest_probe_loss(trained):
             p[f] = g
 
 
-def test_a_settling_refinement_stops_where_its_probe_stops_falling(trained):
-    """``settle``: a check without a lower probe loss sends the frame back to its best pose with a quarter of
-    the rate; the ``settle``-th such fall ends it. Steps far too large fall and stop at once, the frame left
-    as given; a frame shifted off its pose runs on while its probe falls and ends below where it began."""
-    tr, _ = trained
-    model, data = tr.model, tr.data
-    f = int(np.flatnonzero(data.split == 1)[0])
-    given = [p.detach()[f].clone() for p in model.per_frame_parameters()]
-    with pytest.raises(DeltaError, match="refine_settle needs evaluation.refine_check"):
-        refine_frame(model, data, f, 10, rays=256, settle=2)
-    wild = refine_frame(model, data, f, 60, rays=256, lr=30.0, seed=f, check=4, settle=2)
-    assert wild.converged and wild.steps == 8 and wild.kept == 0 and wild.loss_end == wild.loss_start
-    for p, g in zip(model.per_frame_parameters(), given):
-        assert torch.equal(p.detach()[f], g)
-    with torch.no_grad():
-        model.transl[f] += torch.tensor([0.03, 0.0, 0.0])
-    fit = refine_frame(model, data, f, 200, rays=256, lr=2e-3, seed=f, check=5, settle=2)
-    assert fit.converged and 10 < fit.steps < 200 and fit.kept >= 10, (fit.steps, fit.kept)
-    assert fit.loss_end < 0.98 * fit.loss_start
-    with torch.no_grad():  # the module's model back as it was given
-        for p, g in zip(model.per_frame_parameters(), given):
-            p[f] = g
-
-
 def test_the_clothing_distance_without_the_size_leaves_out_a_similarity_of_the_whole_figure(trained, tmp_path):
     """The truth is the avatar itself, posed, then rotated 10°, scaled 1.2× and moved: the centroid-aligned
     clothing distance sees the size, the one under the body's similarity (``clothing_p2s_pa_*``) sees none."""
