@@ -46,7 +46,6 @@ def main(argv=None) -> None:
         "--settings", nargs="+", required=True, help="STEPS:LR[:LR_END][@CHECK], e.g. 30:5e-4 150:2e-3:1e-4@10"
     )
     ap.add_argument("--gt-meshes", default=None, help="the subject's gt/meshes.h5: body error columns too")
-    ap.add_argument("--probe-rays", type=int, default=4096, help="rays of the refinement's probe draw")
     ap.add_argument("--csv", required=True)
     ap.add_argument("--append", action="store_true")
     a = ap.parse_args(argv)
@@ -58,8 +57,7 @@ def main(argv=None) -> None:
         lr_end = float(end[0]) if end else None
         for split in a.splits:  # one split a pass: each pass's seconds are that split's
             st = EvalSettings(splits=(split,), max_frames=a.max_frames, refine_steps=int(steps), refine_lr=float(lr),
-                              refine_lr_end=lr_end, refine_check=int(check or 0), refine_probe_rays=a.probe_rays,
-                              report_unrefined=False,
+                              refine_lr_end=lr_end, refine_check=int(check or 0), report_unrefined=False,
                               supersample=a.supersample, worst=0, perceptual_dir=a.perceptual_dir)  # fmt: skip
             # fresh: refinement moves the frames' poses
             trained = load_trained(a.model, a.record, a.body, device=a.device)
@@ -67,7 +65,7 @@ def main(argv=None) -> None:
             df = evaluate(trained, a.record, st, subject=a.subject, gt_meshes=a.gt_meshes)
             row = {"subject": a.subject, "refine_steps_budget": int(steps), "refine_lr": float(lr),
                    "refine_lr_end": lr_end if lr_end is not None else float(lr), "refine_check": int(check or 0),
-                   "refine_probe_rays": a.probe_rays, "split": split,
+                   "split": split,
                    "frames": len(df), **{c: float(df[c].mean()) for c in SCORES if c in df},
                    "eval_cpu_s": round(time.process_time() - t0, 1), "eval_wall_s": round(time.perf_counter() - w0, 1),
                    "device": device_name(a.device, torch.get_num_threads()), "model": a.model, "host": platform.node()}  # fmt: skip

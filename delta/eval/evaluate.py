@@ -190,7 +190,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
             if refined:
                 fit = refine_frame(model, data, f, st.refine_steps, rays=st.refine_rays, lr=st.refine_lr, seed=f,
                                    tol=st.refine_tol, lr_end=st.refine_lr_end, check=st.refine_check,
-                                   sides=st.refine_sides, probe_rays=st.refine_probe_rays)  # fmt: skip
+                                   sides=st.refine_sides)  # fmt: skip
             with torch.no_grad():
                 mesh, offsets, out = model.posed_mesh(f)
             img = render_image(model, f, supersample=st.supersample, view=view, soft_silhouette=False)

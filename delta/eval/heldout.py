@@ -23,7 +23,7 @@ from delta.optim import Adam
 
 
 PROBE_RAYS = 4096
-"""The fewest rays the residual of a refinement is measured on, by default (renders without gradients)."""
+"""The fewest rays the residual of a refinement is measured on (two renders without gradients)."""
 
 SIDE_MARGIN = 0.05
 """A limb swung to its other side along the view is taken where the loss over its box falls by this fraction."""
@@ -61,8 +61,7 @@ class Refinement:
 
 def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, rays: int = 4096,
                  lr: float = 5e-4, seed: int = 0, tol: float = 0.0, window: int = 5,
-                 lr_end: float | None = None, check: int = 0, sides: bool = False,
-                 probe_rays: int = PROBE_RAYS) -> Refinement:  # fmt: skip
+                 lr_end: float | None = None, check: int = 0, sides: bool = False) -> Refinement:  # fmt: skip
     """Fit one frame's pose, translation and camera with everything else frozen.
 
     At most ``steps`` steps; with ``tol`` > 0 it stops once the mean loss of the last ``window`` steps
@@ -70,7 +69,7 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
     geometrically from ``lr`` to it over the ``steps`` (None: constant). The loss is the pixel
     loss plus 0.1 × the silhouette loss on ``rays`` rays a step, drawn afresh each step. One draw's loss
     is noisier than a step's gain, so the loss before and after (the residual) is taken on one fixed
-    probe draw of at least ``probe_rays`` rays, rendered with the same sample jitter both times.
+    probe draw of at least ``PROBE_RAYS`` rays, rendered with the same sample jitter both times.
     With ``check`` > 0 the probe is also rendered every ``check`` steps and after the last, and the frame
     keeps the pose of the lowest probe loss, the pose as given included: a refinement then never leaves a
     frame worse on its probe than it found it (large early steps can throw a close pose off).
@@ -92,7 +91,7 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
     g = torch.Generator().manual_seed(seed)
     losses: list[float] = []
     converged = False
-    probe = sample_rays(data, frame, max(rays, probe_rays), torch.Generator().manual_seed(seed + 1))
+    probe = sample_rays(data, frame, max(rays, PROBE_RAYS), torch.Generator().manual_seed(seed + 1))
     with torch.no_grad():
         start = _loss(model, frame, probe, seed + 2)
     swung = choose_sides(model, data, frame, seed + 2) if sides else ()

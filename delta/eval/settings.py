@@ -47,9 +47,6 @@ class EvalSettings:
     """Every this many steps (and after the last) the refinement measures its probe loss and keeps the pose of
     the lowest, the given pose included (0: the last step's pose, unchecked). On tight's held-out views the
     unchecked 30 steps ended 0.23 dB apart on a CPU and a GPU, checked 0.04 apart (docs/evaluation.md)."""
-    refine_probe_rays: int = _f(default=4096, metadata={"minimum": 1})
-    """Rays of the fixed probe draw the refinement's residual and checks are measured on (at least
-    ``refine_rays``)."""
     refine_sides: bool = False
     """Before the refinement's steps, try each arm and leg with its upper bone, its lower bone or both swung
     to their other side along the view (the same keypoints: one view does not tell them apart, and the steps
