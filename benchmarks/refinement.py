@@ -54,7 +54,7 @@ def main(argv=None) -> None:
     for setting in a.settings:
         schedule, _, check = setting.partition("@")
         steps, lr, *end = schedule.split(":")
-        lr_end = float(end[0]) if end else None
+        lr_end = float(end[0]) if end else float(lr)  # no end: a constant rate
         for split in a.splits:  # one split a pass: each pass's seconds are that split's
             st = EvalSettings(splits=(split,), max_frames=a.max_frames, refine_steps=int(steps), refine_lr=float(lr),
                               refine_lr_end=lr_end, refine_check=int(check or 0), report_unrefined=False,
@@ -64,7 +64,7 @@ def main(argv=None) -> None:
             t0, w0 = time.process_time(), time.perf_counter()
             df = evaluate(trained, a.record, st, subject=a.subject, gt_meshes=a.gt_meshes)
             row = {"subject": a.subject, "refine_steps_budget": int(steps), "refine_lr": float(lr),
-                   "refine_lr_end": lr_end if lr_end is not None else float(lr), "refine_check": int(check or 0),
+                   "refine_lr_end": lr_end, "refine_check": int(check or 0),
                    "split": split,
                    "frames": len(df), **{c: float(df[c].mean()) for c in SCORES if c in df},
                    "eval_cpu_s": round(time.process_time() - t0, 1), "eval_wall_s": round(time.perf_counter() - w0, 1),
