@@ -37,8 +37,11 @@ from table import save_table  # noqa: E402
 SCORES = ("psnr", "psnr_face", "psnr_head", "ssim", "stlpips_alex", "psnr_body")
 
 
-def train_albedo(trained, steps: int, rays: int, lr: float, detail: bool, seed: int = 0) -> float:
-    """Train the albedo alone (``detail``: with a per-vertex table) for ``steps``; returns CPU seconds."""
+def train_albedo(
+    trained, steps: int, rays: int, lr: float, detail: bool, seed: int = 0, frames: list[int] | None = None
+) -> float:
+    """Train the albedo alone (``detail``: with a per-vertex table) for ``steps`` on ``frames`` (None: the
+    training frames); returns CPU seconds."""
     model, data, st = trained.model, trained.data, trained.settings
     if detail:
         model.albedo_field.detail = torch.nn.Parameter(torch.zeros(model.body.num_vertices, 3))
@@ -49,7 +52,7 @@ def train_albedo(trained, steps: int, rays: int, lr: float, detail: bool, seed: 
         p.requires_grad_(True)
     opt = torch.optim.Adam(params, lr=lr)
     g = torch.Generator().manual_seed(seed)
-    train = data.train.tolist()
+    train = data.train.tolist() if frames is None else list(frames)
     start = time.process_time()
     model.train()
     for step in range(steps):

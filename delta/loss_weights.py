@@ -21,6 +21,9 @@ class LossWeights:
     layers, where the exterior is in layers."""
     empty_background: float = 0.0
     """The exterior's optical depth on rays the person mask puts on the background (off: 0)."""
+    face_points: float = 0.0
+    """Where the record tracks a face: the posed face points against the detected ones (Huber of their
+    distance over the image's size), so that training keeps the face where the frame shows it (off: 0)."""
     silhouette: float = 0.001
     """Huber between the soft mesh silhouette and the person mask."""
     interior_mask: float = 30.0

@@ -101,6 +101,20 @@ def offset(offsets: torch.Tensor, regions: torch.Tensor, region_weights: dict) -
     return (w[regions] * (offsets**2).sum(-1)).mean()
 
 
+FACE_DELTA = 0.01
+"""The face points' distance (a fraction of the image's size: 5 px of 512) beyond which it costs linearly."""
+
+
+def face_points(uv: torch.Tensor, target: torch.Tensor, confidence: torch.Tensor, size: int,
+                delta: float = FACE_DELTA) -> torch.Tensor:  # fmt: skip
+    """Σ_k c_k h(‖uv_k − t_k‖ / size) / Σ_k c_k, h the Huber penalty (δ ``delta``): (K, 2) projected face
+    points against (K, 2) detected ones in pixels, weighted by their (K,) confidences (0 with none)."""
+    r = torch.linalg.vector_norm(uv - target, dim=-1) / size
+    h = torch.where(r <= delta, 0.5 * r * r, delta * (r - 0.5 * delta))
+    w = confidence.to(h.dtype)
+    return (w * h).sum() / w.sum().clamp_min(torch.finfo(h.dtype).tiny)
+
+
 def vertex_detail(details: list[torch.Tensor]) -> torch.Tensor:
     """Mean over the given (V, C) per-vertex details of their mean squared value."""
     return sum((d**2).sum(-1).mean() for d in details) / len(details)

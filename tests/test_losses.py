@@ -187,3 +187,20 @@ def test_default_weights_match_the_paper():
     w = LossWeights()
     assert (w.pixel, w.exterior, w.silhouette, w.interior_mask, w.skin) == (1.0, 0.5, 0.001, 30.0, 1.0)
     assert (w.inside, w.skin_inside, w.edge, w.offset, w.huber_delta) == (40.0, 0.01, 500.0, 400.0, 0.1)
+
+
+def test_face_points_hand_values():
+    # 100-px image, δ 0.01 (1 px): 0.5 px off costs 0.5 (0.005)², 3-4-5 px off 0.01 (0.05 - 0.005)
+    uv = t(10.0, 10.0, 20.0, 20.0, 30.0, 30.0).reshape(3, 2)
+    target = t(10.5, 10.0, 23.0, 24.0, 0.0, 0.0).reshape(3, 2)
+    near, far = 0.5 * 0.005**2, 0.01 * (0.05 - 0.005)
+    close(losses.face_points(uv, target, t(1.0, 1.0, 0.0), 100), (near + far) / 2)  # the third: not seen
+    close(losses.face_points(uv, target, t(1.0, 3.0, 0.0), 100), (near + 3 * far) / 4)
+    close(losses.face_points(uv, target, t(0.0, 0.0, 0.0), 100), 0.0)  # no face in the frame: no term
+    assert losses.face_points(uv, target, t(1.0, 1.0, 0.0), 100).isfinite()
+
+
+def test_face_points_gradient_matches_finite_differences():
+    uv = torch.tensor([[10.0, 10.0], [20.0, 21.0]], dtype=D, requires_grad=True)
+    target, conf = t(10.6, 9.8, 23.0, 24.0).reshape(2, 2), t(1.0, 0.5)
+    assert torch.autograd.gradcheck(lambda x: losses.face_points(x, target, conf, 100), (uv,))

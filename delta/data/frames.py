@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from delta import DeltaError
+from delta.body.face_points import FacePoints
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.data.record import FrameRecord
 from delta.metrics import outline_band
@@ -77,6 +78,10 @@ class FrameData:
     """(3,) average colour of the visible body over the training frames."""
     hair: ByteFrames | None = None
     """(N, n, n) hair in [0, 1] (part of ``exterior``), loaded for an exterior of separate layers."""
+    face: FacePoints | None = None
+    """Where the record's face points lie on the body mesh (None: it tracks no face)."""
+    face_points: torch.Tensor | None = None
+    """(N, K, 3) the detected face points (u, v in this resolution's pixels, confidence), with ``face``."""
 
     @property
     def resolution(self) -> int:
@@ -177,10 +182,16 @@ def load_frames(record_path, resolution: int, background=(1.0, 1.0, 1.0), box_ma
                 skin_weight += w.sum()
             boxes.append(_box(fields["person"][i] > 127, box_margin))
         camera = rescale_camera(rec.camera(), src, resolution)
+        face = rec.face_embedding()
+        seen = None
+        if face is not None:  # pixel coordinates (a pixel's centre at +0.5) scale with the image
+            seen = torch.from_numpy(rec.h5["face_points"][:].astype(np.float32))
+            seen[..., :2] *= resolution / src
     held = {k: ByteFrames(torch.from_numpy(v)) for k, v in fields.items()}
     skin = torch.from_numpy(skin_sum / max(skin_weight, 1e-6)).float()
     return FrameData(held["images"], held["person"], held["exterior"], held["interior"],
-                     torch.tensor(boxes, dtype=torch.int64), train, split, frame_ids, camera, skin, held.get("hair"))  # fmt: skip
+                     torch.tensor(boxes, dtype=torch.int64), train, split, frame_ids, camera, skin, held.get("hair"),
+                     face, seen)  # fmt: skip
 
 
 @dataclasses.dataclass

@@ -30,6 +30,7 @@ import torch
 
 from delta import DeltaError
 from delta.data import SPLITS
+from delta.body.face_points import FacePoints
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 
 MASKS = ("person", "clothing", "skin", "hair")
@@ -125,6 +126,13 @@ class FrameRecord:
     @property
     def sources(self) -> dict:
         return json.loads(self.h5.attrs["sources"])
+
+    def face_embedding(self) -> FacePoints | None:
+        """Where the record's face points lie on the body mesh (None: the record has none)."""
+        if "face_points" not in self.h5:
+            return None
+        return FacePoints(torch.from_numpy(self.h5["face_point_vertices"][:]).long(),
+                          torch.from_numpy(self.h5["face_point_bary"][:]).double())  # fmt: skip
 
     def indices(self, split: str) -> np.ndarray:
         return np.flatnonzero(self.h5["split"][:] == SPLITS.index(split))

@@ -128,13 +128,12 @@ def check_result(where, res, frame_ids: np.ndarray) -> None:
 
 def face_points(rec: FrameRecord, model, body_path) -> FacePoints | None:
     """The record's face points on ``model`` (None when it has none), checked before any fitting."""
-    if "face_points" not in rec.h5:
+    points = rec.face_embedding()
+    if points is None:
         return None
     if model.exprdirs is None:
         raise DeltaError(f"{rec.path} holds face points but the body model {body_path} has no expression "
                          "space: fit it with the face body model (the workflow picks it for a talking face)")  # fmt: skip
-    points = FacePoints(torch.from_numpy(rec.h5["face_point_vertices"][:]).long(),
-                        torch.from_numpy(rec.h5["face_point_bary"][:]).double())  # fmt: skip
     if int(points.vertex_ids.max()) >= model.num_vertices:
         raise DeltaError(f"{rec.path}: its face points lie on a mesh of more than {model.num_vertices} vertices, "
                          f"not on {body_path}")  # fmt: skip

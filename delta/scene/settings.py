@@ -25,10 +25,14 @@ DECIDED = (
     "semantic",
     "weights.semantic",
     "weights.skin_inside",
+    "weights.face_points",
 )
 #: The paper's head weights (DELTA §Implementation, head videos) where they differ from its body weights
-#: (:class:`delta.loss_weights.LossWeights`: semantic 0.0005, skin_inside 0.01); a tracked face takes them.
-HEAD_WEIGHTS = {"semantic": 0.015, "skin_inside": 0.001}
+#: (:class:`delta.loss_weights.LossWeights`: semantic 0.0005, skin_inside 0.01); a tracked face takes them,
+#: and the term that holds its face points to the detected ones through training (``face_points``: not the
+#: paper's; without it the short-haired real head's training moved its face 8.6 px down the frames, its
+#: shape drifting while the poses stayed, and the albedo smeared: docs/heads.md).
+HEAD_WEIGHTS = {"semantic": 0.015, "skin_inside": 0.001, "face_points": 10.0}
 #: The paper's stage-2 semantic loss for a head: the perceptual loss (its body's is ID-MRF), the loss its
 #: head weight 0.015 was chosen for (ID-MRF at that weight scored the short-haired talker's held-out
 #: frames 0.3-0.6 dB under it, and its stage 2 under its stage 1: docs/heads.md).

@@ -25,6 +25,7 @@ import torch
 
 from delta import DeltaError
 from delta import losses as L
+from delta.body.face_points import FacePoints
 from delta.data.frames import FrameData, RayBatch, sample_rays
 from delta.io import atomic_path, load_state
 from delta.models.avatar import HybridAvatar
@@ -47,8 +48,10 @@ class StageResult:
 
 
 def loss_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, skin_color: torch.Tensor,
-               semantic: Optional[Callable] = None, generator=None, timeless: bool = False) -> tuple[dict, object]:  # fmt: skip
-    """Render a ray batch and evaluate every term of the objective (unweighted)."""
+               semantic: Optional[Callable] = None, generator=None, timeless: bool = False,
+               face: Optional[tuple[FacePoints, torch.Tensor]] = None) -> tuple[dict, object]:  # fmt: skip
+    """Render a ray batch and evaluate every term of the objective (unweighted); ``face``: the record's face
+    points on the mesh and the (K, 3) detections of the batch's frame (u, v, confidence), for their term."""
     mesh, offsets, out = model.posed_mesh(batch.frame)
     r = model.render(batch.frame, batch.pixels, generator, mesh, timeless)
     d = st.weights.huber_delta
@@ -65,6 +68,10 @@ def loss_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, skin_col
     details = [f.detail for f in (model.offset_field, model.albedo_field) if f.detail is not None]
     if details:
         terms["vertex_detail"] = L.vertex_detail(details)
+    if face is not None:
+        posed = face[0](out.vertices)[0]
+        uv, _ = model.camera(batch.frame).project(posed)
+        terms["face_points"] = L.face_points(uv, face[1][:, :2], face[1][:, 2], model.resolution)
     if model.nerf is not None:
         terms["exterior"] = L.exterior(r.nerf_mask, batch.exterior)
         if st.weights.empty_background > 0:
@@ -217,6 +224,15 @@ def train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSetti
         return _train_stage(stage, model, data, st, out_dir, semantic, max_steps, origin, fine)
 
 
+def face_targets(data: FrameData, st: TrainSettings, device) -> Optional[tuple[FacePoints, torch.Tensor]]:
+    """The record's face points on the mesh and every frame's (F, K, 3) detections, on ``device``, where
+    the term that holds the face to them is on (``weights.face_points`` > 0) and the record tracks a face."""
+    if st.weights.face_points <= 0 or data.face is None:
+        return None
+    points = FacePoints(data.face.vertex_ids.to(device), data.face.bary.to(device))
+    return points, data.face_points.to(device)
+
+
 def rays_at(data: FrameData, fine: Optional[FrameData], frame: int, num: int, generator: torch.Generator,
             patch: int = 0, crop: float = 1.0, edge: float = 0.0) -> RayBatch:  # fmt: skip
     """A step's rays: from ``data``, or from the ``fine`` frames with their pixels in ``data``'s units
@@ -259,6 +275,7 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
     else:
         _start_occupancy(model, st, stage)
     skin_color = data.skin_color.to(device)
+    faces = face_targets(data, st, device)
     if start < warmup_end:
         log.info("stage 1: steps %d-%d train the NeRF alone on the whole person (rays through the mesh, from the "
                  "central %.0f%% of the person box)", start + 1, warmup_end, 100 * cfg.nerf_warmup_crop)  # fmt: skip
@@ -289,7 +306,8 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
         if warm:
             terms, r = nerf_only_terms(model, batch, st, generator)
         else:
-            terms, r = loss_terms(model, batch, st, skin_color, semantic, generator, timeless)
+            face = None if faces is None else (faces[0], faces[1][frame])
+            terms, r = loss_terms(model, batch, st, skin_color, semantic, generator, timeless, face)
         loss = L.total(terms, st.weights)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()

@@ -11,6 +11,7 @@ from delta.body.expressions import ExpressionSpace, with_expressions
 from delta.body.face_points import FacePoints
 from delta.body.lbs import lbs
 from delta.body.model import load_body_model
+from delta.data.frames import load_frames
 from delta.data.record import FrameRecord
 from delta.data.sources import synthetic_source
 from delta.eval.expressions import expression_errors, face_moved, truth_expressions
@@ -54,6 +55,18 @@ def test_face_points_move_with_the_crop(talking):
     assert seen.mean() > 0.8, "a face turned at most 34 degrees shows most of its points"
     err = np.linalg.norm(uv.numpy() - recorded[..., :2], axis=-1)[seen]
     assert err.max() < 0.05, "undistorted and moved with the crop (pixels of the record)"
+
+
+def test_the_training_frames_carry_the_face_points_at_their_size(talking):
+    """Training reads the record's face points with its frames: the same embedding, and (u, v) scaled from
+    the record's 128 pixels to the frames' size (a pixel's centre at +0.5 either way)."""
+    with FrameRecord(talking["record"]) as rec:
+        recorded, vertex_ids = rec.h5["face_points"][:], rec.h5["face_point_vertices"][:]
+    for size in (128, 64):
+        data = load_frames(talking["record"], size)
+        assert torch.equal(data.face.vertex_ids, torch.from_numpy(vertex_ids).long())
+        torch.testing.assert_close(data.face_points[..., :2], torch.from_numpy(recorded[..., :2]) * size / 128)
+        torch.testing.assert_close(data.face_points[..., 2], torch.from_numpy(recorded[..., 2]))
 
 
 def test_the_init_fit_tracks_the_face(talking, tmp_path):

@@ -152,15 +152,20 @@ def test_a_tracked_faces_head_weights_reach_the_loss_weights_unless_the_config_s
     decisions = {"resolution": 64, "weights": HEAD_WEIGHTS, "semantic": HEAD_SEMANTIC}
     path.write_text(json.dumps({"decisions": decisions}))
     taken = scene_settings(path, {"exterior": "auto"}, [])
-    assert taken == {"resolution": 64, "semantic": "perceptual", "weights": {"semantic": 0.015, "skin_inside": 0.001}}
+    assert taken == {"resolution": 64, "semantic": "perceptual",
+                     "weights": {"semantic": 0.015, "skin_inside": 0.001, "face_points": 10.0}}  # fmt: skip
     body = resolve("fast")
     head = resolve("fast", taken)
     assert (head.weights.semantic, head.weights.skin_inside, head.semantic) == (0.015, 0.001, "perceptual")
     assert (body.weights.semantic, body.weights.skin_inside, body.semantic) == (0.0005, 0.01, "idmrf")
+    assert (head.weights.face_points, body.weights.face_points) == (10.0, 0.0)  # held to its points: a face only
     assert head.weights.inside == body.weights.inside and head.weights.offset == body.weights.offset
     # the semantic loss and its weight are one decision: a config setting either keeps its own pair
     for own in (["weights.semantic"], ["semantic"]):
-        assert scene_settings(path, {}, own) == {"resolution": 64, "weights": {"skin_inside": 0.001}}
+        assert scene_settings(path, {}, own) == {
+            "resolution": 64,
+            "weights": {"skin_inside": 0.001, "face_points": 10.0},
+        }
     assert user_decided(["weights.skin_inside", "weights.edge"], 1) == ["weights.skin_inside"]
     # the semantic loss is stage 2's: setting it does not touch stage 1's job
     assert user_decided(["semantic", "stage2.iterations"], 1) == []

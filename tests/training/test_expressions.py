@@ -11,11 +11,15 @@ import torch
 from delta import DeltaError
 from delta.body.lbs import lbs
 from delta.cameras.models import OrthographicCamera
+from delta.body.face_points import FacePoints
+from delta.data.frames import RayBatch
 from delta.io import save_npz
+from delta import losses as L
 from delta.models.avatar import HybridAvatar, InitParams
 from delta.models.init import load_init
 from delta.training.presets import resolve
 from delta.training.run import load_init_from_state
+from delta.training.trainer import face_targets, loss_terms
 from tests.test_extremes import blob_body
 
 N, E = 3, 4
@@ -85,3 +89,36 @@ def test_expressions_that_do_not_fit_are_refused(tmp_path):
     data = SimpleNamespace(frame_ids=np.arange(N), camera=None, resolution=32)
     with pytest.raises(DeltaError, match="'expression' has 4 rows for 3 frames"):
         load_init(path, data)
+
+
+def _batch(frame: int, rays: int = 8) -> RayBatch:
+    px = torch.rand(rays, 2, generator=torch.Generator().manual_seed(5)) * 32
+    return RayBatch(frame, px, torch.full((rays, 3), 0.5), torch.ones(rays), torch.zeros(rays), torch.ones(rays))
+
+
+def test_the_face_points_term_pulls_the_face_to_its_detections():
+    """Posed face points projected by the frame's camera, against detections 3 px right and 4 px down:
+    the term is the Huber of 5 px over the image's 32, and a step along its gradient brings them nearer."""
+    acts = torch.rand(N, E, generator=torch.Generator().manual_seed(6))
+    model = avatar(face_body(), init(acts))
+    points = FacePoints.at_vertices([0, 5, 9, 17])
+    st = resolve("fast", {"weights": {"face_points": 10.0}})
+    with torch.no_grad():
+        uv, _ = model.camera(1).project(points(model.pose_body(1, model.offsets()).vertices)[0])
+    seen = torch.cat([uv + torch.tensor([3.0, 4.0]), torch.ones(4, 1)], 1)
+    terms, _ = loss_terms(model, _batch(1), st, torch.tensor([0.8, 0.6, 0.5]), face=(points, seen))
+    r = 5.0 / 32
+    torch.testing.assert_close(terms["face_points"], torch.tensor(L.FACE_DELTA * (r - L.FACE_DELTA / 2)))
+    terms["face_points"].backward()
+    with torch.no_grad():  # the orthographic frame moves the face by its translation: a small step down it
+        model.transl -= 1e-3 * model.transl.grad / model.transl.grad.norm()
+        moved, _ = model.camera(1).project(points(model.pose_body(1, model.offsets()).vertices)[0])
+    assert (moved - seen[:, :2]).norm(dim=1).mean() < (uv - seen[:, :2]).norm(dim=1).mean()
+    assert model.transl.grad[0].abs().sum() == 0 and model.transl.grad[2].abs().sum() == 0  # that frame's only
+    # without detections for the frame, or with the term off, there is none
+    assert "face_points" not in loss_terms(model, _batch(1), st, torch.tensor([0.8, 0.6, 0.5]))[0]
+    data = SimpleNamespace(face=points, face_points=seen[None].expand(N, -1, -1))
+    assert face_targets(data, resolve("fast"), "cpu") is None
+    assert face_targets(SimpleNamespace(face=None, face_points=None), st, "cpu") is None
+    taken = face_targets(data, st, "cpu")
+    assert torch.equal(taken[0].vertex_ids, points.vertex_ids) and taken[1].shape == (N, 4, 3)
