@@ -65,7 +65,7 @@ rule face_body_model:
 
 rule face_landmark_embedding:
     input:
-        body=PATHS["body"],
+        body=embedding_body,
         detector=PATHS["mediapipe_detector"],
         landmarks=PATHS["mediapipe_face"],
     output:

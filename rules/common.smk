@@ -226,6 +226,14 @@ def face_embedding(wildcards):
     )
 
 
+def embedding_body(wildcards):
+    """The body model the face-mesh landmarks are calibrated on: with Anny's facial actions where the model
+    is Anny (the calibration faces open their jaw, so the inner lips' points find their own lip).
+    """
+    key = "face_body" if wildcards.model == "anny" else "body"
+    return PATHS[key].format(model=wildcards.model, level=wildcards.level)
+
+
 def body_model_file(wildcards=None):
     """The upsampled body model a subject's stages read: with the expression space for a tracked face
     (Anny's facial actions attached), without it for everyone else."""

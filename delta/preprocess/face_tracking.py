@@ -33,6 +33,10 @@ DETECT_INPUT = 128
 EYE_CORNERS = (33, 263)
 #: a detection and a tracked face must be at least this likely to count
 MIN_SCORE = 0.5
+#: the face mesh's inner lip contours, corner to corner (MediaPipe's ``lipsUpperInner`` and
+#: ``lipsLowerInner`` without the shared corners 78 and 308): where a closed mouth's lips meet, each on its
+#: own lip (:func:`delta.synthetic.landmark_embedding.calibrate` places them so)
+INNER_LIPS = {"upper": (191, 80, 81, 82, 13, 312, 311, 310, 415), "lower": (95, 88, 178, 87, 14, 317, 402, 318, 324)}
 #: a face box is enlarged this much to make the landmark model's crop (MediaPipe's own factor)
 CROP_SCALE = 1.5
 
@@ -167,6 +171,9 @@ def crop_from_detection(det: Detection, scale: float = CROP_SCALE) -> Crop:
 
 class FaceTracker:
     """468 face-mesh points a frame, following one face through a video (frames in order)."""
+
+    #: the inner lips' landmarks by lip (:data:`INNER_LIPS`)
+    inner_lips = INNER_LIPS
 
     def __init__(self, detector: str | Path, landmarks: str | Path, threads: int = 1):
         self.detector = FaceDetector(detector, threads)

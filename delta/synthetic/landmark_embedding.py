@@ -12,6 +12,13 @@ points slide with the view). The embedding keeps each landmark at the median of 
 whose hits lie within ``max_spread`` of it: an outline point would pull the fit towards a fixed place that
 the detector does not mean.
 
+The calibration faces' mouths are closed, so the inner lips' points (where the lips part) hit where the
+lips meet, the same few millimetres for both lips: the nearest triangle there was the upper lip's for the
+lower lip's points too, which then could not follow the jaw (landmark 14 moved 1.3 mm with a fully open
+jaw where the lower lip's outer centre moves 38 mm). A tracker that names its inner lips
+(``inner_lips``: landmark ids by lip) has each placed on the nearest triangle of its own lip, the lower
+lip being what opening the mouth moves (:func:`lower_lip`).
+
 Shapes: L landmarks (468), K kept.
 """
 
@@ -41,6 +48,9 @@ log = logging.getLogger(__name__)
 MAX_SPREAD = 0.004
 #: a landmark needs hits in at least this share of the views
 MIN_HITS = 0.5
+#: a face vertex is the jaw's (the lower lip's) when opening the mouth moves it at least this share of the
+#: most it moves any face vertex, and the upper face's when at most ``1 - JAW_SHARE`` of it
+JAW_SHARE = 0.5
 
 
 @dataclasses.dataclass
@@ -143,6 +153,28 @@ def nearest_triangles(vertices: np.ndarray, faces: np.ndarray, points: np.ndarra
     return corners, closest
 
 
+def jaw_motion(model: BodyModel) -> np.ndarray | None:
+    """(V,) how far each vertex moves as the mouth opens (``jawOpen`` at 1, or a jaw joint's skinning
+    weight); None where the body model has neither."""
+    names = list(model.expression_names)
+    if "jawOpen" in names and model.exprdirs is not None:
+        return model.exprdirs[..., names.index("jawOpen")].norm(dim=-1).numpy()
+    if "jaw" in model.joint_names:
+        return model.weights[:, list(model.joint_names).index("jaw")].numpy()
+    return None
+
+
+def lip_triangles(model: BodyModel, surface: np.ndarray) -> dict[str, np.ndarray] | None:
+    """The face triangles of each lip, ``upper`` (the upper face, which the jaw leaves) and ``lower`` (the
+    jaw's), by :func:`jaw_motion`; None where the body model cannot open its mouth."""
+    motion = jaw_motion(model)
+    if motion is None or not motion[surface].max() > 0:
+        return None
+    share = motion / motion[surface].max()
+    return {"upper": surface[(share[surface] <= 1 - JAW_SHARE).all(1)],
+            "lower": surface[(share[surface] >= JAW_SHARE).all(1)]}  # fmt: skip
+
+
 def calibrate(model: BodyModel, tracker, views: list[View], resolution: int = 512,
               max_spread: float = MAX_SPREAD, skin=SKIN) -> LandmarkEmbedding:  # fmt: skip
     """Embed ``tracker``'s landmarks (a callable: RGB uint8 frame -> (L, 3) (u, v, confidence)) on ``model``."""
@@ -184,6 +216,14 @@ def calibrate(model: BodyModel, tracker, views: list[View], resolution: int = 51
     if not len(kept):
         raise DeltaError(f"calibrate: no landmark's hits agree within {max_spread * 1000:g} mm over {len(views)} views")
     corners, closest = nearest_triangles(template, surface, centres[kept])
+    lips, named = lip_triangles(model, surface), getattr(tracker, "inner_lips", {})
+    if named and lips is None:
+        log.warning("body model '%s' has no 'jawOpen' expression or 'jaw' joint: the inner lips' landmarks are "
+                    "placed on the nearest lip, and may not follow the jaw", model.name)  # fmt: skip
+    for lip, ids in named.items() if lips is not None else ():
+        on = np.flatnonzero(np.isin(kept, ids))
+        if len(on) and len(lips[lip]):
+            corners[on], closest[on] = nearest_triangles(template, lips[lip], centres[kept[on]])
     bary = trimesh.triangles.points_to_barycentric(template[corners], closest).clip(0, 1)
     bary /= bary.sum(1, keepdims=True)
     points = FacePoints(torch.from_numpy(corners.astype(np.int64)), torch.from_numpy(bary))

@@ -8,6 +8,7 @@ move. All functions take (N, 3) points and return (N, 3) RGB in [0, 1].
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from delta.body.model import REGION
 from delta.synthetic.spec import GarmentSpec
@@ -47,6 +48,13 @@ def fractal_noise(points: np.ndarray, frequency: float, seed: int, octaves: int 
     return total / norm
 
 
+#: a face vertex within this of the mouth's inside (its cavity and tongue) is on a lip's inner rim (m)
+LIP_RIM_GAP = 0.0025
+#: the lips' red reaches this far from their inner rims (m): about 7 mm up the upper lip's front and
+#: 10 mm down the lower lip's on Anny's mean face
+LIP_REACH = 0.011
+
+
 class FaceFeatures:
     """Where the eyes, brows and lips are, from the canonical body and its regions."""
 
@@ -63,6 +71,22 @@ class FaceFeatures:
         centre = mouth.mean(0) if len(mouth) else np.array([0.0, eye_y - 0.07, face[:, 2].max()])
         front = face[(np.abs(face[:, 0]) < 0.01) & (np.abs(face[:, 1] - centre[1]) < 0.01)]
         self.mouth = np.array([0.0, centre[1], front[:, 2].max() if len(front) else centre[2]])
+        # the lips' inner rims: face vertices where the mouth's inside begins (None: no mouth region)
+        self.lip_rim = None
+        if len(mouth):
+            near = cKDTree(mouth).query(face, distance_upper_bound=LIP_RIM_GAP)[0] < LIP_RIM_GAP
+            self.lip_rim = face[near] if near.any() else None
+
+    def lips(self, points: np.ndarray) -> np.ndarray:
+        """(P,) bool: the points on the lips, within :data:`LIP_REACH` of their inner rims (less towards the
+        corners); without a mouth region, an ellipse about the mouth's front."""
+        if self.lip_rim is None:
+            d = points - self.mouth
+            return ((d[:, 0] / 0.026) ** 2 + (d[:, 1] / 0.009) ** 2 < 1.0) & (d[:, 2] > -0.02)
+        distance = cKDTree(self.lip_rim).query(points)[0]
+        corner = 1.15 * np.abs(self.lip_rim[:, 0]).max()
+        reach = LIP_REACH * np.sqrt(np.clip(1 - (points[:, 0] / corner) ** 2, 0.12, 1))
+        return distance < reach
 
 
 def skin_albedo(points, regions, base_color, features: FaceFeatures, seed: int) -> np.ndarray:
@@ -89,8 +113,7 @@ def skin_albedo(points, regions, base_color, features: FaceFeatures, seed: int) 
         d = points - c
         brow = face & (d[:, 1] > 0.012) & (d[:, 1] < 0.022) & (np.abs(d[:, 0]) < 0.026) & (d[:, 2] > -0.012)
         col[brow] = np.array([0.2, 0.13, 0.08])
-    d = points - features.mouth
-    lips = face & ((d[:, 0] / 0.026) ** 2 + (d[:, 1] / 0.009) ** 2 < 1.0) & (d[:, 2] > -0.02)
+    lips = face & features.lips(points)
     col[lips] = base * np.array([0.95, 0.55, 0.55])
     col[regions == REGION["mouth"]] = np.array([0.35, 0.08, 0.1])
     return np.clip(col, 0, 1)
