@@ -8,7 +8,10 @@ mesh projected (median and 90th percentile, pixels and share of the face's width
 centres alone (landmarks 13 upper, 14 lower: ``upper_lip_px``, ``lower_lip_px``) against the opening the
 tracker sees between them (``opening_px``). One ``case = jaw_motion`` row: how far the embedded inner-lip
 centres and the lower lip's outer centre (17) move with the jaw fully open (mm): a lower inner-lip point
-placed on the upper lip does not follow the jaw. Real rows
+placed on the upper lip does not follow the jaw. Init-fit rows (``case = init_fit``, ``--fit``): a real
+clip's init fit against its record's detected face points, the median residual (px) by part of the
+face, and the fitted ``jawOpen`` / ``mouthClose`` (median over the clip, and over its held-out frames).
+Real rows
 (``case = real_clip``): every frame of each clip tracked from the start, the share of frames with a face,
 the frames that began without a tracked face (detected afresh), milliseconds a frame for the tracker and for the GrabCut mask.
 
@@ -30,6 +33,7 @@ import torch
 from delta.body.face_points import LandmarkEmbedding
 from delta.body.lbs import lbs
 from delta.body.model import load_body_model
+from delta.data.record import FrameRecord
 from delta.data.video import iter_video
 from delta.preprocess.face_tracking import FaceTracker, head_mask
 from delta.synthetic.landmark_embedding import View, render_head
@@ -91,6 +95,44 @@ def jaw_motion(body, embedding) -> dict:
                                      for i in (UPPER_INNER, LOWER_INNER, LOWER_OUTER) if i in kept}}  # fmt: skip
 
 
+#: MediaPipe face-mesh points by part of the face, for the init fit's residuals
+FIT_PARTS = {
+    "lips_inner": (78, 191, 80, 81, 82, 13, 312, 311, 310, 415, 308, 95, 88, 178, 87, 14, 317, 402, 318, 324),
+    "lips_outer": (61, 185, 40, 39, 37, 0, 267, 269, 270, 409, 291, 146, 91, 181, 84, 17, 314, 405, 321, 375),
+    "eyes": (33, 7, 163, 144, 145, 153, 154, 155, 133, 246, 161, 160, 159, 158, 157, 173,
+             263, 249, 390, 373, 374, 380, 381, 382, 362, 466, 388, 387, 386, 385, 384, 398),
+    "nose": (1, 2, 98, 327, 4, 5, 195, 197, 6),
+}  # fmt: skip
+
+
+def fit_residuals(body, label: str, record: str, params: str, embedding_path: str) -> dict:
+    """The init fit ``params`` (init/params.npz) against the detected face points of ``record`` (frames.h5,
+    written with the embedding at ``embedding_path``)."""
+    with FrameRecord(record) as rec, np.load(params) as p:
+        points, camera, detected = rec.face_embedding(), rec.camera(), rec.h5["face_points"][:]
+        split = rec.h5["split"][:]
+        fit = {k: torch.from_numpy(p[k]).double() for k in ("betas", "poses", "transl", "expression")}
+        names = [str(n) for n in p["expression_names"]]
+    kept = list(LandmarkEmbedding.load(embedding_path, body.num_vertices).landmarks)
+    n = len(detected)
+    with torch.no_grad():
+        verts = lbs(
+            body, fit["betas"][None].expand(n, -1), fit["poses"], fit["expression"], transl=fit["transl"]
+        ).vertices
+        uv = torch.stack([camera.project(points(verts[i : i + 1]).to(camera.K.dtype))[0][0] for i in range(n)])
+    err = np.linalg.norm(uv.numpy() - detected[..., :2], axis=-1)
+    err[detected[..., 2] <= 0.5] = np.nan
+    row = {"case": "init_fit", "embedding": label, "landmarks_kept": len(kept), "clip": Path(record).parent.name,
+           "frames": n}  # fmt: skip
+    for part, ids in FIT_PARTS.items():
+        row[f"fit_{part}_px"] = round(float(np.nanmedian(err[:, [kept.index(i) for i in ids if i in kept]])), 2)
+    for action in ("jawOpen", "mouthClose"):
+        a = fit["expression"][:, names.index(action)].numpy()
+        row[f"{action}_median"] = round(float(np.median(a)), 3)
+        row[f"{action}_held_out_median"] = round(float(np.median(a[split > 0])), 3) if (split > 0).any() else np.nan
+    return row
+
+
 def real_clip(video: Path, tracker) -> dict:
     tracker.reset()
     frames, found, detections, t_track, t_mask = 0, 0, 0, 0.0, 0.0
@@ -120,6 +162,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--resolution", type=int, default=512)
     ap.add_argument("--jaw", type=float, nargs="+", default=[0.0, 0.3, 0.8], help="jawOpen amounts of the views")
+    ap.add_argument("--fit", nargs=4, action="append", default=[], metavar=("LABEL", "RECORD", "PARAMS", "EMBEDDING"),
+                    help="score a clip's init fit (init/params.npz) against its record's face points")  # fmt: skip
     ap.add_argument("--label", help="the embedding's name in the table (default: its file's)")
     ap.add_argument("--append", action="store_true", help="add the rows to --out")
     ap.add_argument("--out", required=True)
@@ -129,12 +173,16 @@ def main() -> None:
     models = Path(args.models)
     tracker = FaceTracker(models / "face_detection_short_range.onnx", models / "face_landmark.onnx")
     rows = held_out(body, embedding, tracker, args.seeds, args.resolution, tuple(args.jaw))
-    rows += [r for r in (jaw_motion(body, embedding),) if r]
+    rows += [r for r in (jaw_motion(body, embedding),) if r and args.seeds]
+    rows += [fit_residuals(body, *f) for f in args.fit]
     if args.real:
         rows += [real_clip(v, tracker) for v in sorted(Path(args.real).glob("head_*.mp4"))]
     table = pd.DataFrame(rows)
-    table.insert(0, "landmarks_kept", len(embedding.landmarks))
-    table.insert(0, "embedding", args.label or Path(args.embedding).name)
+    label = args.label or Path(args.embedding).name
+    named = table.pop("embedding") if "embedding" in table else pd.Series(np.nan, index=table.index, dtype=object)
+    kept = table.pop("landmarks_kept") if "landmarks_kept" in table else pd.Series(np.nan, index=table.index)
+    table.insert(0, "landmarks_kept", kept.fillna(len(embedding.landmarks)).astype(int))
+    table.insert(0, "embedding", named.fillna(label))
     if args.append and Path(args.out).exists():
         table = pd.concat([pd.read_csv(args.out), table], ignore_index=True)
     table.to_csv(args.out, index=False)
