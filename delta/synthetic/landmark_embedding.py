@@ -14,10 +14,10 @@ the detector does not mean.
 
 The calibration faces' mouths are closed, so the inner lips' points (where the lips part) hit where the
 lips meet, the same few millimetres for both lips: the nearest triangle there was the upper lip's for the
-lower lip's points too, which then could not follow the jaw (landmark 14 moved 1.3 mm with a fully open
+lower lip's points too, which then could not follow the jaw (landmark 14 moved 1.4 mm with a fully open
 jaw where the lower lip's outer centre moves 38 mm). A tracker that names its inner lips
 (``inner_lips``: landmark ids by lip) has each placed on the nearest triangle of its own lip, the lower
-lip being what opening the mouth moves (:func:`lower_lip`).
+lip being what opening the mouth moves (:func:`lip_triangles`).
 
 Shapes: L landmarks (468), K kept.
 """

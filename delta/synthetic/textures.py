@@ -72,10 +72,12 @@ class FaceFeatures:
         front = face[(np.abs(face[:, 0]) < 0.01) & (np.abs(face[:, 1] - centre[1]) < 0.01)]
         self.mouth = np.array([0.0, centre[1], front[:, 2].max() if len(front) else centre[2]])
         # the lips' inner rims: face vertices where the mouth's inside begins (None: no mouth region)
-        self.lip_rim = None
+        self.lip_rim, self._rim_tree = None, None
         if len(mouth):
             near = cKDTree(mouth).query(face, distance_upper_bound=LIP_RIM_GAP)[0] < LIP_RIM_GAP
-            self.lip_rim = face[near] if near.any() else None
+            if near.any():
+                self.lip_rim = face[near]
+                self._rim_tree = cKDTree(self.lip_rim)
 
     def lips(self, points: np.ndarray) -> np.ndarray:
         """(P,) bool: the points on the lips, within :data:`LIP_REACH` of their inner rims (less towards the
@@ -83,7 +85,7 @@ class FaceFeatures:
         if self.lip_rim is None:
             d = points - self.mouth
             return ((d[:, 0] / 0.026) ** 2 + (d[:, 1] / 0.009) ** 2 < 1.0) & (d[:, 2] > -0.02)
-        distance = cKDTree(self.lip_rim).query(points)[0]
+        distance = self._rim_tree.query(points)[0]
         corner = 1.15 * np.abs(self.lip_rim[:, 0]).max()
         reach = LIP_REACH * np.sqrt(np.clip(1 - (points[:, 0] / corner) ** 2, 0.12, 1))
         return distance < reach
