@@ -14,12 +14,17 @@ from delta.body.model import REGION
 from delta.loss_weights import LossWeights
 
 
+def huber_each(x: torch.Tensor, delta: float = 0.1) -> torch.Tensor:
+    """The Huber penalty of each residual of x: x²/2 for |x| ≤ δ, δ(|x| - δ/2) beyond."""
+    a = x.abs()
+    return torch.where(a <= delta, 0.5 * a * a, delta * (a - 0.5 * delta))
+
+
 def huber(x: torch.Tensor, delta: float = 0.1) -> torch.Tensor:
-    """Mean Huber penalty of residuals x: x²/2 for |x| ≤ δ, δ(|x| - δ/2) beyond (0 for an empty x)."""
+    """Mean Huber penalty of residuals x (:func:`huber_each`; 0 for an empty x)."""
     if x.numel() == 0:
         return x.sum()
-    a = x.abs()
-    return torch.where(a <= delta, 0.5 * a * a, delta * (a - 0.5 * delta)).mean()
+    return huber_each(x, delta).mean()
 
 
 def pixel(rgb: torch.Tensor, target: torch.Tensor, delta: float = 0.1) -> torch.Tensor:
@@ -109,8 +114,7 @@ def face_points(uv: torch.Tensor, target: torch.Tensor, confidence: torch.Tensor
                 delta: float = FACE_DELTA) -> torch.Tensor:  # fmt: skip
     """Σ_k c_k h(‖uv_k − t_k‖ / size) / Σ_k c_k, h the Huber penalty (δ ``delta``): (K, 2) projected face
     points against (K, 2) detected ones in pixels, weighted by their (K,) confidences (0 with none)."""
-    r = torch.linalg.vector_norm(uv - target, dim=-1) / size
-    h = torch.where(r <= delta, 0.5 * r * r, delta * (r - 0.5 * delta))
+    h = huber_each(torch.linalg.vector_norm(uv - target, dim=-1) / size, delta)
     w = confidence.to(h.dtype)
     return (w * h).sum() / w.sum().clamp_min(torch.finfo(h.dtype).tiny)
 
