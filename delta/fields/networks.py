@@ -178,16 +178,23 @@ class LayeredNeRF(nn.Module):
         return min(layer.color_cell() for layer in self.layers.values())
 
 
+def colour_logit(colour: torch.Tensor) -> torch.Tensor:
+    """The raw output whose sigmoid is ``colour`` (clamped to [0.02, 0.98]: a finite, trainable start)."""
+    c = colour.float().clamp(0.02, 0.98)
+    return torch.log(c / (1 - c))
+
+
 class VertexField(nn.Module):
     """F_d (offsets) or F_t (albedo): canonical template vertex -> (V, C), with an optional free
     per-vertex detail of the raw output (``FieldSpec.vertex_detail``).
 
     ``kind="offset"``: tanh(raw) · scale, starting at exactly 0; ``kind="albedo"``: sigmoid(raw),
-    starting at ``init`` (e.g. the subject's average skin colour).
+    starting at ``init`` (e.g. the subject's average skin colour), or per vertex at ``init`` moved by
+    ``prior`` (V, 3), a fixed addition to the raw output (derived where the field is built, not saved).
     """
 
     def __init__(self, spec: FieldSpec, bounds: torch.Tensor, kind: str, scale: float = 0.04,
-                 init: torch.Tensor | None = None, num_vertices: int = 0):  # fmt: skip
+                 init: torch.Tensor | None = None, num_vertices: int = 0, prior: torch.Tensor | None = None):  # fmt: skip
         super().__init__()
         if kind not in ("offset", "albedo"):
             raise ValueError(f"unknown vertex field kind '{kind}'")
@@ -197,12 +204,15 @@ class VertexField(nn.Module):
         self.encoding, self.head = _encoder_and_head(spec, bounds, 3)
         # (V, 3) per-vertex detail of the raw output (FieldSpec.vertex_detail), or None
         self.detail = nn.Parameter(torch.zeros(num_vertices, 3)) if spec.vertex_detail else None
+        if prior is not None and tuple(prior.shape) != (num_vertices, 3):
+            raise ValueError(f"prior: shape {tuple(prior.shape)}, expected ({num_vertices}, 3)")
+        # (V, 3) fixed raw addition per vertex, or None
+        self.register_buffer("prior", None if prior is None else prior.float().clone(), persistent=False)
         with torch.no_grad():
             self.head.out.weight.zero_()  # start exactly at zero offsets / the init colour
             self.head.out.bias.zero_()
             if init is not None:
-                c = init.float().clamp(0.02, 0.98)
-                self.head.out.bias.copy_(torch.log(c / (1 - c)))
+                self.head.out.bias.copy_(colour_logit(init))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """(V, 3) values at the mesh's vertices ``x`` (V, 3), in vertex order when the field has detail. The
@@ -214,6 +224,10 @@ class VertexField(nn.Module):
                     f"{len(x)} points: a field with per-vertex detail reads its {len(self.detail)} vertices"
                 )
             raw = raw + self.detail
+        if self.prior is not None:
+            if len(x) != len(self.prior):
+                raise ValueError(f"{len(x)} points: a field with a prior reads its {len(self.prior)} vertices")
+            raw = raw + self.prior
         return torch.tanh(raw) * self.scale if self.kind == "offset" else torch.sigmoid(raw)
 
 

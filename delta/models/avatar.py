@@ -15,11 +15,11 @@ import torch
 from torch import nn
 
 from delta.body.lbs import batch_rodrigues, lbs, posed_joints
-from delta.body.model import BodyModel
+from delta.body.model import REGION, BodyModel
 from delta.body.parts import head_vertices, lower_body_vertices
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.deformers import knn as deformer
-from delta.fields.networks import DeformationField, LayeredNeRF, NeRFField, VertexField, time_features
+from delta.fields.networks import DeformationField, LayeredNeRF, NeRFField, VertexField, colour_logit, time_features
 from delta.geometry.distance_grid import GRID_REACH
 from delta.losses import mesh_edges
 from delta.render.hybrid import PosedMesh, RayRender, render_rays, room_margin
@@ -51,6 +51,25 @@ def knn_vertex_ids(body: BodyModel, which: str) -> torch.Tensor:
     if which != "base":
         raise ValueError(f"render.knn_vertices: '{which}' (expected 'base' or 'all')")
     return torch.nonzero(body.embed_bary.max(1).values > 1 - 1e-6).squeeze(1)
+
+
+def mouth_prior(body: BodyModel, skin_color: torch.Tensor, shade: float) -> Optional[torch.Tensor]:
+    """(V, 3) raw addition to the albedo field that starts the mouth's inside (the body's ``mouth`` region:
+    cavity and tongue) at ``shade`` × the skin colour, zeros elsewhere; None where the body has no mouth
+    region or ``shade`` is 1 (the skin colour everywhere).
+
+    No loss sees the inside of a mouth that no training frame opens; a held-out frame that opens it shows
+    what the field holds there: its start, moved only as the lips' training moves their neighbours. Lit
+    from outside, the inside is in shadow.
+    """
+    mouth = body.regions == REGION["mouth"]
+    if shade >= 1.0 or not bool(mouth.any()):
+        return None
+
+    skin = skin_color.float().cpu()
+    prior = torch.zeros(body.num_vertices, 3)
+    prior[mouth.cpu()] = colour_logit(skin * shade) - colour_logit(skin)
+    return prior
 
 
 def _box(points: torch.Tensor, margin: float) -> torch.Tensor:
@@ -113,7 +132,8 @@ class HybridAvatar(nn.Module):
         tbox = _box(template if framed is None else template[region], 0.05)
         nv = body.num_vertices
         self.offset_field = VertexField(spec.offsets, tbox, "offset", spec.offset_scale, num_vertices=nv)
-        self.albedo_field = VertexField(spec.albedo, tbox, "albedo", init=skin_color, num_vertices=nv)
+        self.albedo_field = VertexField(spec.albedo, tbox, "albedo", init=skin_color, num_vertices=nv,
+                                        prior=mouth_prior(body, skin_color, spec.mouth_shade))  # fmt: skip
         # the canonical fields' box holds the exterior's whole room (a decided max_dist may exceed the margin)
         nbox = _box(self.canonical_vertices[region], room_margin(spec.nerf_margin, spec.render.max_dist))
         self.nerf = None

@@ -22,6 +22,9 @@ class AvatarSpec:
     """F_e; None in stage 1."""
     offset_scale: float = 0.04
     """Largest offset (m)."""
+    mouth_shade: float = 1.0
+    """The albedo of the mouth's inside starts at this fraction of the skin colour (1: the skin colour;
+    :func:`delta.models.avatar.mouth_prior`)."""
     nerf_margin: float = 0.3
     """The NeRF's box: the canonical template's box plus this margin (m)."""
     deformation_scale: float = 0.05

@@ -116,7 +116,7 @@ _STAGE_DEFAULTS = {
 }  # fmt: skip
 _COMMON = {
     "seed": 0, "background": [1.0, 1.0, 1.0], "box_margin": 0.1, "offset_scale": 0.04, "nerf_margin": 0.3,
-    "semantic": "idmrf", "exterior": "auto", "weights": {}, "render": {}, "stage1": {}, "stage2": {},
+    "mouth_shade": 0.3, "semantic": "idmrf", "exterior": "auto", "weights": {}, "render": {}, "stage1": {}, "stage2": {},
     "capture": "auto", "layers": "one", "clothing_on_head": "yes", "freeze": [], "freeze_rest": -1.0, "dynamics": {"time_freqs": 0, "dropout": 0.2, "pose_knots": 0},
 }  # fmt: skip
 
@@ -279,7 +279,7 @@ _FIELD_RANGES = {"num_freqs": (0, 32, _INT), "levels": (1, 32, _INT), "features"
 #: stand for every name at that level.
 RANGES = {
     "resolution": (16, 4096, _INT), "seed": (0, None, _INT), "box_margin": (0, 10, _NUM), "offset_scale": (0, 1, _NUM),
-    "nerf_margin": (0, 10, _NUM), "freeze_rest": (None, None, _NUM),
+    "mouth_shade": (0, 1, _NUM), "nerf_margin": (0, 10, _NUM), "freeze_rest": (None, None, _NUM),
     "render.samples": (1, 1024, _INT), "render.k": (1, 64, _INT), "render.contact_cell": (0, 1, _NUM), "render.sigma": (1e-6, None, _NUM),
     "render.max_dist": (1e-6, None, _NUM), "render.sil_sigma": (1e-6, None, _NUM), "render.sil_k": (1, 256, _INT),
     "render.probe": (1, 4096, _INT), "render.probe_cell": (1e-5, 1, _NUM), "render.box_margin": (0, 10, _NUM),
@@ -416,7 +416,8 @@ def _resolve(preset: str, *overrides: dict) -> TrainSettings:
     except TypeError as err:
         raise DeltaError(f"training settings: {err}") from None
     avatar = AvatarSpec(nerf=_fields(d, "nerf"), offsets=_fields(d, "offsets"), albedo=_fields(d, "albedo"),
-                        deformation=None, offset_scale=d["offset_scale"], nerf_margin=d["nerf_margin"],
+                        deformation=None, offset_scale=d["offset_scale"], mouth_shade=float(d["mouth_shade"]),
+                        nerf_margin=d["nerf_margin"],
                         render=render, time_freqs=int(dyn["time_freqs"]), pose_knots=knots)  # fmt: skip
     if d["capture"] not in ("auto", "full", "upper"):
         raise DeltaError(f"training.capture: '{d['capture']}' (expected auto, full or upper)")

@@ -107,10 +107,11 @@ def clothing_off_head(body, st: TrainSettings, init: InitParams, data: FrameData
 
 def scoped(spec: AvatarSpec, scope: dict) -> AvatarSpec:
     """``spec`` with a scope's capture, frozen joints and exterior layers (and whether its clothing is barred
-    from the head)."""
+    from the head, and where a trained model gives it, the mouth's shade it was trained with)."""
     return dataclasses.replace(spec, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]),
                                layers=tuple(scope.get("layers", ())),
-                               clothing_off_head=bool(scope.get("clothing_off_head", False)))  # fmt: skip
+                               clothing_off_head=bool(scope.get("clothing_off_head", False)),
+                               mouth_shade=float(scope.get("mouth_shade", spec.mouth_shade)))  # fmt: skip
 
 
 def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, stage: int, device,
@@ -209,7 +210,7 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
 
 
 #: The layout of ``model.pt`` this code writes; :func:`migrate_model` brings older files up to it.
-MODEL_FORMAT = 2
+MODEL_FORMAT = 3
 
 
 def save_model(path: str | Path, model: HybridAvatar, stage: int, preset: str, st: TrainSettings, steps: int) -> None:
@@ -229,7 +230,8 @@ def migrate_model(state: dict, path: str | Path) -> dict:
 
     Format 1 (no ``format`` key) predates the dynamics settings, the capture scope and, in its
     oldest files, the occupancy grid: such a model was trained without time input to F_e, without
-    a pose trajectory, on the full body, with every joint free and no occupancy grid.
+    a pose trajectory, on the full body, with every joint free and no occupancy grid. Formats 1 and 2
+    predate the mouth's prior: their mouth's inside started at the skin colour (``mouth_shade`` 1).
     """
     version = state.get("format", 1)
     if not isinstance(version, int) or not 1 <= version <= MODEL_FORMAT:
@@ -249,12 +251,15 @@ def migrate_model(state: dict, path: str | Path) -> dict:
         state["settings"] = settings
         state.setdefault("capture", "full")
         state.setdefault("frozen_joints", [])
+    if version < 3:
+        state = dict(state, format=MODEL_FORMAT)
+        state["settings"] = dict(state["settings"], mouth_shade=state["settings"].get("mouth_shade", 1.0))
     return state
 
 
 def _scope(state: dict, path: str | Path = "model.pt", num_vertices: int | None = None) -> dict:
-    """The capture, frozen joints, exterior layers and framed vertices a (migrated) model.pt was trained
-    with; a file written before the framed vertices were kept has its boxes as they were trained (the
+    """The capture, frozen joints, exterior layers, framed vertices and mouth shade a (migrated) model.pt was
+    trained with; a file written before the framed vertices were kept has its boxes as they were trained (the
     vertex fields' around the whole template, the exterior's around every modelled vertex).
     ``num_vertices``: the body model's, which the framed vertices must match."""
     framed = state.get("framed")
@@ -267,7 +272,8 @@ def _scope(state: dict, path: str | Path = "model.pt", num_vertices: int | None 
         framed = framed.cpu().bool()
     return {"capture": state["capture"], "frozen_joints": list(state["frozen_joints"]),
             "layers": list(state.get("layers", [])),
-            "clothing_off_head": bool(state.get("clothing_off_head", False)), "framed": framed}  # fmt: skip
+            "clothing_off_head": bool(state.get("clothing_off_head", False)), "framed": framed,
+            "mouth_shade": float(state.get("settings", {}).get("mouth_shade", 1.0))}  # fmt: skip
 
 
 def load_init_from_state(state: dict, data: FrameData) -> InitParams:

@@ -69,6 +69,9 @@ def test_model_format_migration():
     assert new["format"] == MODEL_FORMAT and new["capture"] == "full" and new["frozen_joints"] == []
     assert new["settings"]["dynamics"] == {"dropout": 0.2, "time_freqs": 0, "pose_knots": 0}
     assert new["settings"]["render"]["occupancy"]["enabled"] is False  # no grid in the file: none is built
+    assert new["settings"]["mouth_shade"] == 1.0  # the mouth's inside started at the skin colour
+    second = {**old, "format": 2, "settings": {"dynamics": {"time_freqs": 0, "pose_knots": 0}, "mouth_shade": 0.5}}
+    assert migrate_model(second, "second.pt")["settings"]["mouth_shade"] == 0.5  # a user's own value stands
     assert migrate_model(new, "new.pt") == new
     with pytest.raises(DeltaError, match="model format 99"):
         migrate_model({**new, "format": 99}, "future.pt")
