@@ -58,6 +58,22 @@ SCORES = ("source", "preset", "image", "resolution", "train_resolution", "backgr
           "train_body_err_mm", "clothing_chamfer_mm")  # fmt: skip
 
 
+def without_subjects(applications: dict, dropped: set[str]) -> dict:
+    """The config's ``applications`` without what names a dropped People Snapshot subject: an avatar's jobs
+    (``<application>.avatars``), a motion or an exterior taken from it, and the jobs that use those."""
+    gone = {f"peoplesnapshot/{s}" for s in dropped}
+    out = dict(applications)
+    for kind in ("motions", "exteriors"):
+        taken = out.get(kind) or {}
+        out[kind] = {name: src for name, src in taken.items() if str(src).split(":")[0] not in gone}
+        gone |= set(taken) - set(out[kind])
+    for name, section in out.items():
+        if isinstance(section, dict) and isinstance(section.get("avatars"), dict):
+            kept = {a: [x for x in uses if x not in gone] for a, uses in section["avatars"].items() if a not in gone}
+            out[name] = dict(section, avatars={a: uses for a, uses in kept.items() if uses})
+    return out
+
+
 def extra_config(work: Path, subjects: list[str] | None, preset: str | None, reuse: bool) -> list[str]:
     """``--configfile`` arguments for what the options change (none for the plain default)."""
     extra: dict = {}
@@ -68,6 +84,7 @@ def extra_config(work: Path, subjects: list[str] | None, preset: str | None, reu
         if unknown:
             sys.exit(f"--subjects: {unknown} are not declared in config/config.yaml ({sorted(declared)})")
         main["datasets"]["peoplesnapshot"]["subjects"] = {s: declared[s] for s in subjects}
+        main["applications"] = without_subjects(main.get("applications", {}), set(declared) - set(subjects))
         (work / "config/config.yaml").write_text(yaml.safe_dump(main, sort_keys=False))
     if preset:
         extra["preset"] = preset
