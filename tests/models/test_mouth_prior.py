@@ -9,7 +9,7 @@ import torch
 from delta.body.model import REGION
 from delta.models.avatar import HybridAvatar, mouth_prior
 from delta.training.presets import resolve
-from delta.training.run import load_trained
+from delta.training.run import _scope, load_trained, scoped
 from tests.test_extremes import blob_body
 from tests.training.test_expressions import init
 
@@ -55,14 +55,25 @@ def test_a_body_without_a_mouth_gets_no_prior_and_the_prior_is_not_saved():
     assert not any("prior" in k for k in model.state_dict())
 
 
-def test_the_prior_is_a_gradient_free_start_training_moves_away_from():
-    """The inside's colour is learned where a frame shows it: the prior is a fixed addition, the field's
-    gradient at a mouth vertex the same as without it but for the sigmoid's slope."""
+def test_the_prior_is_a_fixed_start_training_moves_away_from():
+    """The inside's colour is learned where a frame shows it: the prior is a fixed addition, so the field's
+    gradient there is the sigmoid's slope at the shaded colour (a fresh field's raw output is its bias)."""
     body = blob_body()
     model = fresh(body)
     assert not model.albedo_field.prior.requires_grad
-    model.albedo()[body.regions == REGION["mouth"]].sum().backward()
-    assert model.albedo_field.head.out.bias.grad.abs().sum() > 0
+    mouth = body.regions == REGION["mouth"]
+    model.albedo()[mouth].sum().backward()
+    c = resolve("fast").avatar.mouth_shade * SKIN
+    torch.testing.assert_close(model.albedo_field.head.out.bias.grad, int(mouth.sum()) * c * (1 - c), rtol=1e-4, atol=0)
+
+
+def test_stage_two_keeps_the_shade_stage_one_was_trained_with():
+    spec = resolve("fast").avatar
+    for written, kept in ((0.5, 0.5), (None, 1.0)):  # a file's own shade; a file without one: the skin's
+        settings = {} if written is None else {"mouth_shade": written}
+        scope = _scope({"capture": "upper", "frozen_joints": [], "settings": settings})
+        assert scope["mouth_shade"] == kept and scoped(spec, scope).mouth_shade == kept
+    assert scoped(spec, {"capture": "full", "frozen_joints": []}).mouth_shade == spec.mouth_shade  # a fresh stage 1
 
 
 @pytest.mark.parametrize("written_before", [False, True])
