@@ -35,7 +35,7 @@ from delta.body.lbs import lbs
 from delta.body.model import load_body_model
 from delta.data.record import FrameRecord
 from delta.data.video import iter_video
-from delta.preprocess.face_tracking import FaceTracker, head_mask
+from delta.preprocess.face_tracking import INNER_LIP_CONTOUR, FaceTracker, head_mask
 from delta.synthetic.landmark_embedding import View, render_head
 
 HELD_OUT = ((-25, 0), (-12, 6), (0, -12), (8, 10), (18, -4), (30, 0))
@@ -97,7 +97,7 @@ def jaw_motion(body, embedding) -> dict:
 
 #: MediaPipe face-mesh points by part of the face, for the init fit's residuals
 FIT_PARTS = {
-    "lips_inner": (78, 191, 80, 81, 82, 13, 312, 311, 310, 415, 308, 95, 88, 178, 87, 14, 317, 402, 318, 324),
+    "lips_inner": INNER_LIP_CONTOUR,
     "lips_outer": (61, 185, 40, 39, 37, 0, 267, 269, 270, 409, 291, 146, 91, 181, 84, 17, 314, 405, 321, 375),
     "eyes": (33, 7, 163, 144, 145, 153, 154, 155, 133, 246, 161, 160, 159, 158, 157, 173,
              263, 249, 390, 373, 374, 380, 381, 382, 362, 466, 388, 387, 386, 385, 384, 398),

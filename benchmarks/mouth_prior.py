@@ -38,14 +38,11 @@ from delta.eval.settings import EvalSettings
 from delta.geometry.raymesh import ray_mesh_hits
 from delta.models.avatar import HybridAvatar, mouth_prior
 from delta.models.image import pixel_grid
-from delta.preprocess.face_tracking import INNER_LIPS
+from delta.preprocess.face_tracking import INNER_LIP_CONTOUR
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from table import save_table, trained_model_arguments  # noqa: E402
-
-#: the inner-lip contour as a closed polygon: corner 78, the upper inner lip, corner 308, the lower back
-CONTOUR = (78, *INNER_LIPS["upper"], 308, *INNER_LIPS["lower"][::-1])
 
 
 def mouth_colours(record: str | Path, min_area: int) -> list[dict]:
@@ -56,7 +53,7 @@ def mouth_colours(record: str | Path, min_area: int) -> list[dict]:
         split = h5["split"][:]
         found = {}
         for i in range(len(split)):
-            points = h5["face_landmarks"][i][list(CONTOUR), :2]
+            points = h5["face_landmarks"][i][list(INNER_LIP_CONTOUR), :2]
             if not np.isfinite(points).all():
                 continue
             mask = np.zeros(h5["images"].shape[1:3], np.uint8)
@@ -82,7 +79,11 @@ def mouth_colours(record: str | Path, min_area: int) -> list[dict]:
 @torch.no_grad()
 def seen_vertices(model: HybridAvatar, frames, stride: int = 2) -> torch.Tensor:
     """(V,) bool: the vertices of the triangles that a ray through every ``stride``-th pixel of one of
-    ``frames`` hits first (the body alone: an exterior does not cover the inside of a mouth)."""
+    ``frames`` hits first (the body alone: an exterior does not cover the inside of a mouth).
+
+    Not :func:`delta.eval.geometry.visible_vertices` (a clear line of sight to the vertex): what training
+    reaches is what its pixel rays hit, and through a lip gap narrower than a pixel a vertex can be in
+    sight and still meet no ray."""
     seen = torch.zeros(model.body.num_vertices, dtype=torch.bool, device=model.background.device)
     pixels = pixel_grid(model.resolution // stride, device=seen.device) * stride
     offsets = model.offsets()
@@ -115,15 +116,15 @@ def main() -> None:
     prior = prior.to(seen.device)
     st = EvalSettings(splits=tuple(a.splits), max_frames=a.max_frames, refine_steps=0, supersample=a.supersample,
                       perceptual_dir=a.perceptual_dir, worst=0)  # fmt: skip
-    for variant, added in (("as trained", None), ("prior at the unseen mouth", prior * (~seen)[:, None]),
-                           ("prior at every mouth vertex", prior)):  # fmt: skip
-        if added is not None and own is not None:
-            continue  # trained with a prior: it is there already
-        model.albedo_field.prior = added if own is None else own
+    variants = [("as trained", own)]
+    if own is None:  # trained without a prior: add it, where unseen and everywhere
+        variants += [("prior at the unseen mouth", prior * (~seen)[:, None]), ("prior at every mouth vertex", prior)]
+    for variant, added in variants:
+        model.albedo_field.prior = added
         df = evaluate(trained, a.record, st, subject=a.subject)
         for split, part in df.groupby("split"):
             rows.append({"kind": "score", "subject": a.subject, "split": split, "variant": variant, "frames": len(part),
-                         "shade": a.shade if added is not None else None,
+                         "shade": None if added is None else model.spec.mouth_shade if own is not None else a.shade,
                          "mouth_vertices": int(mouth.sum()), "mouth_seen": int((mouth & seen).sum()),
                          **{k: round(float(part[k].mean()), 4) for k in
                             ("psnr", "ssim", "stlpips_alex", "psnr_face", "psnr_head", "l1_face") if k in part}})  # fmt: skip

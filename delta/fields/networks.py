@@ -218,16 +218,12 @@ class VertexField(nn.Module):
         """(V, 3) values at the mesh's vertices ``x`` (V, 3), in vertex order when the field has detail. The
         vertices are the template's, the same every call: their encoding is kept (``at_fixed``)."""
         raw = self.head(self.encoding.at_fixed(x))
-        if self.detail is not None:
-            if len(x) != len(self.detail):
-                raise ValueError(
-                    f"{len(x)} points: a field with per-vertex detail reads its {len(self.detail)} vertices"
-                )
-            raw = raw + self.detail
-        if self.prior is not None:
-            if len(x) != len(self.prior):
-                raise ValueError(f"{len(x)} points: a field with a prior reads its {len(self.prior)} vertices")
-            raw = raw + self.prior
+        per_vertex = [t for t in (self.detail, self.prior) if t is not None]
+        if per_vertex:
+            if len(x) != len(per_vertex[0]):
+                raise ValueError(f"{len(x)} points: a field with per-vertex detail or a prior reads its "
+                                 f"{len(per_vertex[0])} vertices")  # fmt: skip
+            raw = raw + sum(per_vertex)
         return torch.tanh(raw) * self.scale if self.kind == "offset" else torch.sigmoid(raw)
 
 

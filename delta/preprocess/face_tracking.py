@@ -37,6 +37,8 @@ MIN_SCORE = 0.5
 #: ``lipsLowerInner`` without the shared corners 78 and 308): where a closed mouth's lips meet, each on its
 #: own lip (:func:`delta.synthetic.landmark_embedding.calibrate` places them so)
 INNER_LIPS = {"upper": (191, 80, 81, 82, 13, 312, 311, 310, 415), "lower": (95, 88, 178, 87, 14, 317, 402, 318, 324)}
+#: the inner lips' contour as a closed polygon: corner 78, the upper inner lip, corner 308, the lower one back
+INNER_LIP_CONTOUR = (78, *INNER_LIPS["upper"], 308, *INNER_LIPS["lower"][::-1])
 #: a face box is enlarged this much to make the landmark model's crop (MediaPipe's own factor)
 CROP_SCALE = 1.5
 
