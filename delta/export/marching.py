@@ -6,8 +6,21 @@ import dataclasses
 from typing import Callable
 
 import numpy as np
+import torch
+import trimesh
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from skimage import measure
+
+from delta.geometry.sight import seen_along, view_ring
+
+#: the views that decide the outside of an exterior surface (:func:`hidden_faces`): from the side and from
+#: above (degrees looking down), as cameras see a standing person; none from below, where a capture's camera
+#: does not look from and only the NeRF's underside (a hem's, a sleeve's) faces
+OUTSIDE_ELEVATIONS = (0.0, 30.0, 60.0)
+#: a face counts as facing a view where its normal turns at least this far (cos of 80 degrees) towards it
+OUTSIDE_FACING = 0.17
 
 
 @dataclasses.dataclass
@@ -71,10 +84,45 @@ def skin_faces(vertices: np.ndarray, faces: np.ndarray, body: np.ndarray, normal
     """
     if len(faces) == 0:
         return np.zeros(0, dtype=bool)
-    tri = vertices[faces]
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    _, idx, side = nearest_side(tri.mean(1), body, normals)
+    normal, _ = face_normals(vertices, faces)
+    _, idx, side = nearest_side(vertices[faces].mean(1), body, normals)
     return ((normal * normals[idx]).sum(-1) < 0) & (side < depth)
+
+
+def face_normals(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(F, 3) unit normals (counter-clockwise seen from outside) and (F,) areas of a triangle mesh."""
+    tri = vertices[faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    length = np.linalg.norm(cross, axis=-1)
+    return cross / np.maximum(length, 1e-20)[:, None], length / 2
+
+
+def hidden_faces(vertices: np.ndarray, faces: np.ndarray, body: np.ndarray, body_faces: np.ndarray,
+                 azimuths: int, tol: float, keep_area: float) -> np.ndarray:  # fmt: skip
+    """(F,) bool: the faces of an exterior surface that no outside view sees, in regions of ``keep_area`` (m²)
+    or more.
+
+    The views are parallel, ``azimuths`` turns about the up axis (y) at each of ``OUTSIDE_ELEVATIONS``; the
+    surface and the ``body`` (its vertices (B, 3), ``body_faces``) hide it. A face is seen where its centre is
+    (:func:`delta.geometry.sight.seen_along`, within ``tol`` metres, facing the view by ``OUTSIDE_FACING``).
+    The NeRF's density fills what lies between a loose garment and the body, so its level set has walls
+    inside the garment (under a skirt, beside the legs) and a cap under its hem that a one-sheet garment
+    lacks; no view from outside reaches them. Smaller hidden patches (a fold's floor, a crease) stay.
+    """
+    if len(faces) == 0 or azimuths == 0:
+        return np.zeros(len(faces), dtype=bool)
+    normals, area = face_normals(vertices, faces)
+    mesh_v = torch.from_numpy(np.concatenate([vertices, body]))
+    mesh_f = torch.from_numpy(np.concatenate([faces, body_faces + len(vertices)]).astype(np.int64))
+    centres = torch.from_numpy(vertices[faces].mean(1))
+    dirs = view_ring(azimuths, OUTSIDE_ELEVATIONS)
+    hidden = ~seen_along(centres, torch.from_numpy(normals), mesh_v, mesh_f, dirs, tol, OUTSIDE_FACING).numpy()
+    pairs = trimesh.graph.face_adjacency(faces)
+    pairs = pairs[hidden[pairs].all(1)]
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(faces), len(faces)))
+    _, label = connected_components(graph, directed=False)
+    region_area = np.bincount(label, weights=area * hidden, minlength=label.max() + 1)
+    return hidden & (region_area[label] >= keep_area)
 
 
 def sample(grid: Grid, field: Callable[[np.ndarray], np.ndarray], mask: np.ndarray | None = None,

@@ -30,6 +30,9 @@ from delta.io import atomic_path
 from delta.models.avatar import HybridAvatar
 
 
+#: hidden patches of the exterior's surface narrower than this many grid cells stay (a fold's floor)
+HIDDEN_CELLS = 4
+
 #: the file of one exterior layer's mesh (``space``: nerf_space or canonical), beside the whole exterior's
 #: clothing_{space}.ply (a layer named clothing must not overwrite it)
 LAYER_MESH = "layer_{layer}_{space}.ply"
@@ -162,7 +165,8 @@ def clothing_nerf_space(model: HybridAvatar, settings: ExportSettings, longest_e
                         layer: str | None = None) -> MeshPart:  # fmt: skip
     """The clothing/hair surface {σ = threshold} in the NeRF's canonical space (one ``layer``'s of a layered
     NeRF) as a sheet, as a garment is: without the wall the density grid's cut at the skin makes
-    (:func:`marching.skin_faces`); cleaned, NeRF colours read at its vertices after edges longer than
+    (:func:`marching.skin_faces`) nor the walls no view from outside sees (:func:`marching.hidden_faces`,
+    ``settings.outside_views``); cleaned, NeRF colours read at its vertices after edges longer than
     ``longest_edge`` (m; 0: none) are split."""
     if model.nerf is None:
         raise ValueError("the avatar has no NeRF (no clothing or hair was modelled)")
@@ -170,6 +174,9 @@ def clothing_nerf_space(model: HybridAvatar, settings: ExportSettings, longest_e
     values, grid = density_grid(model, settings, layer, surface)
     verts, faces = marching.extract_surface(values, grid, settings.threshold)
     faces = faces[~marching.skin_faces(verts, faces, *surface, grid.spacing)]
+    body_faces = model.body.faces.cpu().numpy().astype(np.int64)
+    faces = faces[~marching.hidden_faces(verts, faces, surface[0], body_faces, settings.outside_views,
+                                         grid.spacing / 2, (HIDDEN_CELLS * grid.spacing) ** 2)]  # fmt: skip
     if len(faces):
         verts, faces = split_long_edges(*clean(verts, faces, settings), longest_edge)
     else:

@@ -28,6 +28,10 @@ class ExportSettings:
     """Longest edge of the clothing/hair mesh, in the capture's pixels at the person's distance, where
     the NeRF's colours are read at its vertices: longer edges are split, down to half the NeRF colour
     grid's finest cell (finer sampling shows nothing the model holds). 0: the decimated mesh as is."""
+    outside_views: int = _f(default=12, metadata={"minimum": 0, "maximum": 360})
+    """Views around the body (at each of a side view and two from above) that decide the clothing/hair
+    surface's outside: the faces none of them sees (the NeRF's walls under a skirt, beside the legs, the cap
+    under a hem) are left out, so the surface is a sheet as a garment is. 0: the level set's closed surface."""
     min_component_faces: int = _f(default=200, metadata={"minimum": 0})
     """Connected components of the clothing mesh with fewer faces are removed (floaters)."""
     turntable_frames: int = _f(default=36, metadata={"minimum": 2, "maximum": 720})
@@ -53,7 +57,17 @@ PARTS = ("meshes", "videos", "all")
 #: The settings each part reads; each workflow job is given only its part's, so that a change to the
 #: videos does not make the meshes again (nor rerun the evaluation that reads them).
 PART_FIELDS = {
-    "meshes": ("grid", "threshold", "smooth", "decimate", "color_spacing", "min_component_faces", "chunk", "fps"),
+    "meshes": (
+        "grid",
+        "threshold",
+        "smooth",
+        "decimate",
+        "color_spacing",
+        "outside_views",
+        "min_component_faces",
+        "chunk",
+        "fps",
+    ),
     "videos": ("turntable_frames", "fps", "novel_frames", "sidebyside"),
 }
 

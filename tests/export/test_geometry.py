@@ -77,6 +77,42 @@ def test_the_wall_the_mask_makes_on_the_skin_is_told_from_the_garment():
     assert marching.skin_faces(verts, faces[:0], body.vertices, body.vertex_normals, grid.spacing).shape == (0,)
 
 
+def test_the_walls_no_outside_view_sees_are_told_from_the_garment():
+    """A skirt over a leg (a vertical cylinder of radius 0.2 m): a waistband on the body (0.25 < y < 0.3) and,
+    below it, a wall standing 0.1 m off the body (0.3 < r < 0.4) down to a hem at y = -0.3. From the side and
+    from above the views see the wall's outside (r = 0.4) and the band's top (y = 0.3); its inside (r = 0.3),
+    the gap's ceiling and the hem's underside face only the body or the ground and are hidden."""
+    body = trimesh.creation.cylinder(radius=0.2, height=2.0, sections=48)
+    body.apply_transform(trimesh.transformations.rotation_matrix(-np.pi / 2, [1, 0, 0]))  # its axis along y
+    grid = marching.make_grid(np.full(3, -0.5), np.full(3, 0.5), 80)
+
+    def density(p):
+        r, y = np.linalg.norm(p[:, [0, 2]], axis=1), p[:, 1]
+        band = (y > 0.25) & (y < 0.3) & (r > 0.2) & (r < 0.4)
+        wall = (y > -0.3) & (y <= 0.25) & (r > 0.3) & (r < 0.4)
+        return 10.0 * (band | wall)
+
+    verts, faces = marching.extract_surface(marching.sample(grid, density, chunk=1 << 16), grid, 5.0)
+    hidden = marching.hidden_faces(verts, faces, body.vertices, body.faces, 12, grid.spacing / 2, 0.01)
+    normals, area = marching.face_normals(verts, faces)
+    c = verts[faces].mean(1)
+    r, y = np.linalg.norm(c[:, [0, 2]], axis=1), c[:, 1]
+    radial = (normals[:, [0, 2]] * c[:, [0, 2]]).sum(1) / np.maximum(r, 1e-9)
+    h = 1.5 * grid.spacing  # away from the shape's edges, where marching cubes bevels
+    outside = (np.abs(r - 0.4) < h) & (radial > 0.9) & (np.abs(y) < 0.3 - h)
+    top = (np.abs(y - 0.3) < h) & (normals[:, 1] > 0.9) & (r > 0.2 + h) & (r < 0.4 - h)
+    inside = (np.abs(r - 0.3) < h) & (radial < -0.9) & (y > -0.3 + h) & (y < 0.25 - h)
+    under = (normals[:, 1] < -0.9) & (np.abs(r - 0.35) < 0.05 - h)  # the gap's ceiling and the hem
+    for part in (outside, top, inside, under):
+        assert part.sum() > 50
+    assert not hidden[outside | top].any()
+    assert hidden[inside | under].all()
+    assert area[hidden].sum() / area.sum() > 0.4  # the inside is as large as the outside
+    # hidden patches smaller than the area kept stay; no views: nothing is hidden
+    assert not marching.hidden_faces(verts, faces, body.vertices, body.faces, 12, grid.spacing / 2, 10.0).any()
+    assert not marching.hidden_faces(verts, faces, body.vertices, body.faces, 0, grid.spacing / 2, 0.01).any()
+
+
 def test_cleaning_drops_small_components_and_decimates():
     big = trimesh.creation.icosphere(subdivisions=4)  # 5120 faces
     small = trimesh.creation.icosphere(subdivisions=0, radius=0.1)  # 20 faces

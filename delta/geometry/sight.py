@@ -1,0 +1,56 @@
+"""Which points of a surface a parallel view sees: the outside of a mesh among occluders.
+
+Shapes: N points, V vertices, F faces, D view directions.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from delta.geometry.raymesh import ray_mesh_hits
+
+
+def view_ring(azimuths: int, elevations_deg, up: int = 1) -> torch.Tensor:
+    """(D, 3) unit view directions (where the view looks) around the axis ``up`` (0, 1, 2): ``azimuths``
+    evenly spaced turns at each elevation of ``elevations_deg`` (degrees; positive looks down towards
+    −up, as a camera above a person does), D = azimuths × len(elevations_deg)."""
+    across = [i for i in range(3) if i != up]
+    dirs = []
+    for e in elevations_deg:
+        e = math.radians(float(e))
+        for k in range(azimuths):
+            a = 2 * math.pi * k / azimuths
+            d = [0.0, 0.0, 0.0]
+            d[across[0]], d[across[1]], d[up] = math.cos(e) * math.sin(a), math.cos(e) * math.cos(a), -math.sin(e)
+            dirs.append(d)
+    return torch.tensor(dirs, dtype=torch.float64)
+
+
+def seen_along(points: torch.Tensor, normals: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor,
+               directions: torch.Tensor, tol: float, facing: float = 0.0) -> torch.Tensor:  # fmt: skip
+    """(N,) bool: the points some view of ``directions`` (D, 3) sees, looking along it from outside the mesh.
+
+    A point is seen along d where its normal faces the view (n · d < −``facing``, ``normals`` (N, 3) unit)
+    and the first face of the mesh (V, 3), (F, 3) on the line towards it along d lies no more than ``tol``
+    before it: the point itself (a face through it) or a face within ``tol`` of it. The mesh holds the points'
+    own surface and whatever may hide it; a point on no face of it is seen where nothing lies before it."""
+    p = points.detach().double()
+    n = normals.detach().double()
+    v = vertices.detach().double()
+    seen = torch.zeros(len(p), dtype=torch.bool, device=p.device)
+    if not len(p):
+        return seen
+    centre = v.mean(0) if len(v) else p.mean(0)
+    reach = float(torch.cat([p, v]).sub(centre).norm(dim=-1).max()) * 2 + 1.0  # from outside everything
+    for d in directions.to(p):
+        d = d / d.norm()
+        todo = ~seen & ((n @ d) < -facing)
+        if not bool(todo.any()):
+            continue
+        q = p[todo]
+        origins = q - reach * d
+        hits = ray_mesh_hits(v, faces, origins, d.expand_as(q).contiguous())
+        seen[todo] = ~hits.hit | (hits.t >= reach - tol)
+    return seen
