@@ -25,7 +25,6 @@ import argparse
 import sys
 from pathlib import Path
 
-import cv2
 import h5py
 import numpy as np
 import pandas as pd
@@ -38,7 +37,7 @@ from delta.eval.settings import EvalSettings
 from delta.geometry.raymesh import ray_mesh_hits
 from delta.models.avatar import HybridAvatar, mouth_prior
 from delta.models.image import pixel_grid
-from delta.preprocess.face_tracking import INNER_LIP_CONTOUR
+from delta.scene.mouth import open_mouths
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -47,24 +46,17 @@ from table import save_table, trained_model_arguments  # noqa: E402
 
 def mouth_colours(record: str | Path, min_area: int) -> list[dict]:
     """Per split, the median colour inside the inner-lip contour of the frames where it encloses at least
-    ``min_area`` pixels (eroded by one), the median skin colour of those frames and the ratio."""
+    ``min_area`` pixels (eroded by one: :func:`delta.scene.mouth.open_mouths`), the median skin colour of
+    those frames (the record's ``skin`` mask) and the ratio."""
     rows = []
     with h5py.File(record, "r") as h5:
         split = h5["split"][:]
         found = {}
-        for i in range(len(split)):
-            points = h5["face_landmarks"][i][list(INNER_LIP_CONTOUR), :2]
-            if not np.isfinite(points).all():
-                continue
-            mask = np.zeros(h5["images"].shape[1:3], np.uint8)
-            cv2.fillPoly(mask, [np.round(points).astype(np.int32)], 1)
-            mask = cv2.erode(mask, np.ones((3, 3), np.uint8)).astype(bool)
-            if mask.sum() < min_area:
-                continue
+        for i, area, colour in open_mouths(record, range(len(split)), min_area):
             image = h5["images"][i].astype(np.float32)
             image = image / 255.0 if h5["images"].dtype == np.uint8 else image
             skin = h5["skin"][i] > 0.5
-            found.setdefault(int(split[i]), []).append((mask.sum(), image[mask].mean(0), np.median(image[skin], 0)))
+            found.setdefault(int(split[i]), []).append((area, colour, np.median(image[skin], 0)))
     for code, items in sorted(found.items()):
         inside = np.median([c for _, c, _ in items], 0)
         skin = np.median([s for _, _, s in items], 0)

@@ -53,17 +53,18 @@ def knn_vertex_ids(body: BodyModel, which: str) -> torch.Tensor:
     return torch.nonzero(body.embed_bary.max(1).values > 1 - 1e-6).squeeze(1)
 
 
-def mouth_prior(body: BodyModel, skin_color: torch.Tensor, shade: float) -> Optional[torch.Tensor]:
+def mouth_prior(body: BodyModel, skin_color: torch.Tensor, shade) -> Optional[torch.Tensor]:
     """(V, 3) raw addition to the albedo field that starts the mouth's inside (the body's ``mouth`` region:
-    cavity and tongue) at ``shade`` × the skin colour, zeros elsewhere; None where the body has no mouth
-    region or ``shade`` is 1 (the skin colour everywhere).
+    cavity and tongue) at ``shade`` × the skin colour (a number, or one a channel), zeros elsewhere; None
+    where the body has no mouth region or ``shade`` is 1 (the skin colour everywhere).
 
     No loss sees the inside of a mouth that no training frame opens; a held-out frame that opens it shows
     what the field holds there: its start, moved only as the lips' training moves their neighbours. Lit
     from outside, the inside is in shadow.
     """
     mouth = body.regions == REGION["mouth"]
-    if shade >= 1.0 or not bool(mouth.any()):
+    shade = torch.as_tensor(shade, dtype=torch.float32).expand(3)
+    if bool((shade >= 1.0).all()) or not bool(mouth.any()):
         return None
 
     skin = skin_color.float().cpu()

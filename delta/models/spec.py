@@ -4,8 +4,10 @@ presets from it before any job starts)."""
 from __future__ import annotations
 
 import dataclasses
-from typing import Optional
+import math
+from typing import Optional, Union
 
+from delta import DeltaError
 from delta.fields.spec import FieldSpec
 from delta.render.settings import RenderSettings
 
@@ -22,9 +24,9 @@ class AvatarSpec:
     """F_e; None in stage 1."""
     offset_scale: float = 0.04
     """Largest offset (m)."""
-    mouth_shade: float = 1.0
-    """The albedo of the mouth's inside starts at this fraction of the skin colour (1: the skin colour;
-    :func:`delta.models.avatar.mouth_prior`)."""
+    mouth_shade: Union[float, tuple[float, float, float]] = 1.0
+    """The albedo of the mouth's inside starts at this fraction of the skin colour, one for all three channels
+    or one each (red, green, blue; 1: the skin colour; :func:`delta.models.avatar.mouth_prior`)."""
     nerf_margin: float = 0.3
     """The NeRF's box: the canonical template's box plus this margin (m)."""
     deformation_scale: float = 0.05
@@ -45,3 +47,14 @@ class AvatarSpec:
     layers: tuple[str, ...] = ()
     """The exterior's layers, each its own NeRF (``clothing``, ``hair``: :class:`LayeredNeRF`); empty:
     one NeRF for the whole exterior."""
+
+
+def shade_value(value, where: str = "training.mouth_shade") -> Union[float, tuple[float, float, float]]:
+    """A mouth shade as the spec holds it: a number, or three (red, green, blue), each in [0, 1]."""
+    many = isinstance(value, (list, tuple))
+    values = list(value) if many else [value]
+    if (many and len(values) != 3) or not all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and 0 <= v <= 1 for v in values
+    ):
+        raise DeltaError(f"{where}: {value!r} (expected a number in [0, 1], or three: red, green, blue)")
+    return tuple(float(v) for v in values) if many else float(value)

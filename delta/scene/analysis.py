@@ -27,7 +27,10 @@ From the frame record (person, clothing and hair masks) and the init fit, before
 - ``weights`` and ``semantic``: for a tracked face (the init fit tracked its expressions: a talking head),
   the paper's head weights where they differ from its body weights (:data:`HEAD_WEIGHTS`: the stage-2
   semantic term 30 times the body's, the hidden skin's pull to the visible skin colour a tenth) and the
-  semantic loss that weight belongs to (:data:`HEAD_SEMANTIC`: the perceptual loss, not the body's ID-MRF).
+  semantic loss that weight belongs to (:data:`HEAD_SEMANTIC`: the perceptual loss, not the body's ID-MRF);
+- ``mouth_shade``: for a tracked face whose training frames open the mouth, the colour inside their inner
+  lips against the skin's, a shade a channel (:mod:`delta.scene.mouth`): the mouth's inside starts at
+  the capture's own colour, not the preset's shadow.
 
 Written to ``results/{dataset}/{subject}/scene.json`` and read by both training stages: a decision
 applies where the user's config does not set that key itself (``training.overrides`` or
@@ -54,6 +57,7 @@ from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import save_json
 from delta.models.image import pixel_grid
 from delta.models.init import load_init
+from delta.scene.mouth import mouth_shade
 from delta.scene.framing import MAX_LOWER_IN_VIEW, frame_camera, lower_body_in_view
 from delta.scene.reach import Beyond, beyond_body, region_reach
 from delta.scene.settings import FRAME_BUDGET, HEAD_SEMANTIC, HEAD_WEIGHTS
@@ -187,6 +191,9 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
     if face:
         decisions["weights"] = dict(HEAD_WEIGHTS)
         decisions["semantic"] = HEAD_SEMANTIC
+        shade, mouth = mouth_shade(record, train, data.skin_color.numpy())
+        if shade is not None:
+            decisions["mouth_shade"] = shade
     evidence = {
         "frames": picked, "size": size,
         "exterior": {"shares": shares, "min_share": MIN_EXTERIOR_FRACTION,
@@ -217,6 +224,8 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
                                "why": f"a tracked face ({init.expression.shape[1]} expression coefficients a "
                                       f"frame): the paper's head weights and its head's semantic loss, "
                                       f"{HEAD_SEMANTIC}"}  # fmt: skip
+    if face:
+        evidence["mouth_shade"] = mouth
     if "stage2" in decisions:
         evidence["stage2"] = {"room_over_preset": round(room / preset_room, 3), "max_factor": MAX_STAGE2_FACTOR,
                               "why": f"stage 2 learns the exterior's motion about the body, which grows with its "

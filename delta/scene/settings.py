@@ -26,6 +26,7 @@ DECIDED = (
     "weights.semantic",
     "weights.skin_inside",
     "weights.face_points",
+    "mouth_shade",
 )
 #: The paper's head weights (DELTA §Implementation, head videos) where they differ from its body weights
 #: (:class:`delta.loss_weights.LossWeights`: semantic 0.0005, skin_inside 0.01); a tracked face takes them,

@@ -16,7 +16,7 @@ import numpy as np
 from delta import DeltaError
 from delta.fields.spec import FieldSpec
 from delta.loss_weights import LossWeights
-from delta.models.spec import AvatarSpec
+from delta.models.spec import AvatarSpec, shade_value
 from delta.render.settings import RenderSettings
 from delta.render.settings import OccupancySettings
 from delta.scene.settings import NOT_READ_BY_STAGE
@@ -322,12 +322,19 @@ def check_numbers(d: dict) -> None:
         rule = next((r for pattern, r in RANGES.items() if _match(pattern, key)), None)
         if rule is None:
             continue
-        low, high, integer = rule
-        if isinstance(value, bool) or not isinstance(value, int if integer else (int, float)):
-            raise DeltaError(f"training.{key}: {value!r} is not {'a whole number' if integer else 'a number'}")
-        if (low is not None and value < low) or (high is not None and value > high):
-            bounds = f">= {low}" if high is None else f"<= {high}" if low is None else f"in [{low}, {high}]"
-            raise DeltaError(f"training.{key}: {value} (expected {bounds})")
+        for k, v in enumerate(value) if isinstance(value, (list, tuple)) else ((None, value),):  # each of a list
+            _check_number(key if k is None else f"{key}[{k}]", v, rule)
+
+
+def _check_number(key: str, value, rule: tuple) -> None:
+    low, high, integer = rule
+    if isinstance(value, bool) or not isinstance(value, int if integer else (int, float)):
+        raise DeltaError(f"training.{key}: {value!r} is not {'a whole number' if integer else 'a number'}")
+    if isinstance(value, float) and not math.isfinite(value):
+        raise DeltaError(f"training.{key}: {value} is not a finite number")
+    if (low is not None and value < low) or (high is not None and value > high):
+        bounds = f">= {low}" if high is None else f"<= {high}" if low is None else f"in [{low}, {high}]"
+        raise DeltaError(f"training.{key}: {value} (expected {bounds})")
 
 
 #: the sections of the settings that are a dataclass's fields
@@ -416,7 +423,7 @@ def _resolve(preset: str, *overrides: dict) -> TrainSettings:
     except TypeError as err:
         raise DeltaError(f"training settings: {err}") from None
     avatar = AvatarSpec(nerf=_fields(d, "nerf"), offsets=_fields(d, "offsets"), albedo=_fields(d, "albedo"),
-                        deformation=None, offset_scale=d["offset_scale"], mouth_shade=float(d["mouth_shade"]),
+                        deformation=None, offset_scale=d["offset_scale"], mouth_shade=shade_value(d["mouth_shade"]),
                         nerf_margin=d["nerf_margin"],
                         render=render, time_freqs=int(dyn["time_freqs"]), pose_knots=knots)  # fmt: skip
     if d["capture"] not in ("auto", "full", "upper"):

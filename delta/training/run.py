@@ -23,7 +23,7 @@ from delta.data.record import FrameRecord
 from delta.io import atomic_path, load_state, save_json
 from delta.models.avatar import HybridAvatar, InitParams
 from delta.models.init import load_init
-from delta.models.spec import AvatarSpec
+from delta.models.spec import AvatarSpec, shade_value
 from delta.render.settings import OccupancySettings
 from delta.scene.analysis import MIN_EXTERIOR_FRACTION
 from delta.scene.settings import scene_settings
@@ -111,7 +111,7 @@ def scoped(spec: AvatarSpec, scope: dict) -> AvatarSpec:
     return dataclasses.replace(spec, capture=scope["capture"], frozen_joints=tuple(scope["frozen_joints"]),
                                layers=tuple(scope.get("layers", ())),
                                clothing_off_head=bool(scope.get("clothing_off_head", False)),
-                               mouth_shade=float(scope.get("mouth_shade", spec.mouth_shade)))  # fmt: skip
+                               mouth_shade=shade_value(scope.get("mouth_shade", spec.mouth_shade)))  # fmt: skip
 
 
 def build_avatar(body, st: TrainSettings, init: InitParams, data: FrameData, stage: int, device,
@@ -273,7 +273,7 @@ def _scope(state: dict, path: str | Path = "model.pt", num_vertices: int | None 
     return {"capture": state["capture"], "frozen_joints": list(state["frozen_joints"]),
             "layers": list(state.get("layers", [])),
             "clothing_off_head": bool(state.get("clothing_off_head", False)), "framed": framed,
-            "mouth_shade": float(state.get("settings", {}).get("mouth_shade", 1.0))}  # fmt: skip
+            "mouth_shade": shade_value(state.get("settings", {}).get("mouth_shade", 1.0), f"{path}: mouth_shade")}  # fmt: skip
 
 
 def load_init_from_state(state: dict, data: FrameData) -> InitParams:

@@ -16,7 +16,7 @@ from tests.training.test_expressions import init
 SKIN = torch.tensor([0.8, 0.6, 0.5])
 
 
-def fresh(body, shade: float | None = None) -> HybridAvatar:
+def fresh(body, shade=None) -> HybridAvatar:
     st = resolve(
         "fast", {"render": {"samples": 8}} if shade is None else {"render": {"samples": 8}, "mouth_shade": shade}
     )
@@ -38,8 +38,15 @@ def test_a_fresh_avatar_starts_its_mouth_inside_at_the_shade_of_its_skin():
     with torch.no_grad():
         dark = fresh(body, 0.1).albedo()
     torch.testing.assert_close(dark[mouth], (0.1 * SKIN).expand(int(mouth.sum()), 3), atol=1e-5, rtol=0)
+    # a shade a channel (the capture's own inside, a scene decision): red kept, green and blue darker
+    with torch.no_grad():
+        red = fresh(body, [0.5, 0.2, 0.1]).albedo()
+    want = torch.tensor([0.5, 0.2, 0.1]) * SKIN
+    torch.testing.assert_close(red[mouth], want.expand(int(mouth.sum()), 3), atol=1e-5, rtol=0)
+    torch.testing.assert_close(red[~mouth], SKIN.expand(int((~mouth).sum()), 3), atol=1e-5, rtol=0)
     plain = fresh(body, 1.0)
     assert plain.albedo_field.prior is None
+    assert fresh(body, [1, 1, 1]).albedo_field.prior is None
     with torch.no_grad():
         torch.testing.assert_close(plain.albedo(), SKIN.expand(body.num_vertices, 3), atol=1e-5, rtol=0)
 
@@ -69,7 +76,8 @@ def test_the_prior_is_a_fixed_start_training_moves_away_from():
 
 def test_stage_two_keeps_the_shade_stage_one_was_trained_with():
     spec = resolve("fast").avatar
-    for written, kept in ((0.5, 0.5), (None, 1.0)):  # a file's own shade; a file without one: the skin's
+    for written, kept in ((0.5, 0.5), ([0.5, 0.2, 0.1], (0.5, 0.2, 0.1)), (None, 1.0)):  # a file's own shade;
+        # a file without one: the skin's
         settings = {} if written is None else {"mouth_shade": written}
         scope = _scope({"capture": "upper", "frozen_joints": [], "settings": settings})
         assert scope["mouth_shade"] == kept and scoped(spec, scope).mouth_shade == kept
@@ -102,3 +110,12 @@ def test_a_trained_file_renders_its_mouth_as_it_was_trained(tmp_path, tiny_train
     prior = new.albedo_field.prior.double()
     torch.testing.assert_close(shift, prior, atol=1e-4, rtol=0)
     assert float(prior[mouth].abs().min()) > 0.5 and float(prior[~mouth].abs().max()) == 0.0
+
+
+@pytest.mark.parametrize("bad", [[0.5, 0.2], [0.5, 1.5, 0.1], [0.5, float("nan"), 0.1], "dark", -0.1, True])
+def test_a_shade_is_a_number_or_three_each_in_zero_to_one(bad):
+    from delta import DeltaError
+
+    with pytest.raises(DeltaError, match="mouth_shade"):
+        resolve("fast", {"mouth_shade": bad})
+    assert resolve("fast", {"mouth_shade": [0.5, 0.2, 0.1]}).avatar.mouth_shade == (0.5, 0.2, 0.1)

@@ -186,6 +186,9 @@ def test_a_tracked_face_takes_the_head_weights_and_a_body_does_not(tiny_training
     assert face["decisions"]["weights"] == HEAD_WEIGHTS and face["decisions"]["semantic"] == "perceptual"
     assert "semantic" not in body["decisions"]
     assert "a tracked face (3 expression coefficients a frame)" in face["evidence"]["weights"]["why"]
+    # no face landmarks in this record: no open mouth, the preset's shade, and the evidence says so
+    assert "mouth_shade" not in face["decisions"] and face["evidence"]["mouth_shade"]["open_frames"] == 0
+    assert "mouth_shade" not in body["evidence"]
     assert {k: v for k, v in face["decisions"].items() if k not in ("weights", "semantic")} == body["decisions"]
 
 
