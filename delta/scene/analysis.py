@@ -57,8 +57,8 @@ from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import save_json
 from delta.models.image import pixel_grid
 from delta.models.init import load_init
-from delta.scene.mouth import mouth_shade
 from delta.scene.framing import MAX_LOWER_IN_VIEW, frame_camera, lower_body_in_view
+from delta.scene.mouth import mouth_shade
 from delta.scene.reach import Beyond, beyond_body, region_reach
 from delta.scene.settings import FRAME_BUDGET, HEAD_SEMANTIC, HEAD_WEIGHTS
 
@@ -224,7 +224,6 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
                                "why": f"a tracked face ({init.expression.shape[1]} expression coefficients a "
                                       f"frame): the paper's head weights and its head's semantic loss, "
                                       f"{HEAD_SEMANTIC}"}  # fmt: skip
-    if face:
         evidence["mouth_shade"] = mouth
     if "stage2" in decisions:
         evidence["stage2"] = {"room_over_preset": round(room / preset_room, 3), "max_factor": MAX_STAGE2_FACTOR,
