@@ -44,7 +44,7 @@ def camera_rays(lo: torch.Tensor, hi: torch.Tensor, n: int, camera: str, gen: to
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--body", default=str(ROOT / "resources/body/anny_sub1.npz"))
-    ap.add_argument("--rays", type=int, nargs="+", default=[128, 1024, 4096, 8192, 32768])
+    ap.add_argument("--rays", type=int, nargs="+", default=[128, 1024, 4096, 8192, 16384, 32768])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--out", required=True)

@@ -228,12 +228,21 @@ def _search_embree(vertices, faces, origins, dirs) -> torch.Tensor:
     return torch.from_numpy(np.asarray(face, dtype=np.int64)).to(origins.device)
 
 
-TORCH_RAYS = 4096
+TORCH_RAYS = 16384
 """A camera's rays up to this many (a training step's), cast against a mesh Embree has no scene of, are
-searched in torch: on two CPU cores Embree's scene of a 110k-face body takes 0.1-0.2 s to build, the binned
-torch search of 128-8192 rays 0.03-0.08 s in all. Beyond it, and against a mesh already built, Embree's
-queries are the faster (32k rays: 0.01 s against 0.5 s): a whole image's chunks of
-:data:`delta.models.image.CPU_CHUNK` rays build the scene once. ``benchmarks/ray_casting.py`` measures both."""
+searched in torch: on two CPU cores Embree's scene of a 110k-face body takes 0.14-0.18 s to build and query,
+the binned torch search of 128-12288 rays 0.05-0.10 s in all, of 16384 0.13-0.14 s. Beyond it (24k rays:
+0.17-0.19 s in torch), and against a mesh already built, Embree's queries are the faster (32k rays: 0.01 s
+against 0.2 s): a whole image's chunks of :data:`delta.models.image.CPU_CHUNK` rays build the scene once.
+``benchmarks/ray_casting.py`` measures both."""
+
+
+def keep_scene(vertices: torch.Tensor, faces: torch.Tensor) -> None:
+    """Build Embree's scene of a mesh that many chunks of rays will be cast against (a whole image), where
+    ``auto`` would use Embree for a built scene: each chunk, however few its rays, then queries it instead of
+    searching the mesh in torch (0.005 s a chunk of 8192 rays against 0.09 s). Nothing on a GPU or without Embree."""
+    if host_paths(vertices.device) and embree_available() and faces.shape[0]:
+        _SCENES.get(vertices, faces, lambda: _embree_scene(vertices, faces))
 
 
 def _auto_backend(vertices, faces, origins, dirs) -> str:

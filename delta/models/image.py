@@ -20,6 +20,7 @@ import torch.nn.functional as F
 
 from delta.data.frames import FullFrames
 from delta.devices import host_paths
+from delta.geometry.raymesh import keep_scene
 from delta.models.avatar import HybridAvatar
 from delta.render.hybrid import room_margin
 
@@ -119,6 +120,7 @@ def render_image(model: HybridAvatar, frame: int, chunk: int | None = None, supe
     view = view or View(model.resolution, model.resolution)
     H, W, s = view.height, view.width, int(supersample)
     mesh = model.posed_mesh(frame)[0]
+    keep_scene(mesh.vertices, mesh.faces)  # the image's chunks all query one scene
     dev = model.background.device
 
     def rays(pixels: torch.Tensor) -> dict[str, torch.Tensor]:

@@ -30,7 +30,7 @@ from torch import nn
 
 from delta.cameras.models import metres_per_pixel
 from delta.deformers import knn as deformer
-from delta.geometry.raymesh import ray_mesh_hits
+from delta.geometry.raymesh import keep_scene, ray_mesh_hits
 from delta.losses import layer_targets
 from delta.models.image import live_rays, reach_box
 
@@ -134,6 +134,7 @@ def seen_points(model, frame: int, masks: dict[str, torch.Tensor] | None = None,
     to a cell into the body (to ``GROW`` + 1 cells behind the front where the ray misses it)."""
     n = model.resolution
     mesh = model.posed_mesh(frame)[0]
+    keep_scene(mesh.vertices, mesh.faces)  # the chunks all query one scene
     pixels = ray_grid(n, ray_step(model.camera(frame), mesh.vertices, stride), model.background.device)
     pixels = pixels[live_rays(pixels, reach_box(model, frame, mesh.vertices))]  # the others meet nothing
     rs = model.spec.render

@@ -102,6 +102,23 @@ def test_auto_casts_a_training_steps_rays_in_torch_and_a_whole_image_in_embree()
     assert raymesh._auto_backend(v, f, o, d) == "torch"
 
 
+@pytest.mark.skipif(not embree_available(), reason="no embreex")
+def test_a_mesh_kept_for_many_chunks_is_cast_in_embree_with_the_same_hits():
+    """A whole image's chunks: once ``keep_scene`` has built the mesh's scene, a chunk of a training step's
+    size goes to Embree too, with the torch search's first hits; another mesh goes back to torch."""
+    v, f = _bubbles(3)
+    o, d = _camera_rays(v, torch.tensor([0.1, 0.2, 4.0], dtype=D), 600, seed=4)
+    v = v.clone()
+    torch_hits = ray_mesh_hits(v, f, o, d, backend="torch")
+    assert raymesh._auto_backend(v, f, o, d) == "torch"
+    raymesh.keep_scene(v, f)
+    assert raymesh._auto_backend(v, f, o, d) == "embree"
+    kept = ray_mesh_hits(v, f, o, d)
+    assert torch.equal(kept.hit, torch_hits.hit) and torch.equal(kept.face, torch_hits.face)
+    torch.testing.assert_close(kept.t[kept.hit], torch_hits.t[kept.hit], rtol=1e-6, atol=0)
+    assert raymesh._auto_backend(v.clone(), f, o, d) == "torch"
+
+
 def test_a_camera_inside_the_scene_sees_faces_beside_and_behind_its_plane(monkeypatch):
     """From inside the spheres, faces straddle the camera's plane and some lie behind it: a ray never
     meets a face behind it, and every straddling face is a candidate of every ray."""
