@@ -9,7 +9,7 @@ import math
 
 import torch
 
-from delta.geometry.raymesh import ray_mesh_hits
+from delta.geometry.raymesh import keep_scene, ray_mesh_hits
 
 
 def view_ring(azimuths: int, elevations_deg, up: int = 1) -> torch.Tensor:
@@ -44,6 +44,7 @@ def seen_along(points: torch.Tensor, normals: torch.Tensor, vertices: torch.Tens
         return seen
     centre = v.mean(0) if len(v) else p.mean(0)
     reach = float(torch.cat([p, v]).sub(centre).norm(dim=-1).max()) * 2 + 1.0  # from outside everything
+    keep_scene(v, faces)  # every view's rays query one scene
     for d in directions.to(p):
         d = d / d.norm()
         todo = ~seen & ((n @ d) < -facing)
