@@ -19,8 +19,11 @@ from scipy.spatial import cKDTree
 from delta.devices import host_paths
 from delta.geometry import clusters
 
-PARALLEL_QUERY = 20_000
-"""KD-tree queries of at least this many points use the job's threads (fewer: one thread is faster)."""
+PARALLEL_QUERY = 1024
+"""KD-tree queries of at least this many points use the job's threads (fewer: one thread). On two cores two
+threads answer 2048-30 000 queries 1.3-1.9x sooner (110k points, k = 6; 55k 2-D points, k = 16: a training
+step's kNN and silhouette candidates); tight's 8192-ray stage-1 step 0.57 -> 0.50-0.52 s
+(``benchmarks/step_profile_tight_cpu.csv``)."""
 POINT_LEAF = 128
 """Points per leaf of the tensor search's hierarchy: of 16-128, 128 was fastest for a step's searches on a
 GPU (`benchmarks/device_geometry.csv`), where the walk's launches cost more than the extra distances."""
