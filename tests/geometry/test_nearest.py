@@ -71,6 +71,7 @@ def test_large_queries_use_the_jobs_threads_and_agree_with_one_thread(monkeypatc
     pts = _cloud(500, 3, 9)
     x = torch.randn(3000, 3, generator=torch.Generator().manual_seed(4), dtype=D)
     index = PointIndex(pts, "kdtree")
+    monkeypatch.setattr(nearest, "PARALLEL_QUERY", len(x) + 1)  # one thread
     one = index.query(x, 6)
     monkeypatch.setattr(nearest, "PARALLEL_QUERY", 100)
     threads = torch.get_num_threads()
