@@ -73,7 +73,7 @@ def seen_vertices(model: HybridAvatar, frames, stride: int = 2) -> torch.Tensor:
     """(V,) bool: the vertices of the triangles that a ray through every ``stride``-th pixel of one of
     ``frames`` hits first (the body alone: an exterior does not cover the inside of a mouth).
 
-    Not :func:`delta.eval.geometry.visible_vertices` (a clear line of sight to the vertex): what training
+    Not :func:`delta.geometry.sight.visible_vertices` (a clear line of sight to the vertex): what training
     reaches is what its pixel rays hit, and through a lip gap narrower than a pixel a vertex can be in
     sight and still meet no ray."""
     seen = torch.zeros(model.body.num_vertices, dtype=torch.bool, device=model.background.device)

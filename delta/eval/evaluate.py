@@ -35,10 +35,10 @@ from delta.eval.geometry import (
     similarity_transform,
     vertex_error,
     vertex_errors,
-    visible_vertices,
 )
 from delta.eval.heldout import refine_frame
 from delta.eval.settings import EvalSettings
+from delta.geometry.sight import visible_vertices
 from delta.export.video import side_by_side
 from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import atomic_path

@@ -19,12 +19,10 @@ import dataclasses
 import itertools
 
 import numpy as np
-import torch
 import trimesh
 from scipy.spatial import cKDTree
 
 from delta.geometry.closest import closest_point_on_triangles
-from delta.geometry.raymesh import ray_mesh_hits
 
 
 @dataclasses.dataclass
@@ -181,30 +179,3 @@ def similarity_aligned(pred: np.ndarray, ref: np.ndarray) -> np.ndarray:
 def vertex_error(pred: np.ndarray, ref: np.ndarray, align: str = "centroid") -> float:
     """Mean per-vertex distance (metres) of two (V, 3) meshes with one topology (:func:`vertex_errors`)."""
     return float(vertex_errors(pred, ref, align).mean())
-
-
-@torch.no_grad()
-def visible_vertices(vertices: torch.Tensor, faces: torch.Tensor, camera, tol: float = 0.005) -> torch.Tensor:
-    """(V,) bool: the vertices a camera sees: inside its image and first on the ray from the camera to
-    them (no face of the mesh closer than ``tol`` metres before them).
-
-    The ray is the physical one (pinhole: from the camera's centre through the vertex; orthographic:
-    along -z), so lens distortion does not enter.
-    """
-    v = vertices.detach().double()
-    uv, _ = camera.project(v)
-    inside = (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
-    if hasattr(camera, "center"):
-        origins = camera.center.double().expand_as(v)
-        dirs = v - origins
-        reach = dirs.norm(dim=-1)
-        dirs = dirs / reach.clamp_min(1e-12)[:, None]
-    else:
-        start = float(v[:, 2].max()) + 1.0
-        origins = torch.cat([v[:, :2], torch.full_like(v[:, :1], start)], dim=-1)
-        dirs = torch.zeros_like(v)
-        dirs[:, 2] = -1.0
-        reach = start - v[:, 2]
-    hits = ray_mesh_hits(v, faces, origins, dirs)
-    first = ~hits.hit | (hits.t >= reach - tol)
-    return (inside & first).cpu()

@@ -55,3 +55,43 @@ def seen_along(points: torch.Tensor, normals: torch.Tensor, vertices: torch.Tens
         hits = ray_mesh_hits(v, faces, origins, d.expand_as(q).contiguous())
         seen[todo] = ~hits.hit | (hits.t >= reach - tol)
     return seen
+
+
+def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """(V, 3) unit area-weighted vertex normals of a mesh (V, 3), (F, 3); zero at a vertex on no face."""
+    v = vertices.detach()
+    tri = v[faces]
+    n = torch.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], dim=-1)  # twice the area, outward for CCW
+    out = torch.zeros_like(v).index_add_(0, faces.reshape(-1), n.repeat_interleave(3, 0))
+    return out / out.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+
+
+@torch.no_grad()
+def visible_vertices(vertices: torch.Tensor, faces: torch.Tensor, camera, tol: float = 0.005,
+                     facing: float | None = None) -> torch.Tensor:  # fmt: skip
+    """(V,) bool: the vertices a camera sees: inside its image and first on the ray from the camera to
+    them (no face of the mesh closer than ``tol`` metres before them); with ``facing``, also turned
+    towards the camera: the vertex normal's cosine with the direction to the camera above it.
+
+    The ray is the physical one (pinhole: from the camera's centre through the vertex; orthographic:
+    along -z), so lens distortion does not enter.
+    """
+    v = vertices.detach().double()
+    uv, _ = camera.project(v)
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
+    if hasattr(camera, "center"):
+        origins = camera.center.double().expand_as(v)
+        dirs = v - origins
+        reach = dirs.norm(dim=-1)
+        dirs = dirs / reach.clamp_min(1e-12)[:, None]
+    else:
+        start = float(v[:, 2].max()) + 1.0
+        origins = torch.cat([v[:, :2], torch.full_like(v[:, :1], start)], dim=-1)
+        dirs = torch.zeros_like(v)
+        dirs[:, 2] = -1.0
+        reach = start - v[:, 2]
+    if facing is not None:
+        inside &= (vertex_normals(v, faces) * -dirs).sum(-1) > facing
+    hits = ray_mesh_hits(v, faces, origins, dirs)
+    first = ~hits.hit | (hits.t >= reach - tol)
+    return (inside & first).cpu()

@@ -5,8 +5,8 @@ import pytest
 import torch
 import trimesh
 
-from delta.cameras.models import OrthographicCamera, PinholeCamera, look_at
-from delta.eval.geometry import mesh_distance, similarity_transform, vertex_error, vertex_errors, visible_vertices
+from delta.cameras.models import OrthographicCamera
+from delta.eval.geometry import mesh_distance, similarity_transform, vertex_error, vertex_errors
 
 
 def plane(z, size=1.0, n=20):
@@ -99,32 +99,6 @@ def test_similarity_transform_is_the_one_that_made_the_copy():
 def _sphere():
     s = trimesh.creation.icosphere(subdivisions=3)
     return torch.tensor(s.vertices, dtype=torch.float64), torch.tensor(s.faces, dtype=torch.int64)
-
-
-def test_visible_vertices_of_a_sphere_from_an_orthographic_camera():
-    """Seen along -z, a unit sphere shows its z > 0 half (the rim, |z| < 0.1, is left undecided: the
-    faceted sphere's outline passes through vertices a little behind the equator)."""
-    v, f = _sphere()
-    cam = OrthographicCamera(torch.tensor(0.8), torch.zeros(2), 64, 64)
-    seen = visible_vertices(v, f, cam).numpy()
-    z = v[:, 2].numpy()
-    clear = np.abs(z) > 0.1
-    np.testing.assert_array_equal(seen[clear], z[clear] > 0)
-    # out of the image: nothing is seen
-    far = OrthographicCamera(torch.tensor(0.8), torch.tensor([10.0, 0.0]), 64, 64)
-    assert not visible_vertices(v, f, far).any()
-
-
-def test_visible_vertices_of_a_sphere_from_a_pinhole_camera():
-    """From a centre 5 m along +z, a unit sphere's visible cap is z > 1/5 (the tangent cone's rim)."""
-    v, f = _sphere()
-    R, t = look_at(torch.tensor([0.0, 0, 5]), torch.zeros(3), torch.tensor([0.0, 1, 0]))
-    K = torch.tensor([[200.0, 0, 64], [0, 200, 64], [0, 0, 1]])
-    cam = PinholeCamera(K.double(), R.double(), t.double(), torch.zeros(5, dtype=torch.float64), 128, 128)
-    seen = visible_vertices(v, f, cam).numpy()
-    z = v[:, 2].numpy()
-    clear = np.abs(z - 0.2) > 0.1
-    np.testing.assert_array_equal(seen[clear], z[clear] > 0.2)
 
 
 def test_vertex_errors_of_a_subset_keep_the_whole_alignment():

@@ -8,7 +8,8 @@ import numpy as np
 import torch
 import trimesh
 
-from delta.geometry.sight import seen_along, view_ring
+from delta.cameras.models import OrthographicCamera, PinholeCamera, look_at
+from delta.geometry.sight import seen_along, vertex_normals, view_ring, visible_vertices
 
 
 def test_the_ring_of_views_turns_about_the_up_axis_and_looks_down_by_its_elevation():
@@ -48,3 +49,47 @@ def test_a_sphere_seen_along_an_axis_shows_the_half_facing_the_view_less_what_a_
     free = torch.tensor([[0.0, 0.0, 5.0], [0.0, 0.0, -2.0]], dtype=torch.float64)
     up = torch.tensor([[0.0, 0.0, 1.0]] * 2, dtype=torch.float64)
     assert seen_along(free, up, v, f, torch.tensor([[0.0, 0, -1.0]]), tol=1e-3).tolist() == [True, False]
+
+
+def _sphere():
+    s = trimesh.creation.icosphere(subdivisions=3)
+    return torch.tensor(s.vertices, dtype=torch.float64), torch.tensor(s.faces, dtype=torch.int64)
+
+
+def test_visible_vertices_of_a_sphere_from_an_orthographic_camera():
+    """Seen along -z, a unit sphere shows its z > 0 half (the rim, |z| < 0.1, is left undecided: the
+    faceted sphere's outline passes through vertices a little behind the equator)."""
+    v, f = _sphere()
+    cam = OrthographicCamera(torch.tensor(0.8), torch.zeros(2), 64, 64)
+    seen = visible_vertices(v, f, cam).numpy()
+    z = v[:, 2].numpy()
+    clear = np.abs(z) > 0.1
+    np.testing.assert_array_equal(seen[clear], z[clear] > 0)
+    # out of the image: nothing is seen
+    far = OrthographicCamera(torch.tensor(0.8), torch.tensor([10.0, 0.0]), 64, 64)
+    assert not visible_vertices(v, f, far).any()
+
+
+def test_visible_vertices_of_a_sphere_from_a_pinhole_camera():
+    """From a centre 5 m along +z, a unit sphere's visible cap is z > 1/5 (the tangent cone's rim)."""
+    v, f = _sphere()
+    R, t = look_at(torch.tensor([0.0, 0, 5]), torch.zeros(3), torch.tensor([0.0, 1, 0]))
+    K = torch.tensor([[200.0, 0, 64], [0, 200, 64], [0, 0, 1]])
+    cam = PinholeCamera(K.double(), R.double(), t.double(), torch.zeros(5, dtype=torch.float64), 128, 128)
+    seen = visible_vertices(v, f, cam).numpy()
+    z = v[:, 2].numpy()
+    clear = np.abs(z - 0.2) > 0.1
+    np.testing.assert_array_equal(seen[clear], z[clear] > 0.2)
+
+
+def test_visible_vertices_turned_towards_the_camera_by_facing():
+    """Along -z a unit sphere's vertex normal is its position: with ``facing`` 0.5 only z > 0.5 is seen
+    (away from the threshold, where the faceted normals differ from the sphere's)."""
+    v, f = _sphere()
+    cam = OrthographicCamera(torch.tensor(0.8), torch.zeros(2), 64, 64)
+    normals = vertex_normals(v, f).numpy()
+    np.testing.assert_allclose(normals, v.numpy(), atol=0.015)  # area-weighted facets: within 1 %
+    seen = visible_vertices(v, f, cam, facing=0.5).numpy()
+    z = v[:, 2].numpy()
+    clear = np.abs(z - 0.5) > 0.02
+    np.testing.assert_array_equal(seen[clear], z[clear] > 0.5)
