@@ -135,6 +135,10 @@ class HybridAvatar(nn.Module):
         self.offset_field = VertexField(spec.offsets, tbox, "offset", spec.offset_scale, num_vertices=nv)
         self.albedo_field = VertexField(spec.albedo, tbox, "albedo", init=skin_color, num_vertices=nv,
                                         prior=mouth_prior(body, skin_color, spec.mouth_shade))  # fmt: skip
+        # the albedo where no training frame looked (ids (U,), values (U, 3)): set after training from what the
+        # frames saw (delta.models.unseen), saved beside the weights, none until then
+        self.register_buffer("fill_ids", torch.zeros(0, dtype=torch.int64, device=template.device), persistent=False)
+        self.register_buffer("fill_values", template.new_zeros(0, 3), persistent=False)
         # the canonical fields' box holds the exterior's whole room (a decided max_dist may exceed the margin)
         nbox = _box(self.canonical_vertices[region], room_margin(spec.nerf_margin, spec.render.max_dist))
         self.nerf = None
@@ -185,8 +189,22 @@ class HybridAvatar(nn.Module):
         return self.offset_field(self.body.v_template)
 
     def albedo(self) -> torch.Tensor:
-        """(V, 3) vertex albedo F_t(t)."""
-        return self.albedo_field(self.body.v_template)
+        """(V, 3) vertex albedo F_t(t), the fill where no training frame looked (:meth:`fill_albedo`) in its place."""
+        albedo = self.albedo_field(self.body.v_template)
+        if len(self.fill_ids):
+            albedo = albedo.index_put((self.fill_ids,), self.fill_values.to(albedo.dtype))
+        return albedo
+
+    def fill_albedo(self, ids: torch.Tensor, values: torch.Tensor) -> None:
+        """Replace the albedo of vertices ``ids`` (U,) by ``values`` (U, 3) (what the field holds where no
+        training frame looked; ``delta.models.unseen``); empty ``ids``: the field everywhere."""
+        ids = torch.as_tensor(ids, dtype=torch.int64)
+        values = torch.as_tensor(values, dtype=torch.float32).reshape(-1, 3)
+        n = self.body.num_vertices
+        if len(ids) != len(values) or (len(ids) and (int(ids.min()) < 0 or int(ids.max()) >= n)):
+            raise ValueError(f"albedo fill: {len(ids)} ids in [0, {n}) for {len(values)} values expected")
+        self.fill_ids = ids.to(self.fill_ids.device)
+        self.fill_values = values.to(self.fill_values.device)
 
     def pose_body(self, frame: int, offsets: Optional[torch.Tensor] = None):
         """LBS output of one frame (batch of 1)."""

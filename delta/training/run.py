@@ -24,6 +24,7 @@ from delta.io import atomic_path, load_state, save_json
 from delta.models.avatar import HybridAvatar, InitParams
 from delta.models.init import load_init
 from delta.models.spec import AvatarSpec, shade_value
+from delta.models.unseen import unseen_albedo
 from delta.render.settings import OccupancySettings
 from delta.scene.analysis import MIN_EXTERIOR_FRACTION
 from delta.scene.settings import scene_settings
@@ -201,10 +202,16 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
     # record: a refitted body or re-prepared frames under unchanged settings is another run, not this one resumed
     origin = f"{file_digest(start)}-{file_digest(record)}"
     res = train_stage(stage, model, data, st, out, sem, origin=origin, fine=fine)
+    filled = 0
+    if st.unseen_albedo == "fill":
+        ids, values, evidence = unseen_albedo(model, data.train)
+        model.fill_albedo(ids, values)
+        filled = len(ids)
+        log.info("albedo where no training frame looked, filled from what they saw: %s", json.dumps(evidence))
     save_model(out / "model.pt", model, stage, preset, st, res.steps)
     last = res.losses.tail(max(1, len(res.losses) // 20)).mean(numeric_only=True)
     summary = {"stage": stage, "steps": res.steps, "seconds": round(time.time() - t0, 1),
-               "train_psnr_last5pct": round(float(last.get("psnr", float("nan"))), 2)}  # fmt: skip
+               "train_psnr_last5pct": round(float(last.get("psnr", float("nan"))), 2), "albedo_filled": filled}  # fmt: skip
     log.info("stage %d done: %s", stage, json.dumps(summary))
     return summary
 
@@ -220,7 +227,8 @@ def save_model(path: str | Path, model: HybridAvatar, stage: int, preset: str, s
              "pinhole": model.pinhole, "steps": steps, "capture": model.spec.capture,
              "frozen_joints": list(model.spec.frozen_joints),
              "layers": list(model.spec.layers), "clothing_off_head": model.spec.clothing_off_head,
-             "framed": model.framed.cpu().clone()}  # fmt: skip
+             "framed": model.framed.cpu().clone(),
+             "albedo_fill": {"ids": model.fill_ids.cpu().clone(), "values": model.fill_values.cpu().clone()}}  # fmt: skip
     with atomic_path(path) as tmp:
         torch.save(final, tmp)
 
@@ -323,7 +331,10 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
                          frame_times(data.frame_ids, data.train, data.split), scope["framed"]).to(dev)  # fmt: skip
     try:
         model.load_state_dict(state["model"])
-    except RuntimeError as e:
+        fill = state.get("albedo_fill")  # a file written before the fill has none
+        if fill is not None:
+            model.fill_albedo(fill["ids"], fill["values"])
+    except (RuntimeError, ValueError, KeyError, TypeError) as e:
         raise DeltaError(f"{model_path}: does not match {body_path} or {record}: {str(e)[:300]}") from None
     model.eval()
     return Trained(model, data, st, int(state["stage"]), str(state["preset"]))

@@ -1,0 +1,90 @@
+"""The albedo where no training frame looked: which vertices a capture sees, the fill in their place, and the
+fill carried through model.pt."""
+
+import numpy as np
+import pytest
+import torch
+
+from delta import DeltaError
+from delta.body.model import REGION
+from delta.geometry.sight import vertex_normals
+from delta.models.unseen import FACING, seen_vertices, spread, unseen_albedo
+from delta.training.presets import resolve
+from delta.training.run import load_trained
+
+
+@pytest.fixture(scope="module")
+def trained(tiny_trained):
+    t = tiny_trained["tight"]
+    return load_trained(t["model"], t["record"], t["body"])
+
+
+def test_one_frame_sees_no_vertex_turned_away_and_more_frames_see_more(trained):
+    model, train = trained.model, trained.data.train
+    one = seen_vertices(model, train[:1])
+    every = seen_vertices(model, train)
+    assert bool((every | one).eq(every).all()) and int(every.sum()) > int(one.sum()) > 0  # a superset, larger
+    verts = model.pose_body(int(train[0]), model.offsets()).vertices[0].detach().double()
+    cam = model.camera(int(train[0]))
+    towards = cam.center.double() - verts  # the pinhole subject: from each vertex to the camera
+    cos = (vertex_normals(verts, model.body.faces) * towards / towards.norm(dim=-1, keepdim=True)).sum(-1)
+    assert not bool(one[cos <= FACING].any())  # turned away, or grazing: not seen
+    assert float(one[cos > 0.9].float().mean()) > 0.5  # most of what faces the camera squarely is seen
+
+
+def test_the_fill_takes_the_unseen_vertices_only_and_stays_within_the_seen_colours(trained):
+    model, train = trained.model, trained.data.train
+    model.fill_albedo(torch.zeros(0, dtype=torch.int64), torch.zeros(0, 3))
+    field = model.albedo().detach()
+    ids, values, evidence = unseen_albedo(model, train[:1])
+    seen = seen_vertices(model, train[:1])
+    mouth = model.body.regions == REGION["mouth"]
+    expected = torch.nonzero(~seen & ~mouth).squeeze(1)
+    assert torch.equal(ids, expected) and evidence["filled"] == len(ids) > 0
+    assert evidence["seen"] == int(seen.sum()) and evidence["frames_looked"] == 1
+    lo, hi = field[seen].amin(0), field[seen].amax(0)
+    assert bool(((values >= lo - 1e-5) & (values <= hi + 1e-5)).all())
+    model.fill_albedo(ids, values)
+    now = model.albedo().detach()
+    assert torch.equal(now[ids], values) and torch.equal(now[~torch.isin(torch.arange(len(now)), ids)],
+                                                         field[~torch.isin(torch.arange(len(now)), ids)])  # fmt: skip
+    assert not bool(mouth[ids].any())
+
+
+def test_the_field_still_learns_beside_a_fill(trained):
+    model = trained.model
+    ids = torch.arange(0, model.body.num_vertices, 2)
+    model.fill_albedo(ids, torch.full((len(ids), 3), 0.5))
+    model.albedo().sum().backward()
+    grads = [p.grad for p in model.albedo_field.parameters() if p.grad is not None]
+    assert grads and any(bool(g.abs().sum() > 0) for g in grads)
+    model.zero_grad()
+    with pytest.raises(ValueError, match="albedo fill"):
+        model.fill_albedo(torch.tensor([model.body.num_vertices]), torch.zeros(1, 3))
+    with pytest.raises(ValueError, match="albedo fill"):
+        model.fill_albedo(torch.tensor([0, 1]), torch.zeros(1, 3))
+
+
+def test_a_trained_model_carries_its_fill(tiny_trained):
+    t = tiny_trained["tight"]
+    state = torch.load(t["model"], weights_only=True)
+    fill = state["albedo_fill"]
+    model = load_trained(t["model"], t["record"], t["body"]).model
+    assert len(fill["ids"]) > 0 and torch.equal(model.fill_ids, fill["ids"])
+    torch.testing.assert_close(model.albedo().detach()[fill["ids"]], fill["values"])
+    again = unseen_albedo(model, load_trained(t["model"], t["record"], t["body"]).data.train)
+    assert torch.equal(again[0], fill["ids"])  # the same frames see the same vertices
+
+
+def test_frames_are_spread_evenly_up_to_the_most():
+    np.testing.assert_array_equal(spread(np.arange(10), 20), np.arange(10))
+    got = spread(np.arange(100, 400), 4)
+    np.testing.assert_array_equal(got, [100, 200, 299, 399])
+
+
+def test_the_setting_takes_fill_or_field():
+    assert (
+        resolve("fast").unseen_albedo == "fill" and resolve("fast", {"unseen_albedo": "field"}).unseen_albedo == "field"
+    )
+    with pytest.raises(DeltaError, match="training.unseen_albedo"):
+        resolve("fast", {"unseen_albedo": "mirror"})
