@@ -26,9 +26,10 @@ FACING = 0.2
 """A vertex counts as seen in a frame where its normal turns towards the camera by a cosine above this
 (within ~78° of facing it): a vertex seen only at a grazing angle covers a sliver of a pixel and its albedo
 is barely trained."""
-MAX_FRAMES = 120
-"""At most this many training frames, evenly spread, are looked through (what one more frame of a capture
-shows that its neighbours do not is little)."""
+MAX_FRAMES = 40
+"""At most this many training frames, evenly spread, are looked through: on tight's 80-frame turn, 40 frames
+see all but 100 of the 47 130 vertices the 80 see (0.2 %, each filled from its seen neighbours), in half the
+time (30 s against 66 s on 2 cores, a training beside them)."""
 
 
 @torch.no_grad()
