@@ -76,22 +76,33 @@ def visible_vertices(vertices: torch.Tensor, faces: torch.Tensor, camera, tol: f
     The ray is the physical one (pinhole: from the camera's centre through the vertex; orthographic:
     along -z), so lens distortion does not enter.
     """
+    normals = vertex_normals(vertices.detach().double(), faces) if facing is not None else None
+    return visible_points(vertices, vertices, faces, camera, tol, normals, facing)
+
+
+@torch.no_grad()
+def visible_points(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor, camera, tol: float = 0.005,
+                   normals: torch.Tensor | None = None, facing: float | None = None) -> torch.Tensor:  # fmt: skip
+    """(N,) bool: the points (N, 3) a camera sees past a mesh (V, 3), (F, 3): inside its image and no face
+    closer than ``tol`` metres before them on the ray from the camera; with ``normals`` (N, 3) and ``facing``,
+    also turned towards the camera by a cosine above ``facing`` (:func:`visible_vertices`)."""
     v = vertices.detach().double()
-    uv, _ = camera.project(v)
+    p = points.detach().double()
+    uv, _ = camera.project(p)
     inside = (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
     if hasattr(camera, "center"):
-        origins = camera.center.double().expand_as(v)
-        dirs = v - origins
+        origins = camera.center.double().expand_as(p)
+        dirs = p - origins
         reach = dirs.norm(dim=-1)
         dirs = dirs / reach.clamp_min(1e-12)[:, None]
     else:
-        start = float(v[:, 2].max()) + 1.0
-        origins = torch.cat([v[:, :2], torch.full_like(v[:, :1], start)], dim=-1)
-        dirs = torch.zeros_like(v)
+        start = float(torch.cat([p[:, 2], v[:, 2]]).max()) + 1.0
+        origins = torch.cat([p[:, :2], torch.full_like(p[:, :1], start)], dim=-1)
+        dirs = torch.zeros_like(p)
         dirs[:, 2] = -1.0
-        reach = start - v[:, 2]
-    if facing is not None:
-        inside &= (vertex_normals(v, faces) * -dirs).sum(-1) > facing
+        reach = start - p[:, 2]
+    if normals is not None and facing is not None:
+        inside &= (normals.to(p) * -dirs).sum(-1) > facing
     hits = ray_mesh_hits(v, faces, origins, dirs)
     first = ~hits.hit | (hits.t >= reach - tol)
     return (inside & first).cpu()
