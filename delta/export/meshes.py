@@ -91,12 +91,14 @@ def forward_frame(model: HybridAvatar, out: LBSOutput) -> SkinningFrame:
 @torch.no_grad()
 def nerf_query(model: HybridAvatar, points: np.ndarray, chunk: int = 65536,
                layer: str | None = None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """Colour (N, 3) and density (N,) of the NeRF (of one ``layer`` of a layered one) at canonical points."""
+    """Colour (N, 3) and density (N,) of the NeRF (of one ``layer`` of a layered one) at canonical points (read at
+    their mirror image where no training frame looked: ``model.exterior_mirror``)."""
     dev = model.canonical_vertices.device
     field = model.nerf if layer is None else model.nerf.layers[layer]
     rgb, sigma = [], []
     for s in range(0, len(points), chunk):
-        c, d = field(torch.from_numpy(points[s : s + chunk]).float().to(dev))
+        x = torch.from_numpy(points[s : s + chunk]).float().to(dev)
+        c, d = field(x if model.exterior_mirror is None else model.exterior_mirror(x))
         rgb.append(c.cpu().numpy())
         sigma.append(d.cpu().numpy())
     if not rgb:

@@ -139,6 +139,8 @@ class HybridAvatar(nn.Module):
         # frames saw (delta.models.unseen), saved beside the weights, none until then
         self.register_buffer("fill_ids", torch.zeros(0, dtype=torch.int64, device=template.device), persistent=False)
         self.register_buffer("fill_values", template.new_zeros(0, 3), persistent=False)
+        # the exterior read at its mirror through the body where no training frame looked (delta.models.unseen)
+        self.exterior_mirror = None
         # the canonical fields' box holds the exterior's whole room (a decided max_dist may exceed the margin)
         nbox = _box(self.canonical_vertices[region], room_margin(spec.nerf_margin, spec.render.max_dist))
         self.nerf = None
@@ -263,7 +265,7 @@ class HybridAvatar(nn.Module):
                 rs.contact_cell,
                 self._round_trip_grid() if rs.round_trip and cell > 0 else None,
             )
-        mesh = PosedMesh(verts, self.body.faces, self.albedo(), uv, skinning)
+        mesh = PosedMesh(verts, self.body.faces, self.albedo(), uv, skinning, self.exterior_mirror)
         return mesh, offsets, out
 
     def _round_trip_grid(self):

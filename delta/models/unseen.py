@@ -14,13 +14,17 @@ Shapes: V vertices, U unseen vertices.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import torch
 
 from delta.body.model import REGION
 from delta.geometry.harmonic import harmonic_fill
+from delta.geometry.mirror import MirrorGrid, through_planes
+from delta.geometry.nearest import PointIndex
 from delta.geometry.raymesh import keep_scene
-from delta.geometry.sight import visible_vertices
+from delta.geometry.sight import vertex_normals, visible_points, visible_vertices
 
 FACING = 0.2
 """A vertex counts as seen in a frame where its normal turns towards the camera by a cosine above this
@@ -70,3 +74,118 @@ def unseen_albedo(model, frames) -> tuple[torch.Tensor, torch.Tensor, dict]:
     albedo = model.albedo().detach().cpu()
     filled = harmonic_fill(albedo, seen, model.body.faces.cpu(), mouth)
     return ids, filled[ids].float(), evidence
+
+
+MIRROR_CELL = 0.02
+"""The exterior's mirror grid's cell (metres)."""
+
+
+def canonical_to_posed(model, points: torch.Tensor, nearest: torch.Tensor, out) -> torch.Tensor:
+    """(N, 3) canonical points carried into a frame's pose (``out``: :meth:`HybridAvatar.pose_body`'s) by the maps
+    of their ``nearest`` (N,) body vertices: x = G_i (G^c_i^{-1} x_c + d_i) (``delta.deformers.knn``)."""
+    gc = model.canonical_T[nearest].double()
+    local = torch.linalg.solve(gc[:, :, :3], (points.double() - gc[:, :, 3])[..., None])[..., 0]
+    d = (out.rest_vertices[0] - model.body.v_template)[nearest].double()
+    g = out.vertex_transforms_3x4[0][nearest].double()
+    return (g[:, :, :3] @ (local + d)[..., None])[..., 0] + g[:, :, 3]
+
+
+@torch.no_grad()
+def exterior_mirror(model, frames) -> tuple[MirrorGrid | None, dict]:
+    """Where no frame of ``frames`` looked at the exterior's canonical space, its mirror through the body along
+    the canonical front axis (z), where a frame did and the exterior holds density there: the back of a shirt
+    that never turned to the camera is read from its front. None where nothing is mirrored (or there is no
+    exterior); the evidence (cells near the body, seen, unseen, mirrored) for the log.
+
+    A canonical cell within the exterior's reach (``render.max_dist``) of the body is seen in a frame where its
+    centre, carried into the pose by its nearest vertex's map, is in the image with no body face before it on
+    the camera's ray, and that vertex turns towards the camera (:data:`FACING`: the exterior over a surface
+    seen only at a grazing angle is barely trained either). An unseen cell on a line along z whose seen cells hold the exterior somewhere (the
+    occupancy grid's cells, else density over 0.5) takes the mirror plane of the line along +z (else -z) from
+    its centre that enters the canonical body and leaves it again
+    (:func:`delta.geometry.mirror.through_planes`), where the mirrored centre's cell is seen. A bare arm's back,
+    or the hair behind a face that never turned (its line holds no exterior before the face), keep what the
+    field holds."""
+    if model.nerf is None:
+        return None, {"exterior": False}
+    looked = spread(frames)
+    cano = model.canonical_vertices.detach().double().cpu()
+    faces = model.body.faces.cpu()
+    room, cell = float(model.spec.render.max_dist), MIRROR_CELL
+    lo = cano.amin(0) - room
+    size = [max(1, math.ceil(float(x))) for x in (cano.amax(0) + room - lo) / cell]
+    axes = [lo[i] + cell * (torch.arange(size[i], dtype=torch.float64) + 0.5) for i in range(3)]
+    centres = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    dist, nearest = PointIndex(cano).query(centres, 1)
+    near = torch.nonzero(dist.reshape(-1) <= room).squeeze(1)
+    nearest = nearest.reshape(-1)[near].to(model.canonical_T.device)
+    points = centres[near]
+    seen = torch.zeros(len(near), dtype=torch.bool)
+    offsets = model.offsets()
+    for f in looked:
+        out = model.pose_body(int(f), offsets)
+        verts = out.vertices[0]
+        keep_scene(verts, model.body.faces)
+        posed = canonical_to_posed(model, points.to(verts.device), nearest, out)
+        normals = vertex_normals(verts, model.body.faces)[nearest]
+        seen |= visible_points(posed, verts, model.body.faces, model.camera(int(f)), normals=normals, facing=FACING)
+    seen_grid = torch.zeros(len(centres), dtype=torch.bool)
+    seen_grid[near[seen]] = True
+    unseen = torch.nonzero(~seen).squeeze(1)
+    planes = torch.full((len(centres),), float("nan"), dtype=torch.float64)
+    evidence = {"frames_looked": int(len(looked)), "cells_near_body": int(len(near)), "seen": int(seen.sum()),
+                "mirrored": 0}  # fmt: skip
+    # a line along z whose seen cells hold the exterior lends it to the line's unseen cells
+    held = torch.zeros(len(centres), dtype=torch.bool)
+    held[near[seen]] = _holds(model, points[seen])
+    column = held.reshape(size).any(-1).reshape(-1)
+    todo = unseen[column[torch.div(near[unseen], size[2], rounding_mode="floor")]]
+    for sign in (1.0, -1.0):
+        if not len(todo):
+            break
+        m = through_planes(points[todo], cano, faces, 2, sign)
+        target = points[todo].clone()
+        target[:, 2] = m - target[:, 2]
+        ok = m.isfinite() & _seen_at(target, seen_grid, lo, cell, size)
+        planes[near[todo[ok]]] = m[ok]
+        todo = todo[~ok]
+    mirrored = int(planes.isfinite().sum())
+    evidence["mirrored"] = mirrored
+    if not mirrored:
+        return None, evidence
+    return MirrorGrid(lo.float(), cell, planes.reshape(size).float()), evidence
+
+
+def _seen_at(points: torch.Tensor, seen_grid: torch.Tensor, lo: torch.Tensor, cell: float, size) -> torch.Tensor:
+    at = torch.floor((points - lo) / cell).long()
+    bound = torch.tensor(size)
+    inside = ((at >= 0) & (at < bound)).all(-1) & torch.isfinite(points).all(-1)
+    at = torch.minimum(at.clamp_min(0), bound - 1)
+    flat = (at[:, 0] * size[1] + at[:, 1]) * size[2] + at[:, 2]
+    return inside & seen_grid[flat]
+
+
+def _holds(model, points: torch.Tensor) -> torch.Tensor:
+    """(N,) bool: the exterior is at the canonical points (the occupancy grid's cells, else density over 0.5)."""
+    x = torch.nan_to_num(points).float().to(model.background.device)
+    if model.occupancy is not None:
+        return model.occupancy.contains(x).cpu()
+    return (model.nerf.density(x) > 0.5).cpu()
+
+
+def mirror_state(mirror: MirrorGrid | None) -> dict | None:
+    """What model.pt keeps of an exterior's mirror grid (tensors and numbers only)."""
+    if mirror is None:
+        return None
+    return {"lo": mirror.lo.cpu().clone(), "cell": float(mirror.cell), "planes": mirror.planes.cpu().clone(),
+            "axis": int(mirror.axis)}  # fmt: skip
+
+
+def mirror_from_state(state: dict | None) -> MirrorGrid | None:
+    """The mirror grid :func:`mirror_state` kept (None: none)."""
+    if state is None:
+        return None
+    planes = state["planes"]
+    if not torch.is_tensor(planes) or planes.dim() != 3 or tuple(state["lo"].shape) != (3,):
+        raise ValueError("exterior_mirror: planes (X, Y, Z) and lo (3,) expected")
+    return MirrorGrid(state["lo"].float(), float(state["cell"]), planes.float(), int(state.get("axis", 2)))

@@ -38,6 +38,9 @@ class PosedMesh:
     """(V, 2) projected vertices in pixels (for the soft silhouette)."""
     skinning: Optional[deformer.SkinningFrame]
     """Backward-skinning data (None when there is no exterior)."""
+    mirror: Optional[Callable[[torch.Tensor], torch.Tensor]] = None
+    """Canonical points (N, 3) -> where the exterior is read for them: the mirror image through the body where
+    no training frame looked (``delta.models.unseen.exterior_mirror``); None: where they are."""
 
 
 @dataclasses.dataclass
@@ -228,7 +231,10 @@ def _query_points(mesh: PosedMesh, flat, idx, settings: RenderSettings, nerf: Ne
     layered = hasattr(nerf, "with_layers")
     none = idx[:0], flat.new_zeros(0), flat.new_zeros(0, 3), flat.new_zeros(0, len(nerf.names)) if layered else None
     if settings.early_cull and mesh.skinning.near is not None and len(idx):
-        idx = idx[early_cull(mesh.skinning, flat[idx], settings.max_dist, occupied)]
+        cull = occupied
+        if occupied is not None and mesh.mirror is not None:  # a point is culled by where it is read
+            cull = lambda x, **kw: occupied(mesh.mirror(x), **kw)  # noqa: E731
+        idx = idx[early_cull(mesh.skinning, flat[idx], settings.max_dist, cull)]
     if not len(idx):
         return none
     d = deformer.deform(mesh.skinning, flat[idx], settings.k, settings.sigma, settings.max_dist)
@@ -238,6 +244,8 @@ def _query_points(mesh: PosedMesh, flat, idx, settings: RenderSettings, nerf: Ne
         x_c, ref = torch.cat([x_c, d.other.canonical]), torch.cat([ref, d.other.posed_ref])
         rows, valid = torch.cat([rows, d.other.rows]), torch.cat([valid, d.other.valid])
         carrier = torch.cat([carrier, d.other.nearest])
+    if mesh.mirror is not None:
+        x_c = mesh.mirror(x_c)
     if occupied is not None:
         valid = valid & occupied(x_c)
     keep = torch.nonzero(valid).squeeze(1)

@@ -117,7 +117,7 @@ _STAGE_DEFAULTS = {
 _COMMON = {
     "seed": 0, "background": [1.0, 1.0, 1.0], "box_margin": 0.1, "offset_scale": 0.04, "nerf_margin": 0.3,
     "mouth_shade": 0.3, "semantic": "idmrf", "exterior": "auto", "weights": {}, "render": {}, "stage1": {}, "stage2": {},
-    "capture": "auto", "layers": "one", "clothing_on_head": "yes", "unseen_albedo": "fill", "freeze": [], "freeze_rest": -1.0, "dynamics": {"time_freqs": 0, "dropout": 0.2, "pose_knots": 0},
+    "capture": "auto", "layers": "one", "clothing_on_head": "yes", "unseen_albedo": "fill", "unseen_exterior": "mirror", "freeze": [], "freeze_rest": -1.0, "dynamics": {"time_freqs": 0, "dropout": 0.2, "pose_knots": 0},
 }  # fmt: skip
 
 
@@ -247,6 +247,11 @@ class TrainSettings:
     """The body's albedo where no training frame looked (the back of a head that never turns): ``fill`` takes the
     harmonic fill of what the frames saw (``delta.models.unseen``), ``field`` keeps what the albedo field
     extrapolates there."""
+    unseen_exterior: str = "mirror"
+    """The exterior's canonical space where no training frame looked (the back of a shirt that never turned away
+    from the camera): ``mirror`` reads it at its mirror image through the body along the canonical front axis
+    where a frame saw that and the exterior is there (``delta.models.unseen.exterior_mirror``), ``field`` keeps
+    what the NeRF extrapolates."""
 
 
 def stage_view(raw: dict, stage: int) -> dict:
@@ -438,7 +443,10 @@ def _resolve(preset: str, *overrides: dict) -> TrainSettings:
         raise DeltaError(f"training.clothing_on_head: {d['clothing_on_head']!r} (expected auto, yes or no)")
     if d["unseen_albedo"] not in ("fill", "field"):
         raise DeltaError(f"training.unseen_albedo: {d['unseen_albedo']!r} (expected fill or field)")
+    if d["unseen_exterior"] not in ("mirror", "field"):
+        raise DeltaError(f"training.unseen_exterior: {d['unseen_exterior']!r} (expected mirror or field)")
     return TrainSettings(preset, d["resolution"], d["seed"], d["background"], d["box_margin"], d["exterior"],
                          d["semantic"], d["capture"], list(d["freeze"]), float(d["freeze_rest"]), avatar,
                          _fields(d, "deformation"), weights, stage["stage1"], stage["stage2"], d,
-                         float(dyn["dropout"]), d["layers"], d["clothing_on_head"], d["unseen_albedo"])  # fmt: skip
+                         float(dyn["dropout"]), d["layers"], d["clothing_on_head"], d["unseen_albedo"],
+                         d["unseen_exterior"])  # fmt: skip

@@ -24,7 +24,7 @@ from delta.io import atomic_path, load_state, save_json
 from delta.models.avatar import HybridAvatar, InitParams
 from delta.models.init import load_init
 from delta.models.spec import AvatarSpec, shade_value
-from delta.models.unseen import unseen_albedo
+from delta.models.unseen import exterior_mirror, mirror_from_state, mirror_state, unseen_albedo
 from delta.render.settings import OccupancySettings
 from delta.scene.analysis import MIN_EXTERIOR_FRACTION
 from delta.scene.settings import scene_settings
@@ -208,10 +208,17 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
         model.fill_albedo(ids, values)
         filled = len(ids)
         log.info("albedo where no training frame looked, filled from what they saw: %s", json.dumps(evidence))
+    mirrored = 0
+    if st.unseen_exterior == "mirror" and model.nerf is not None:
+        model.exterior_mirror, evidence = exterior_mirror(model, data.train)
+        mirrored = evidence["mirrored"]
+        log.info("exterior where no training frame looked, read at its mirror through the body: %s",
+                 json.dumps(evidence))  # fmt: skip
     save_model(out / "model.pt", model, stage, preset, st, res.steps)
     last = res.losses.tail(max(1, len(res.losses) // 20)).mean(numeric_only=True)
     summary = {"stage": stage, "steps": res.steps, "seconds": round(time.time() - t0, 1),
-               "train_psnr_last5pct": round(float(last.get("psnr", float("nan"))), 2), "albedo_filled": filled}  # fmt: skip
+               "train_psnr_last5pct": round(float(last.get("psnr", float("nan"))), 2), "albedo_filled": filled,
+               "exterior_cells_mirrored": mirrored}  # fmt: skip
     log.info("stage %d done: %s", stage, json.dumps(summary))
     return summary
 
@@ -228,7 +235,8 @@ def save_model(path: str | Path, model: HybridAvatar, stage: int, preset: str, s
              "frozen_joints": list(model.spec.frozen_joints),
              "layers": list(model.spec.layers), "clothing_off_head": model.spec.clothing_off_head,
              "framed": model.framed.cpu().clone(),
-             "albedo_fill": {"ids": model.fill_ids.cpu().clone(), "values": model.fill_values.cpu().clone()}}  # fmt: skip
+             "albedo_fill": {"ids": model.fill_ids.cpu().clone(), "values": model.fill_values.cpu().clone()},
+             "exterior_mirror": mirror_state(model.exterior_mirror)}  # fmt: skip
     with atomic_path(path) as tmp:
         torch.save(final, tmp)
 
@@ -334,6 +342,7 @@ def load_trained(model_path: str | Path, record: str | Path, body_path: str | Pa
         fill = state.get("albedo_fill")  # a file written before the fill has none
         if fill is not None:
             model.fill_albedo(fill["ids"], fill["values"])
+        model.exterior_mirror = mirror_from_state(state.get("exterior_mirror"))
     except (RuntimeError, ValueError, KeyError, TypeError) as e:
         raise DeltaError(f"{model_path}: does not match {body_path} or {record}: {str(e)[:300]}") from None
     model.eval()

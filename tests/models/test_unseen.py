@@ -88,3 +88,38 @@ def test_the_setting_takes_fill_or_field():
     )
     with pytest.raises(DeltaError, match="training.unseen_albedo"):
         resolve("fast", {"unseen_albedo": "mirror"})
+
+
+def test_the_exterior_is_mirrored_where_no_frame_looked_and_only_where_its_line_holds_exterior(trained, monkeypatch):
+    import delta.models.unseen as unseen
+
+    model, train = trained.model, trained.data.train
+    monkeypatch.setattr(unseen, "_holds", lambda m, p: torch.ones(len(p), dtype=torch.bool))  # exterior everywhere
+    one, ev_one = unseen.exterior_mirror(model, train[:1])
+    every, ev_every = unseen.exterior_mirror(model, train)
+    assert one is not None and ev_one["mirrored"] == int(one.planes.isfinite().sum()) > 0
+    assert ev_every["seen"] > ev_one["seen"] and ev_every["mirrored"] < ev_one["mirrored"]
+    # each mirrored cell's centre and its image lie on opposite sides of the body along z, as far from it
+    lo, cell = one.lo.double(), one.cell
+    at = torch.nonzero(one.planes.isfinite())
+    z = lo[2] + cell * (at[:, 2].double() + 0.5)
+    image = one.planes[at[:, 0], at[:, 1], at[:, 2]].double() - z
+    cano = model.canonical_vertices.detach().double()
+    assert bool(((image - z).abs() > 0).all())
+    assert float(z.min()) < float(cano[:, 2].max()) and float(image.max()) > float(cano[:, 2].min())
+    monkeypatch.setattr(unseen, "_holds", lambda m, p: torch.zeros(len(p), dtype=torch.bool))  # no exterior
+    assert unseen.exterior_mirror(model, train[:1])[0] is None
+
+
+def test_a_mirror_travels_through_model_pt():
+    grid = torch.full((3, 4, 5), float("nan"))
+    grid[1, 2, 3] = 0.25
+    from delta.geometry.mirror import MirrorGrid
+    from delta.models.unseen import mirror_from_state, mirror_state
+
+    back = mirror_from_state(mirror_state(MirrorGrid(torch.tensor([0.0, 1.0, 2.0]), 0.02, grid)))
+    assert back.cell == 0.02 and torch.equal(back.lo, torch.tensor([0.0, 1.0, 2.0]))
+    assert torch.equal(back.planes.isnan(), grid.isnan()) and float(back.planes[1, 2, 3]) == 0.25
+    assert mirror_state(None) is None and mirror_from_state(None) is None
+    with pytest.raises(ValueError, match="exterior_mirror"):
+        mirror_from_state({"lo": torch.zeros(3), "cell": 0.02, "planes": torch.zeros(4)})

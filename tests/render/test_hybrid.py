@@ -1,5 +1,7 @@
 """Rendering rays through the hybrid avatar: culling far from the body, the mesh stop, misses."""
 
+import dataclasses
+
 import torch
 import trimesh
 
@@ -245,3 +247,25 @@ def test_opaque_rays_stop_early_and_their_colour_moves_by_less_than_the_transmit
     for march in (1, 7, 47, 100):  # a step of one sample, uneven steps, one step for all
         other, _ = _march(OFFSETS, 400.0, march, monkeypatch, grad=False)
         torch.testing.assert_close(other.rgb, marched.rgb, atol=OPAQUE, rtol=0)
+
+
+def test_a_mirrored_exterior_is_read_at_its_mirror_image():
+    """An exterior only before the sphere (z > 0): seen from behind, the ray meets the body; with every point
+    read at its mirror through z = 0, it meets the front's exterior on the back."""
+    from delta.geometry.mirror import MirrorGrid
+
+    mesh = sphere_avatar()
+
+    def front_only(x):
+        r = x.norm(dim=-1)
+        dens = torch.where((r > 0.3) & (x[:, 2] > 0), torch.full_like(r, 1e4), torch.zeros_like(r))
+        return NERF_RGB.expand(len(x), 3), dens
+
+    o, d = torch.tensor([[0.0, 0.0, -2.0]]), torch.tensor([[0.0, 0.0, 1.0]])
+    st = RenderSettings(samples=32, box_margin=0.3, max_dist=0.1, perturb=False)
+    plain = render_rays(mesh, o, d, o[:, :2] * 100, BG, st, front_only)
+    torch.testing.assert_close(plain.rgb, MESH_RGB[None], atol=1e-3, rtol=0)
+    mirror = MirrorGrid(torch.full((3,), -1.0), 0.5, torch.zeros(4, 4, 4))  # every cell: z -> -z
+    seen = render_rays(dataclasses.replace(mesh, mirror=mirror), o, d, o[:, :2] * 100, BG, st, front_only)
+    assert float(seen.nerf_mask[0]) > 0.99
+    torch.testing.assert_close(seen.rgb, NERF_RGB[None], atol=1e-2, rtol=0)
