@@ -32,16 +32,23 @@ class MirrorGrid:
 
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         """(N, 3) the points, each at its mirror image where its cell has a plane."""
-        size = torch.tensor(self.planes.shape, device=x.device)
-        at = torch.floor((x.detach() - self.lo.to(x)) / self.cell).long()
-        inside = ((at >= 0) & (at < size)).all(-1)
-        at = torch.minimum(at.clamp_min(0), size - 1)
-        m = self.planes.to(x)[at[:, 0], at[:, 1], at[:, 2]]
+        flat, inside = cell_of(x, self.lo, self.cell, tuple(self.planes.shape))
+        m = self.planes.to(x).reshape(-1)[flat]
         has = inside & m.isfinite()
         if not bool(has.any()):
             return x
         flipped = torch.where(has, torch.nan_to_num(m) - x[:, self.axis], x[:, self.axis])
         return torch.cat([x[:, : self.axis], flipped[:, None], x[:, self.axis + 1 :]], -1)
+
+
+def cell_of(points: torch.Tensor, lo: torch.Tensor, cell: float, size: tuple[int, int, int]):
+    """Each point's cell of a grid (``lo`` its corner, ``size`` cells along x, y, z), flat (N,) int64, and
+    whether the point lies in the grid (N,) bool (outside: a border cell's index, not to be read)."""
+    bound = torch.tensor(size, device=points.device)
+    at = torch.floor((points.detach() - lo.to(points)) / cell).long()
+    inside = ((at >= 0) & (at < bound)).all(-1) & torch.isfinite(points.detach()).all(-1)
+    at = torch.minimum(at.clamp_min(0), bound - 1)
+    return (at[:, 0] * size[1] + at[:, 1]) * size[2] + at[:, 2], inside
 
 
 def through_planes(points: torch.Tensor, vertices: torch.Tensor, faces: torch.Tensor, axis: int = 2,

@@ -21,7 +21,7 @@ import torch
 
 from delta.body.model import REGION
 from delta.geometry.harmonic import harmonic_fill
-from delta.geometry.mirror import MirrorGrid, through_planes
+from delta.geometry.mirror import MirrorGrid, cell_of, through_planes
 from delta.geometry.nearest import PointIndex
 from delta.geometry.raymesh import keep_scene
 from delta.geometry.sight import vertex_normals, visible_points, visible_vertices
@@ -93,16 +93,16 @@ def canonical_to_posed(model, points: torch.Tensor, nearest: torch.Tensor, out) 
 @torch.no_grad()
 def exterior_mirror(model, frames) -> tuple[MirrorGrid | None, dict]:
     """Where no frame of ``frames`` looked at the exterior's canonical space, its mirror through the body along
-    the canonical front axis (z), where a frame did and the exterior holds density there: the back of a shirt
-    that never turned to the camera is read from its front. None where nothing is mirrored (or there is no
-    exterior); the evidence (cells near the body, seen, unseen, mirrored) for the log.
+    the canonical front axis (z): the back of a shirt that never turned to the camera is read from its front.
+    None where nothing is mirrored (or there is no exterior); the evidence (cells near the body, seen,
+    mirrored) for the log.
 
     A canonical cell within the exterior's reach (``render.max_dist``) of the body is seen in a frame where its
     centre, carried into the pose by its nearest vertex's map, is in the image with no body face before it on
     the camera's ray, and that vertex turns towards the camera (:data:`FACING`: the exterior over a surface
-    seen only at a grazing angle is barely trained either). An unseen cell on a line along z whose seen cells hold the exterior somewhere (the
-    occupancy grid's cells, else density over 0.5) takes the mirror plane of the line along +z (else -z) from
-    its centre that enters the canonical body and leaves it again
+    seen only at a grazing angle is barely trained either). An unseen cell on a line along z whose seen cells
+    hold the exterior somewhere (the occupancy grid's cells, else density over 0.5) takes the mirror plane of
+    the line along +z (else -z) from its centre that enters the canonical body and leaves it again
     (:func:`delta.geometry.mirror.through_planes`), where the mirrored centre's cell is seen. A bare arm's back,
     or the hair behind a face that never turned (its line holds no exterior before the face), keep what the
     field holds."""
@@ -157,11 +157,7 @@ def exterior_mirror(model, frames) -> tuple[MirrorGrid | None, dict]:
 
 
 def _seen_at(points: torch.Tensor, seen_grid: torch.Tensor, lo: torch.Tensor, cell: float, size) -> torch.Tensor:
-    at = torch.floor((points - lo) / cell).long()
-    bound = torch.tensor(size)
-    inside = ((at >= 0) & (at < bound)).all(-1) & torch.isfinite(points).all(-1)
-    at = torch.minimum(at.clamp_min(0), bound - 1)
-    flat = (at[:, 0] * size[1] + at[:, 1]) * size[2] + at[:, 2]
+    flat, inside = cell_of(points, lo, cell, tuple(size))
     return inside & seen_grid[flat]
 
 
