@@ -102,8 +102,10 @@ def put_on(body: HybridAvatar, wearer: HybridAvatar, layers: Sequence[str] = ())
 
 
 def _wear_mixed(body: HybridAvatar, wearer: HybridAvatar, nerf: LayeredNeRF) -> None:
-    """``body`` with layers of two avatars: no F_e, no occupancy grid, the larger room of the two."""
+    """``body`` with layers of two avatars: no F_e, no occupancy grid, no mirror where no frame looked (each
+    avatar's reads its own exterior), the larger room of the two."""
     b, w = body.spec, wearer.spec
+    body.exterior_mirror = None
     room = max(b.render.max_dist, w.render.max_dist)
     samples = max(b.render.samples, w.render.samples)
     body.nerf, body.deformation, body.occupancy = nerf, None, None
@@ -113,9 +115,11 @@ def _wear_mixed(body: HybridAvatar, wearer: HybridAvatar, nerf: LayeredNeRF) -> 
 
 
 def _wear(body: HybridAvatar, wearer: HybridAvatar, nerf) -> None:
-    """``body`` with ``nerf`` (the wearer's exterior, or layers of it) and the wearer's F_e and occupancy."""
+    """``body`` with ``nerf`` (the wearer's exterior, or layers of it) and the wearer's F_e, occupancy and mirror
+    where no frame looked (both canonical spaces are the body model's)."""
     dev = body.canonical_vertices.device
     body.nerf = nerf
+    body.exterior_mirror = wearer.exterior_mirror
     body.deformation = wearer.deformation.to(dev) if wearer.deformation is not None else None
     body.occupancy = wearer.occupancy.to(dev) if wearer.occupancy is not None else None
     w = wearer.spec

@@ -35,6 +35,25 @@ def test_an_avatar_wearing_its_own_exterior_renders_as_itself(tiny_trained):
         assert torch.equal(b, a)
 
 
+def test_the_wearers_mirror_where_no_frame_looked_comes_with_its_whole_exterior_and_none_with_mixed_layers(
+    tiny_trained,
+):
+    from delta.geometry.mirror import MirrorGrid
+
+    body, wearer = load(tiny_trained["tight"]), load(tiny_trained["loose"])
+    theirs = MirrorGrid(torch.zeros(3), 0.5, torch.zeros(2, 2, 2))
+    body.model.exterior_mirror = MirrorGrid(torch.ones(3), 0.5, torch.ones(2, 2, 2))
+    wearer.model.exterior_mirror = theirs
+    put_on(body.model, wearer.model)
+    assert body.model.exterior_mirror is theirs
+    body, wearer = load(tiny_trained["tight"]), load(tiny_trained["loose"])
+    layered(body.model, (0.1, 0.2, 0.9), (0.9, 0.9, 0.1))
+    layered(wearer.model, (0.9, 0.1, 0.1), (0.1, 0.8, 0.2))
+    body.model.exterior_mirror = wearer.model.exterior_mirror = theirs
+    put_on(body.model, wearer.model, ["hair"])  # the body keeps its clothing: two trainings' layers
+    assert body.model.exterior_mirror is None
+
+
 def inflated_silhouette(model, frame: int, betas: torch.Tensor, view: View) -> np.ndarray:
     """The body of shape ``betas`` in ``frame``'s pose, inflated by SHELL along its normals, projected into ``view``."""
     out = lbs(model.body, betas[None], model.poses[frame : frame + 1], transl=model.transl[frame : frame + 1])
