@@ -38,7 +38,7 @@ from delta.body.lbs import batch_rodrigues
 from delta.eval.evaluate import evaluate
 from delta.eval.settings import EvalSettings
 from delta.export.video import turntable
-from delta.models.unseen import exterior_mirror, seen_vertices, unseen_albedo
+from delta.models.unseen import seen_vertices, unseen_parts
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -79,11 +79,11 @@ VARIANTS = ("fill+mirror", "fill", "field")
 workflow's default), the fill alone, or neither (the fields' own extrapolation)."""
 
 
-def unseen_parts(model, frames) -> dict:
+def unseen(model, frames) -> dict:
     """The albedo's fill and the exterior's mirror as training's end computes them from ``frames``."""
-    ids, values, _ = unseen_albedo(model, frames)
-    mirror, evidence = exterior_mirror(model, frames)
-    return {"ids": ids, "values": values, "mirror": mirror, "cells_mirrored": evidence.get("mirrored", 0)}
+    (ids, values), mirror, evidence = unseen_parts(model, frames)
+    return {"ids": ids, "values": values, "mirror": mirror,
+            "cells_mirrored": evidence.get("exterior", {}).get("mirrored", 0)}  # fmt: skip
 
 
 def set_variant(model, parts: dict, variant: str) -> None:
@@ -99,7 +99,7 @@ def albedo_rmse(a: torch.Tensor, b: torch.Tensor) -> float:
 def score(args) -> None:
     trained = load_trained(args.model, args.record, args.body)
     model, data = trained.model, trained.data
-    parts = unseen_parts(model, data.train)
+    parts = unseen(model, data.train)
     st = EvalSettings(splits=("test_view",), max_frames=args.max_frames, supersample=args.supersample,
                       refine_steps=0, worst=0)  # fmt: skip
     center = model.camera(0).center.detach().double().numpy() if model.pinhole else None
@@ -134,7 +134,7 @@ def views(args) -> None:
     """A PNG of turntable views of one frame, a row a variant (:data:`VARIANTS`, top to bottom)."""
     trained = load_trained(args.model, args.record, args.body)
     model = trained.model
-    parts = unseen_parts(model, trained.data.train)
+    parts = unseen(model, trained.data.train)
     rows = []
     for variant in VARIANTS:
         set_variant(model, parts, variant)

@@ -27,9 +27,6 @@ class MirrorGrid:
     """(X, Y, Z) each cell's mirror plane along ``axis`` (NaN: none)."""
     axis: int = 2
 
-    def to(self, device) -> "MirrorGrid":
-        return dataclasses.replace(self, lo=self.lo.to(device), planes=self.planes.to(device))
-
     def __call__(self, x: torch.Tensor) -> torch.Tensor:
         """(N, 3) the points, each at its mirror image where its cell has a plane."""
         flat, inside = cell_of(x, self.lo, self.cell, tuple(self.planes.shape))

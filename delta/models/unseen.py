@@ -14,6 +14,7 @@ Shapes: V vertices, U unseen vertices.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -24,7 +25,7 @@ from delta.geometry.harmonic import harmonic_fill
 from delta.geometry.mirror import MirrorGrid, cell_of, through_planes
 from delta.geometry.nearest import PointIndex
 from delta.geometry.raymesh import keep_scene
-from delta.geometry.sight import vertex_normals, visible_points, visible_vertices
+from delta.geometry.sight import vertex_normals, visible_points
 
 FACING = 0.2
 """A vertex counts as seen in a frame where its normal turns towards the camera by a cosine above this
@@ -37,17 +38,29 @@ time (30 s against 66 s on 2 cores, a training beside them)."""
 
 
 @torch.no_grad()
-def seen_vertices(model, frames) -> torch.Tensor:
-    """(V,) bool: the body vertices some frame of ``frames`` sees (:func:`visible_vertices` with
-    :data:`FACING`), on the model's own posed body and camera."""
+def survey(model, frames, cells: "Cells | None" = None) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """What ``frames`` see, each frame posed once: the (V,) body vertices some frame sees (in the image, first on
+    the camera's ray, turned to it by :data:`FACING`) and, with ``cells``, the (C,) exterior cells some frame sees
+    (:func:`exterior_mirror`), on the model's own posed body and camera."""
     faces = model.body.faces
     seen = torch.zeros(model.body.num_vertices, dtype=torch.bool)
+    cells_seen = None if cells is None else torch.zeros(len(cells.points), dtype=torch.bool)
     offsets = model.offsets()
     for f in frames:
-        verts = model.pose_body(int(f), offsets).vertices[0]
+        out = model.pose_body(int(f), offsets)
+        verts, camera = out.vertices[0], model.camera(int(f))
         keep_scene(verts, faces)
-        seen |= visible_vertices(verts, faces, model.camera(int(f)), facing=FACING)
-    return seen
+        normals = vertex_normals(verts, faces)
+        seen |= visible_points(verts, verts, faces, camera, normals=normals, facing=FACING)
+        if cells is not None:
+            posed = canonical_to_posed(model, cells.points.to(verts.device), cells.nearest, out)
+            cells_seen |= visible_points(posed, verts, faces, camera, normals=normals[cells.nearest], facing=FACING)
+    return seen, cells_seen
+
+
+def seen_vertices(model, frames) -> torch.Tensor:
+    """(V,) bool: the body vertices some frame of ``frames`` sees (:func:`survey`)."""
+    return survey(model, frames)[0]
 
 
 def spread(frames: np.ndarray, most: int = MAX_FRAMES) -> np.ndarray:
@@ -59,15 +72,16 @@ def spread(frames: np.ndarray, most: int = MAX_FRAMES) -> np.ndarray:
 
 
 @torch.no_grad()
-def unseen_albedo(model, frames) -> tuple[torch.Tensor, torch.Tensor, dict]:
-    """The fill of the albedo where no frame of ``frames`` looked: (U,) int64 vertex ids, (U, 3) their
-    albedo, and the evidence (vertices seen and filled, frames looked through) for the log."""
-    looked = spread(frames)
-    seen = seen_vertices(model, looked)
+def unseen_albedo(model, frames, seen: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    """The fill of the albedo where no frame of ``frames`` looked (``seen``: the vertices they see, when
+    :func:`survey` has them): (U,) int64 vertex ids, (U, 3) their albedo, and the evidence (vertices seen and
+    filled) for the log."""
+    if seen is None:
+        seen = seen_vertices(model, spread(frames))
     mouth = (model.body.regions == REGION["mouth"]).cpu() if model.body.regions.numel() else None
     unseen = ~seen if mouth is None else ~seen & ~mouth
     ids = torch.nonzero(unseen).squeeze(1)
-    evidence = {"frames_looked": int(len(looked)), "vertices": int(len(seen)), "seen": int(seen.sum()),
+    evidence = {"frames_looked": int(len(spread(frames))), "vertices": int(len(seen)), "seen": int(seen.sum()),
                 "filled": int(len(ids))}  # fmt: skip
     if not len(ids) or not bool(seen.any()):
         return ids, torch.zeros(0, 3), dict(evidence, filled=0)
@@ -90,8 +104,38 @@ def canonical_to_posed(model, points: torch.Tensor, nearest: torch.Tensor, out) 
     return (g[:, :, :3] @ (local + d)[..., None])[..., 0] + g[:, :, 3]
 
 
+@dataclasses.dataclass
+class Cells:
+    """The exterior's canonical cells within its reach of the body (C of them) on a grid of ``MIRROR_CELL``."""
+
+    lo: torch.Tensor
+    """(3,) float64 the grid's corner."""
+    size: tuple[int, int, int]
+    near: torch.Tensor
+    """(C,) int64 the cells' flat indices into the grid."""
+    nearest: torch.Tensor
+    """(C,) int64 each cell centre's nearest canonical body vertex (on the model's device)."""
+    points: torch.Tensor
+    """(C, 3) float64 the cells' centres."""
+
+
+def exterior_cells(model) -> Cells:
+    """The canonical cells within ``render.max_dist`` of the canonical body (:class:`Cells`)."""
+    cano = model.canonical_vertices.detach().double().cpu()
+    room, cell = float(model.spec.render.max_dist), MIRROR_CELL
+    lo = cano.amin(0) - room
+    size = tuple(max(1, math.ceil(float(x))) for x in (cano.amax(0) + room - lo) / cell)
+    axes = [lo[i] + cell * (torch.arange(size[i], dtype=torch.float64) + 0.5) for i in range(3)]
+    centres = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    dist, nearest = PointIndex(cano).query(centres, 1)
+    near = torch.nonzero(dist.reshape(-1) <= room).squeeze(1)
+    return Cells(lo, size, near, nearest.reshape(-1)[near].to(model.canonical_T.device), centres[near])
+
+
 @torch.no_grad()
-def exterior_mirror(model, frames) -> tuple[MirrorGrid | None, dict]:
+def exterior_mirror(
+    model, frames, surveyed: tuple[Cells, torch.Tensor] | None = None
+) -> tuple[MirrorGrid | None, dict]:
     """Where no frame of ``frames`` looked at the exterior's canonical space, its mirror through the body along
     the canonical front axis (z): the back of a shirt that never turned to the camera is read from its front.
     None where nothing is mirrored (or there is no exterior); the evidence (cells near the body, seen,
@@ -108,35 +152,22 @@ def exterior_mirror(model, frames) -> tuple[MirrorGrid | None, dict]:
     field holds."""
     if model.nerf is None:
         return None, {"exterior": False}
-    looked = spread(frames)
+    if surveyed is None:
+        cells = exterior_cells(model)
+        surveyed = cells, survey(model, spread(frames), cells)[1]
+    cells, seen = surveyed
     cano = model.canonical_vertices.detach().double().cpu()
     faces = model.body.faces.cpu()
-    room, cell = float(model.spec.render.max_dist), MIRROR_CELL
-    lo = cano.amin(0) - room
-    size = [max(1, math.ceil(float(x))) for x in (cano.amax(0) + room - lo) / cell]
-    axes = [lo[i] + cell * (torch.arange(size[i], dtype=torch.float64) + 0.5) for i in range(3)]
-    centres = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    dist, nearest = PointIndex(cano).query(centres, 1)
-    near = torch.nonzero(dist.reshape(-1) <= room).squeeze(1)
-    nearest = nearest.reshape(-1)[near].to(model.canonical_T.device)
-    points = centres[near]
-    seen = torch.zeros(len(near), dtype=torch.bool)
-    offsets = model.offsets()
-    for f in looked:
-        out = model.pose_body(int(f), offsets)
-        verts = out.vertices[0]
-        keep_scene(verts, model.body.faces)
-        posed = canonical_to_posed(model, points.to(verts.device), nearest, out)
-        normals = vertex_normals(verts, model.body.faces)[nearest]
-        seen |= visible_points(posed, verts, model.body.faces, model.camera(int(f)), normals=normals, facing=FACING)
-    seen_grid = torch.zeros(len(centres), dtype=torch.bool)
+    lo, size, near, points = cells.lo, cells.size, cells.near, cells.points
+    total = size[0] * size[1] * size[2]
+    seen_grid = torch.zeros(total, dtype=torch.bool)
     seen_grid[near[seen]] = True
     unseen = torch.nonzero(~seen).squeeze(1)
-    planes = torch.full((len(centres),), float("nan"), dtype=torch.float64)
-    evidence = {"frames_looked": int(len(looked)), "cells_near_body": int(len(near)), "seen": int(seen.sum()),
+    planes = torch.full((total,), float("nan"), dtype=torch.float64)
+    evidence = {"frames_looked": int(len(spread(frames))), "cells_near_body": int(len(near)), "seen": int(seen.sum()),
                 "mirrored": 0}  # fmt: skip
     # a line along z whose seen cells hold the exterior lends it to the line's unseen cells
-    held = torch.zeros(len(centres), dtype=torch.bool)
+    held = torch.zeros(total, dtype=torch.bool)
     held[near[seen]] = _holds(model, points[seen])
     column = held.reshape(size).any(-1).reshape(-1)
     todo = unseen[column[torch.div(near[unseen], size[2], rounding_mode="floor")]]
@@ -146,19 +177,36 @@ def exterior_mirror(model, frames) -> tuple[MirrorGrid | None, dict]:
         m = through_planes(points[todo], cano, faces, 2, sign)
         target = points[todo].clone()
         target[:, 2] = m - target[:, 2]
-        ok = m.isfinite() & _seen_at(target, seen_grid, lo, cell, size)
+        flat, inside = cell_of(target, lo, MIRROR_CELL, size)
+        ok = m.isfinite() & inside & seen_grid[flat]
         planes[near[todo[ok]]] = m[ok]
         todo = todo[~ok]
     mirrored = int(planes.isfinite().sum())
     evidence["mirrored"] = mirrored
     if not mirrored:
         return None, evidence
-    return MirrorGrid(lo.float(), cell, planes.reshape(size).float()), evidence
+    return MirrorGrid(lo.float(), MIRROR_CELL, planes.reshape(size).float()), evidence
 
 
-def _seen_at(points: torch.Tensor, seen_grid: torch.Tensor, lo: torch.Tensor, cell: float, size) -> torch.Tensor:
-    flat, inside = cell_of(points, lo, cell, tuple(size))
-    return inside & seen_grid[flat]
+@torch.no_grad()
+def unseen_parts(model, frames, albedo: bool = True, exterior: bool = True) -> tuple[tuple, MirrorGrid | None, dict]:
+    """What training's end sets where no frame of ``frames`` looked, the frames posed once for both: the albedo's
+    fill ((U,) ids, (U, 3) values; empty without ``albedo``), the exterior's mirror (None without ``exterior``
+    or an exterior) and the evidence of both for the log."""
+    looked = spread(frames)
+    cells = exterior_cells(model) if exterior and model.nerf is not None else None
+    if not albedo and cells is None:
+        return (torch.zeros(0, dtype=torch.int64), torch.zeros(0, 3)), None, {}
+    seen, cells_seen = survey(model, looked, cells)
+    evidence = {"frames_looked": int(len(looked))}
+    fill = (torch.zeros(0, dtype=torch.int64), torch.zeros(0, 3))
+    if albedo:
+        ids, values, evidence["albedo"] = unseen_albedo(model, looked, seen)
+        fill = (ids, values)
+    mirror = None
+    if cells is not None:
+        mirror, evidence["exterior"] = exterior_mirror(model, looked, (cells, cells_seen))
+    return fill, mirror, evidence
 
 
 def _holds(model, points: torch.Tensor) -> torch.Tensor:

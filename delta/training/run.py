@@ -24,7 +24,7 @@ from delta.io import atomic_path, load_state, save_json
 from delta.models.avatar import HybridAvatar, InitParams
 from delta.models.init import load_init
 from delta.models.spec import AvatarSpec, shade_value
-from delta.models.unseen import exterior_mirror, mirror_from_state, mirror_state, unseen_albedo
+from delta.models.unseen import mirror_from_state, mirror_state, unseen_parts
 from delta.render.settings import OccupancySettings
 from delta.scene.analysis import MIN_EXTERIOR_FRACTION
 from delta.scene.settings import scene_settings
@@ -202,18 +202,13 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
     # record: a refitted body or re-prepared frames under unchanged settings is another run, not this one resumed
     origin = f"{file_digest(start)}-{file_digest(record)}"
     res = train_stage(stage, model, data, st, out, sem, origin=origin, fine=fine)
-    filled = 0
-    if st.unseen_albedo == "fill":
-        ids, values, evidence = unseen_albedo(model, data.train)
-        model.fill_albedo(ids, values)
-        filled = len(ids)
-        log.info("albedo where no training frame looked, filled from what they saw: %s", json.dumps(evidence))
-    mirrored = 0
-    if st.unseen_exterior == "mirror" and model.nerf is not None:
-        model.exterior_mirror, evidence = exterior_mirror(model, data.train)
-        mirrored = evidence["mirrored"]
-        log.info("exterior where no training frame looked, read at its mirror through the body: %s",
-                 json.dumps(evidence))  # fmt: skip
+    (ids, values), model.exterior_mirror, evidence = unseen_parts(model, data.train, st.unseen_albedo == "fill",
+                                                                  st.unseen_exterior == "mirror")  # fmt: skip
+    model.fill_albedo(ids, values)
+    filled, mirrored = len(ids), evidence.get("exterior", {}).get("mirrored", 0)
+    if evidence:
+        log.info("where no training frame looked: the albedo filled from what they saw, the exterior read at its "
+                 "mirror through the body: %s", json.dumps(evidence))  # fmt: skip
     save_model(out / "model.pt", model, stage, preset, st, res.steps)
     last = res.losses.tail(max(1, len(res.losses) // 20)).mean(numeric_only=True)
     summary = {"stage": stage, "steps": res.steps, "seconds": round(time.time() - t0, 1),

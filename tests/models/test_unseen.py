@@ -123,3 +123,20 @@ def test_a_mirror_travels_through_model_pt():
     assert mirror_state(None) is None and mirror_from_state(None) is None
     with pytest.raises(ValueError, match="exterior_mirror"):
         mirror_from_state({"lo": torch.zeros(3), "cell": 0.02, "planes": torch.zeros(4)})
+
+
+def test_one_pass_over_the_frames_gives_what_the_fill_and_the_mirror_give_alone(trained, monkeypatch):
+    import delta.models.unseen as unseen
+
+    model, train = trained.model, trained.data.train
+    model.fill_albedo(torch.zeros(0, dtype=torch.int64), torch.zeros(0, 3))
+    monkeypatch.setattr(unseen, "_holds", lambda m, p: torch.ones(len(p), dtype=torch.bool))
+    (ids, values), mirror, evidence = unseen.unseen_parts(model, train[:2])
+    alone_ids, alone_values, _ = unseen.unseen_albedo(model, train[:2])
+    alone_mirror, _ = unseen.exterior_mirror(model, train[:2])
+    assert torch.equal(ids, alone_ids) and torch.equal(values, alone_values)
+    assert torch.equal(mirror.planes.isnan(), alone_mirror.planes.isnan())
+    torch.testing.assert_close(mirror.planes.nan_to_num(), alone_mirror.planes.nan_to_num())
+    assert evidence["albedo"]["filled"] == len(ids) and evidence["exterior"]["mirrored"] > 0
+    (none_ids, _), none_mirror, _ = unseen.unseen_parts(model, train[:2], albedo=False, exterior=False)
+    assert len(none_ids) == 0 and none_mirror is None
