@@ -5,8 +5,9 @@ dancer facing it) never shows the back. ``front`` writes a copy of a frame recor
 those where the fitted body turns at most ``--turned`` degrees from the camera (the rest become held-out views),
 so the same subject can be trained as such a capture. ``score`` scores a trained avatar's held-out views by the
 workflow's evaluation (whole frames at the capture's size, unrefined, so that the pose cannot make up for the
-colour) once a variant (:data:`VARIANTS`): the albedo's fill and the exterior's mirror as training's end computes
-them (``training.unseen_albedo: fill``, ``training.unseen_exterior: mirror``), the fill alone, neither. With
+colour) once a variant (:data:`VARIANTS`): the albedo's fill of the look from outside and the exterior's mirror
+as training's end computes them (``training.unseen_albedo: outside``, ``training.unseen_exterior: mirror``),
+the fill of the albedo alone with and without the mirror, neither. With
 ``--reference`` (the same subject trained on its whole turn) it also compares, on the vertices the front-only
 capture never saw and the whole turn did, each variant's albedo with the reference's (RMSE on [0, 1] colours).
 ``views`` draws a turntable of each variant, a row each.
@@ -38,7 +39,7 @@ from delta.body.lbs import batch_rodrigues
 from delta.eval.evaluate import evaluate
 from delta.eval.settings import EvalSettings
 from delta.export.video import turntable
-from delta.models.unseen import seen_vertices, unseen_parts
+from delta.models.unseen import seen_vertices, spread, unseen_albedo, unseen_parts
 from delta.training.run import load_trained
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -74,22 +75,27 @@ def front(args) -> None:
           f"{int(moved.sum())} moved to held-out views")  # fmt: skip
 
 
-VARIANTS = ("fill+mirror", "fill", "field")
-"""What the avatar holds where no training frame looked: the albedo's fill and the exterior's mirror (the
-workflow's default), the fill alone, or neither (the fields' own extrapolation)."""
+VARIANTS = ("outside+mirror", "fill+mirror", "fill", "field")
+"""What the avatar holds where no training frame looked: the fill of the seen surface as it looks from outside
+(its exterior over its albedo) and the exterior's mirror (the workflow's default), the fill of the seen albedo
+alone with the mirror, that fill alone, or neither (the fields' own extrapolation)."""
 
 
 def unseen(model, frames) -> dict:
-    """The albedo's fill and the exterior's mirror as training's end computes them from ``frames``."""
+    """The albedo's fills and the exterior's mirror as training's end computes them from ``frames``."""
     (ids, values), mirror, evidence = unseen_parts(model, frames)
-    return {"ids": ids, "values": values, "mirror": mirror,
-            "cells_mirrored": evidence.get("exterior", {}).get("mirrored", 0)}  # fmt: skip
+    seen = seen_vertices(model, spread(frames))
+    _, albedo_values, _ = unseen_albedo(model, frames, seen, outside=False)
+    return {"ids": ids, "values": values, "albedo_values": albedo_values, "mirror": mirror,
+            "cells_mirrored": evidence.get("exterior", {}).get("mirrored", 0),
+            "border_covered": evidence.get("albedo", {}).get("border_covered", 0)}  # fmt: skip
 
 
 def set_variant(model, parts: dict, variant: str) -> None:
     fill = variant != "field"
-    model.fill_albedo(parts["ids"] if fill else parts["ids"][:0], parts["values"] if fill else parts["values"][:0])
-    model.exterior_mirror = parts["mirror"] if variant == "fill+mirror" else None
+    values = parts["values"] if variant.startswith("outside") else parts["albedo_values"]
+    model.fill_albedo(parts["ids"] if fill else parts["ids"][:0], values if fill else values[:0])
+    model.exterior_mirror = parts["mirror"] if variant.endswith("+mirror") else None
 
 
 def albedo_rmse(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -114,7 +120,7 @@ def score(args) -> None:
         set_variant(model, parts, variant)
         df = evaluate(trained, args.record, st, subject=args.subject)
         extra = {"variant": variant, "vertices_filled": len(parts["ids"]), "cells_mirrored": parts["cells_mirrored"],
-                 "training_frames": len(data.train)}  # fmt: skip
+                 "border_covered": parts["border_covered"], "training_frames": len(data.train)}  # fmt: skip
         if compare:
             got = model.albedo().detach()[compare["only"]]
             extra |= {"vertices_compared": int(compare["only"].sum()),
@@ -122,12 +128,18 @@ def score(args) -> None:
         for _, r in df.iterrows():
             rows.append({"subject": args.subject, **extra, "frame_id": int(r["frame_id"]),
                          "turned_deg": float(turned[int(r["frame"])]), "psnr": r["psnr"], "psnr_body": r["psnr_body"],
-                         "psnr_clothing": r.get("psnr_clothing", np.nan), "ssim": r["ssim"],
+                         "psnr_clothing": r.get("psnr_clothing", np.nan), "psnr_hair": r.get("psnr_hair", np.nan),
+                         "ssim": r["ssim"],
                          "nerf_iou": r["nerf_iou"], "resolution": r["resolution"], "supersample": args.supersample})  # fmt: skip
     table = pd.DataFrame(rows).round(4)
     save_table(table, args.csv, append=args.append)
     print(table.to_string(index=False))
-    print(table.groupby("variant")[["psnr", "psnr_body", "psnr_clothing", "nerf_iou"]].mean().round(3).to_string())
+    print(
+        table.groupby("variant")[["psnr", "psnr_body", "psnr_clothing", "psnr_hair", "nerf_iou"]]
+        .mean()
+        .round(3)
+        .to_string()
+    )
 
 
 def views(args) -> None:

@@ -72,10 +72,13 @@ def spread(frames: np.ndarray, most: int = MAX_FRAMES) -> np.ndarray:
 
 
 @torch.no_grad()
-def unseen_albedo(model, frames, seen: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor, dict]:
+def unseen_albedo(model, frames, seen: torch.Tensor | None = None,
+                  outside: bool = True) -> tuple[torch.Tensor, torch.Tensor, dict]:  # fmt: skip
     """The fill of the albedo where no frame of ``frames`` looked (``seen``: the vertices they see, when
     :func:`survey` has them): (U,) int64 vertex ids, (U, 3) their albedo, and the evidence (vertices seen and
-    filled) for the log."""
+    filled) for the log. With ``outside`` the fill is of the seen surface as it looks from outside
+    (:func:`outside_look`: the scalp under short hair gives the back of the head the hair's colour), else of
+    the seen albedo alone."""
     if seen is None:
         seen = seen_vertices(model, spread(frames))
     mouth = (model.body.regions == REGION["mouth"]).cpu() if model.body.regions.numel() else None
@@ -85,9 +88,47 @@ def unseen_albedo(model, frames, seen: torch.Tensor | None = None) -> tuple[torc
                 "filled": int(len(ids))}  # fmt: skip
     if not len(ids) or not bool(seen.any()):
         return ids, torch.zeros(0, 3), dict(evidence, filled=0)
-    albedo = model.albedo().detach().cpu()
-    filled = harmonic_fill(albedo, seen, model.body.faces.cpu(), mouth)
+    faces = model.body.faces.cpu()
+    values = model.albedo().detach().cpu()
+    if outside and model.nerf is not None:
+        # only the seen vertices beside an unseen one bound the fill: the rest need no look
+        touch = unseen[faces].any(1)
+        border = torch.zeros_like(seen)
+        border[faces[touch].reshape(-1)] = True
+        border &= seen if mouth is None else seen & ~mouth
+        look = outside_look(model, torch.nonzero(border).squeeze(1)).to(values)
+        evidence["border_covered"] = int((look - values[border]).abs().amax(-1).gt(0.1).sum())
+        values[border] = look
+    filled = harmonic_fill(values, seen, faces, mouth)
     return ids, filled[ids].float(), evidence
+
+
+LOOK_SAMPLES = 32
+"""Samples of the exterior along a vertex's outward normal, over ``render.max_dist`` (:func:`outside_look`)."""
+
+
+@torch.no_grad()
+def outside_look(model, ids: torch.Tensor) -> torch.Tensor:
+    """(N, 3) how the canonical body's vertices ``ids`` (N,) look from outside along their normals: the
+    exterior's colour composited over their albedo (the volume rendering of :data:`LOOK_SAMPLES` samples out to
+    ``render.max_dist``, where the occupancy grid holds the exterior), their albedo where nothing covers them."""
+    albedo = model.albedo().detach()[ids]
+    if model.nerf is None or not len(ids):
+        return albedo
+    cano = model.canonical_vertices.detach()
+    normals = vertex_normals(cano, model.body.faces)[ids]
+    reach = float(model.spec.render.max_dist)
+    step = reach / LOOK_SAMPLES
+    t = (torch.arange(LOOK_SAMPLES, device=cano.device, dtype=cano.dtype) + 0.5) * step
+    x = (cano[ids][:, None] + t[None, :, None] * normals[:, None]).reshape(-1, 3).float()
+    color, sigma = model.nerf(x)
+    if model.occupancy is not None:
+        sigma = torch.where(model.occupancy.contains(x), sigma, torch.zeros_like(sigma))
+    alpha = (1 - torch.exp(-sigma.reshape(len(ids), LOOK_SAMPLES) * step)).to(albedo)
+    through = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
+    weight = through * alpha
+    covered = (weight[..., None] * color.reshape(len(ids), LOOK_SAMPLES, 3).to(albedo)).sum(1)
+    return covered + (1 - weight.sum(1, keepdim=True)) * albedo
 
 
 MIRROR_CELL = 0.02
@@ -189,10 +230,12 @@ def exterior_mirror(
 
 
 @torch.no_grad()
-def unseen_parts(model, frames, albedo: bool = True, exterior: bool = True) -> tuple[tuple, MirrorGrid | None, dict]:
+def unseen_parts(model, frames, albedo: bool = True, exterior: bool = True,
+                 outside: bool = True) -> tuple[tuple, MirrorGrid | None, dict]:  # fmt: skip
     """What training's end sets where no frame of ``frames`` looked, the frames posed once for both: the albedo's
-    fill ((U,) ids, (U, 3) values; empty without ``albedo``), the exterior's mirror (None without ``exterior``
-    or an exterior) and the evidence of both for the log."""
+    fill ((U,) ids, (U, 3) values; empty without ``albedo``; of the seen surface's look from outside with
+    ``outside``: :func:`unseen_albedo`), the exterior's mirror (None without ``exterior`` or an exterior) and the
+    evidence of both for the log."""
     looked = spread(frames)
     cells = exterior_cells(model) if exterior and model.nerf is not None else None
     if not albedo and cells is None:
@@ -201,7 +244,7 @@ def unseen_parts(model, frames, albedo: bool = True, exterior: bool = True) -> t
     evidence = {"frames_looked": int(len(looked))}
     fill = (torch.zeros(0, dtype=torch.int64), torch.zeros(0, 3))
     if albedo:
-        ids, values, evidence["albedo"] = unseen_albedo(model, looked, seen)
+        ids, values, evidence["albedo"] = unseen_albedo(model, looked, seen, outside)
         fill = (ids, values)
     mirror = None
     if cells is not None:

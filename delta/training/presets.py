@@ -117,7 +117,7 @@ _STAGE_DEFAULTS = {
 _COMMON = {
     "seed": 0, "background": [1.0, 1.0, 1.0], "box_margin": 0.1, "offset_scale": 0.04, "nerf_margin": 0.3,
     "mouth_shade": 0.3, "semantic": "idmrf", "exterior": "auto", "weights": {}, "render": {}, "stage1": {}, "stage2": {},
-    "capture": "auto", "layers": "one", "clothing_on_head": "yes", "unseen_albedo": "fill", "unseen_exterior": "mirror", "freeze": [], "freeze_rest": -1.0, "dynamics": {"time_freqs": 0, "dropout": 0.2, "pose_knots": 0},
+    "capture": "auto", "layers": "one", "clothing_on_head": "yes", "unseen_albedo": "outside", "unseen_exterior": "mirror", "freeze": [], "freeze_rest": -1.0, "dynamics": {"time_freqs": 0, "dropout": 0.2, "pose_knots": 0},
 }  # fmt: skip
 
 
@@ -243,10 +243,11 @@ class TrainSettings:
     :data:`delta.scene.framing.MAX_CLOTHING_ON_HEAD` of the fitted head's projected vertices. ``yes`` in every
     preset: on the short-haired talker ``auto`` mended the collar and raised the head region of six held-out
     frames by 0.9 dB, and lowered their whole image by 0.4 dB where the head tilted down (docs/heads.md)."""
-    unseen_albedo: str = "fill"
-    """The body's albedo where no training frame looked (the back of a head that never turns): ``fill`` takes the
-    harmonic fill of what the frames saw (``delta.models.unseen``), ``field`` keeps what the albedo field
-    extrapolates there."""
+    unseen_albedo: str = "outside"
+    """The body's albedo where no training frame looked (the back of a head that never turns): ``outside`` takes
+    the harmonic fill of the seen surface as it looks from outside (the exterior over its albedo: the scalp under
+    short hair lends the back of the head the hair's colour), ``fill`` of the seen albedo alone
+    (``delta.models.unseen``), ``field`` keeps what the albedo field extrapolates there."""
     unseen_exterior: str = "mirror"
     """The exterior's canonical space where no training frame looked (the back of a shirt that never turned away
     from the camera): ``mirror`` reads it at its mirror image through the body along the canonical front axis
@@ -441,8 +442,8 @@ def _resolve(preset: str, *overrides: dict) -> TrainSettings:
         raise DeltaError(f"training.layers: '{d['layers']}' (expected one or split)")
     if d["clothing_on_head"] not in ("auto", "yes", "no"):
         raise DeltaError(f"training.clothing_on_head: {d['clothing_on_head']!r} (expected auto, yes or no)")
-    if d["unseen_albedo"] not in ("fill", "field"):
-        raise DeltaError(f"training.unseen_albedo: {d['unseen_albedo']!r} (expected fill or field)")
+    if d["unseen_albedo"] not in ("outside", "fill", "field"):
+        raise DeltaError(f"training.unseen_albedo: {d['unseen_albedo']!r} (expected outside, fill or field)")
     if d["unseen_exterior"] not in ("mirror", "field"):
         raise DeltaError(f"training.unseen_exterior: {d['unseen_exterior']!r} (expected mirror or field)")
     return TrainSettings(preset, d["resolution"], d["seed"], d["background"], d["box_margin"], d["exterior"],

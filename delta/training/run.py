@@ -202,8 +202,9 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
     # record: a refitted body or re-prepared frames under unchanged settings is another run, not this one resumed
     origin = f"{file_digest(start)}-{file_digest(record)}"
     res = train_stage(stage, model, data, st, out, sem, origin=origin, fine=fine)
-    (ids, values), model.exterior_mirror, evidence = unseen_parts(model, data.train, st.unseen_albedo == "fill",
-                                                                  st.unseen_exterior == "mirror")  # fmt: skip
+    (ids, values), model.exterior_mirror, evidence = unseen_parts(
+        model, data.train, st.unseen_albedo != "field", st.unseen_exterior == "mirror", st.unseen_albedo == "outside"
+    )
     model.fill_albedo(ids, values)
     filled, mirrored = len(ids), evidence.get("exterior", {}).get("mirrored", 0)
     if evidence:

@@ -36,7 +36,7 @@ def test_the_fill_takes_the_unseen_vertices_only_and_stays_within_the_seen_colou
     model, train = trained.model, trained.data.train
     model.fill_albedo(torch.zeros(0, dtype=torch.int64), torch.zeros(0, 3))
     field = model.albedo().detach()
-    ids, values, evidence = unseen_albedo(model, train[:1])
+    ids, values, evidence = unseen_albedo(model, train[:1], outside=False)
     seen = seen_vertices(model, train[:1])
     mouth = model.body.regions == REGION["mouth"]
     expected = torch.nonzero(~seen & ~mouth).squeeze(1)
@@ -82,10 +82,9 @@ def test_frames_are_spread_evenly_up_to_the_most():
     np.testing.assert_array_equal(got, [100, 200, 299, 399])
 
 
-def test_the_setting_takes_fill_or_field():
-    assert (
-        resolve("fast").unseen_albedo == "fill" and resolve("fast", {"unseen_albedo": "field"}).unseen_albedo == "field"
-    )
+def test_the_setting_takes_outside_fill_or_field():
+    assert resolve("fast").unseen_albedo == "outside"
+    assert [resolve("fast", {"unseen_albedo": v}).unseen_albedo for v in ("fill", "field")] == ["fill", "field"]
     with pytest.raises(DeltaError, match="training.unseen_albedo"):
         resolve("fast", {"unseen_albedo": "mirror"})
 
@@ -140,3 +139,57 @@ def test_one_pass_over_the_frames_gives_what_the_fill_and_the_mirror_give_alone(
     assert evidence["albedo"]["filled"] == len(ids) and evidence["exterior"]["mirrored"] > 0
     (none_ids, _), none_mirror, _ = unseen.unseen_parts(model, train[:2], albedo=False, exterior=False)
     assert len(none_ids) == 0 and none_mirror is None
+
+
+class _Slab(torch.nn.Module):
+    """A stand-in exterior: colour ``color`` and density ``sigma`` wherever ``where`` holds (everywhere: None)."""
+
+    def __init__(self, color, sigma: float, where=None):
+        super().__init__()
+        self.color, self.sigma, self.where = torch.tensor(color), sigma, where
+
+    def forward(self, x):
+        s = torch.full((len(x),), self.sigma)
+        if self.where is not None:
+            s = torch.where(self.where(x), s, torch.zeros_like(s))
+        return self.color.expand(len(x), 3), s
+
+
+def test_the_look_from_outside_is_the_exterior_composited_over_the_albedo(trained, monkeypatch):
+    import delta.models.unseen as unseen
+
+    model = trained.model
+    model.fill_albedo(torch.zeros(0, dtype=torch.int64), torch.zeros(0, 3))
+    ids = torch.arange(0, model.body.num_vertices, 97)
+    albedo = model.albedo().detach()[ids]
+    reach = float(model.spec.render.max_dist)
+    monkeypatch.setattr(model, "occupancy", None)
+    for sigma in (0.0, 5.0, 40.0, 1e4):
+        monkeypatch.setattr(model, "nerf", _Slab([0.1, 0.7, 0.3], sigma))
+        cover = 1 - np.exp(-sigma * reach)  # a constant density along the normal: exact at any sample count
+        expected = cover * torch.tensor([0.1, 0.7, 0.3]) + (1 - cover) * albedo
+        torch.testing.assert_close(unseen.outside_look(model, ids), expected, atol=1e-5, rtol=1e-5)
+    # an exterior beyond the reach covers nothing; one behind the surface (inside the body) neither
+    cano = model.canonical_vertices.detach()
+    normals = vertex_normals(cano, model.body.faces)
+    far = lambda x: torch.cdist(x, cano[ids].float()).amin(1) > reach  # noqa: E731
+    monkeypatch.setattr(model, "nerf", _Slab([0.1, 0.7, 0.3], 1e4, far))
+    torch.testing.assert_close(unseen.outside_look(model, ids), albedo)
+    assert float(normals[ids].norm(dim=-1).min()) > 0.99
+
+
+def test_a_covered_border_lends_its_look_to_the_unseen_vertices(trained, monkeypatch):
+    """Every seen vertex beside an unseen one under an opaque exterior of one colour: each filled vertex that
+    reaches such a border takes that colour (the harmonic fill of a constant), and the albedo-only fill does
+    not."""
+    import delta.models.unseen as unseen
+
+    model, train = trained.model, trained.data.train
+    model.fill_albedo(torch.zeros(0, dtype=torch.int64), torch.zeros(0, 3))
+    monkeypatch.setattr(model, "occupancy", None)
+    monkeypatch.setattr(model, "nerf", _Slab([0.1, 0.7, 0.3], 1e4))
+    ids, values, evidence = unseen.unseen_albedo(model, train[:1])
+    assert len(ids) > 0 and evidence["border_covered"] > 0
+    torch.testing.assert_close(values, torch.tensor([0.1, 0.7, 0.3]).expand_as(values), atol=1e-4, rtol=0)
+    _, plain, plain_evidence = unseen.unseen_albedo(model, train[:1], outside=False)
+    assert "border_covered" not in plain_evidence and float((plain - values).abs().max()) > 0.1
