@@ -141,18 +141,34 @@ def turntable_rotations(up: torch.Tensor, level: torch.Tensor, count: int) -> li
     return [level @ axis_angle_matrix(up, 2 * math.pi * k / count) for k in range(count)]
 
 
-def _turntable(model: HybridAvatar, frame: int, count: int, view: View | None, up: torch.Tensor):
+def turn_centre(model: HybridAvatar, vertices: torch.Tensor) -> torch.Tensor:
+    """(3,) the point a turntable turns about: the mean of the posed ``vertices`` (V, 3) the capture frames of
+    what it models (a head-and-shoulders capture turns about its head and shoulders, not about a body
+    below the picture; a box's centre would depend on the world's axes)."""
+    framed = model.framed.to(vertices.device)
+    return vertices[framed].mean(0) if bool(framed.any()) else vertices.mean(0)
+
+
+def turntable_poses(model: HybridAvatar, frame: int, count: int, up: torch.Tensor) -> list[tuple[torch.Tensor, ...]]:
+    """The (J, 3) pose and (3,) translation of ``frame`` in each of ``count`` turntable views: the body turned
+    about ``up`` through :func:`turn_centre`, then levelled for the frame's camera."""
     out = model.pose_body(frame)
-    verts = out.vertices[0]
-    centre = verts.mean(0)  # (a box's centre would depend on the world's axes)
+    centre = turn_centre(model, out.vertices[0])
     root = int((model.body.parents == -1).nonzero()[0])
     root_joint = out.rest_joints[0, root]
     pose, transl = model.poses[frame, root], model.transl[frame]
     up = up.to(centre)
     level = level_rotation(up, *view_directions(model, frame, centre))
+    posed = []
     for rotation in turntable_rotations(up, level, count):
         new_pose, new_t = moved_params(pose, transl, root_joint, centre, rotation)
-        with posed_as(model, frame, torch.cat([new_pose[None], model.poses[frame, 1:]]), new_t):
+        posed.append((torch.cat([new_pose[None], model.poses[frame, 1:]]), new_t))
+    return posed
+
+
+def _turntable(model: HybridAvatar, frame: int, count: int, view: View | None, up: torch.Tensor):
+    for pose, transl in turntable_poses(model, frame, count, up):
+        with posed_as(model, frame, pose, transl):
             yield to_bgr(render_image(model, frame, view=view, soft_silhouette=False)["rgb"])
 
 

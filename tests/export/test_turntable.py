@@ -57,3 +57,36 @@ def test_the_turntable_is_the_same_film_in_a_tilted_world(tiny_trained):
     y = torch.tensor([0.0, 1.0, 0.0], dtype=D)
     swept = [angle_deg(A @ tilted_up, tilted_up) for A in turntable_rotations(y, torch.eye(3, dtype=D), 8)]
     assert max(swept) > 30.0
+
+
+def test_the_turntable_turns_about_what_the_capture_frames(tiny_trained):
+    """A capture that frames only the head turns about the head: its centre stays put in every view (the
+    whole body's centre, half a metre below, would swing it round and tilt the view down to the belly)."""
+    from delta.body.parts import head_vertices
+    from delta.export.video import posed_as, turntable_poses
+
+    inputs = tiny_trained["tight"]
+    model = load_trained(inputs["model"], inputs["record"], inputs["body"]).model
+    up = capture_upright(model).up
+    head = head_vertices(model.body).to(model.framed.device)
+
+    def centres(framed):
+        model.framed = framed
+        out = []
+        with torch.no_grad():
+            for pose, transl in turntable_poses(model, 0, 6, up):
+                with posed_as(model, 0, pose, transl):
+                    v = model.pose_body(0).vertices[0].double()
+                out.append((v[head].mean(0), v.mean(0)))
+        return out
+
+    def apart(a, b):  # distance across the up axis
+        d = a - b
+        return float((d - (d @ up.to(d)) * up.to(d)).norm())
+
+    whole = torch.ones_like(head)
+    turned = centres(head)
+    assert max(apart(h, turned[0][0]) for h, _ in turned) < 1e-4  # the head stays on the axis
+    assert max(apart(b, turned[0][1]) for _, b in turned) > 0.02  # the body swings round it (4.8 cm here)
+    turned = centres(whole)
+    assert max(apart(b, turned[0][1]) for _, b in turned) < 1e-4  # a whole body turns about its own centre
