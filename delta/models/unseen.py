@@ -96,7 +96,7 @@ def unseen_albedo(model, frames, seen: torch.Tensor | None = None,
         border = torch.zeros_like(seen)
         border[faces[touch].reshape(-1)] = True
         border &= seen if mouth is None else seen & ~mouth
-        look = outside_look(model, torch.nonzero(border).squeeze(1)).to(values)
+        look = outside_look(model, torch.nonzero(border).squeeze(1), values[border]).to(values)
         evidence["border_covered"] = int((look - values[border]).abs().amax(-1).gt(0.1).sum())
         values[border] = look
     filled = harmonic_fill(values, seen, faces, mouth)
@@ -108,14 +108,15 @@ LOOK_SAMPLES = 32
 
 
 @torch.no_grad()
-def outside_look(model, ids: torch.Tensor) -> torch.Tensor:
+def outside_look(model, ids: torch.Tensor, albedo: torch.Tensor | None = None) -> torch.Tensor:
     """(N, 3) how the canonical body's vertices ``ids`` (N,) look from outside along their normals: the
     exterior's colour composited over their albedo (the volume rendering of :data:`LOOK_SAMPLES` samples out to
-    ``render.max_dist``, where the occupancy grid holds the exterior), their albedo where nothing covers them."""
-    albedo = model.albedo().detach()[ids]
+    ``render.max_dist``, where the occupancy grid holds the exterior), their albedo where nothing covers them.
+    ``albedo``: their (N, 3) albedo where the caller has it (else the model's)."""
+    cano = model.canonical_vertices.detach()
+    albedo = (model.albedo().detach()[ids] if albedo is None else albedo).to(cano)
     if model.nerf is None or not len(ids):
         return albedo
-    cano = model.canonical_vertices.detach()
     normals = vertex_normals(cano, model.body.faces)[ids]
     reach = float(model.spec.render.max_dist)
     step = reach / LOOK_SAMPLES
