@@ -47,7 +47,7 @@ def row(label: str, run: Path) -> dict:
     # refitted: the run's fit took the decision (a fit written before it was recorded used the weight as set)
     out = {"run": label, "frames": fit["frames"], "residual_px_mean": round(fit["residual_px_mean"], 3),
            "refitted": recorded and balance["factor"] > 1,
-           **{k: balance.get(k) for k in ("scatter_px", "reference_px", "factor", "sil_weight", "scatter_px_after")}}  # fmt: skip
+           **{k: balance.get(k) for k in ("scatter_px", "reference_px", "legs_seen", "factor", "sil_weight", "scatter_px_after")}}  # fmt: skip
     scored = run / "eval" / "summary.json"
     if scored.is_file():
         summary = json.loads(scored.read_text())

@@ -13,7 +13,12 @@ Gaussian reading is the rationale; the evidence is the dancer's held-out tail (+
 synthetic subjects left as they were (docs/fitting.md).
 
 A close-up is left as fitted: its outline is hair and shirt more than body, and a tracked face's
-points, not the body's keypoints, are what its residual measures.
+points, not the body's keypoints, are what its residual measures. So is a capture that frames the body from
+the hips up (no hip, knee or ankle keypoint in at least ``MIN_LEGS_SEEN`` of its frames): the image's edge
+cuts its outline, what is left of it is hair and shirt more than body, and its keypoints scatter because the
+hands leave the frame, not because the detector errs. The synthetic ``upper`` subject (keypoints at 2.97 px)
+refitted at the cap had its arms folded before the torso: the body 129 mm from the truth on its training
+frames against 32 mm as fitted (docs/fitting.md).
 
 Shapes: F frames.
 """
@@ -26,10 +31,25 @@ import math
 
 import torch
 
+from delta.body.keypoints import OPENPOSE18
 from delta.fitting.fit import FitResult, FitStart, fit
 from delta.fitting.settings import FitConfig
 
 log = logging.getLogger(__name__)
+
+#: OpenPose-18's leg keypoints: where none is detected, the capture does not frame the legs.
+LEGS = tuple(OPENPOSE18.index(f"{side}_{part}") for side in ("right", "left") for part in ("hip", "knee", "ankle"))
+#: The capture frames the legs where at least this share of its frames has a leg keypoint detected (the
+#: synthetic ``upper`` subject: none; loose, whose dress hides the knees: 0.94; tight 0.95).
+MIN_LEGS_SEEN = 0.25
+
+
+def legs_seen(detected: torch.Tensor, conf_threshold: float) -> float:
+    """The share of frames of (F, K >= 14, 3) OpenPose-18 ``detected`` keypoints (x, y, confidence) with at
+    least one hip, knee or ankle at ``conf_threshold`` or above (0 for no frame)."""
+    if len(detected) == 0:
+        return 0.0
+    return float((detected[:, list(LEGS), 2] >= conf_threshold).any(1).double().mean())
 
 
 def median_scatter(residual_px: torch.Tensor, flagged: torch.Tensor) -> float | None:
@@ -39,7 +59,7 @@ def median_scatter(residual_px: torch.Tensor, flagged: torch.Tensor) -> float | 
 
 
 def silhouette_balance(residual_px: torch.Tensor, flagged: torch.Tensor, side: int, cfg: FitConfig,
-                       masks: bool = True, close_up: bool = False) -> dict:  # fmt: skip
+                       masks: bool = True, close_up: bool = False, legs: float = 1.0) -> dict:  # fmt: skip
     """The silhouette's weight for the fit's last stage from the keypoints' scatter, with its evidence.
 
     Args:
@@ -48,20 +68,24 @@ def silhouette_balance(residual_px: torch.Tensor, flagged: torch.Tensor, side: i
         side: the record's side in pixels (the reference scales with it).
         masks: the fit had person masks (no masks: no silhouette to weigh).
         close_up: a tracked face's close-up (left as fitted).
+        legs: the share of frames whose legs are seen (:func:`legs_seen`; below ``MIN_LEGS_SEEN``: left as fitted).
     Returns:
-        ``scatter_px`` (the median over the fitted frames; None without any), ``reference_px``, ``factor``
+        ``scatter_px`` (the median over the fitted frames; None without any), ``reference_px``, ``legs_seen``, ``factor``
         (>= 1; 1: the fit stands), ``sil_weight`` (the weight for a refit) and ``why``.
     """
     reference = cfg.sil_scatter * side
     scatter = median_scatter(residual_px, flagged)
     out = {"scatter_px": None if scatter is None else round(scatter, 3), "reference_px": round(reference, 3),
-           "factor": 1.0, "sil_weight": cfg.sil_weight}  # fmt: skip
+           "legs_seen": round(legs, 3), "factor": 1.0, "sil_weight": cfg.sil_weight}  # fmt: skip
     if not masks or cfg.sil_weight <= 0:
         return out | {"why": "no silhouette term: nothing to weigh"}
     if cfg.sil_scatter <= 0:
         return out | {"why": "off (sil_scatter 0)"}
     if close_up:
         return out | {"why": "a tracked face's close-up: its outline is hair and shirt more than body"}
+    if legs < MIN_LEGS_SEEN:
+        return out | {"why": f"the legs seen in {100 * legs:.0f} % of the frames (< {100 * MIN_LEGS_SEEN:.0f} %): "
+                      "the image's edge cuts the outline, which is hair and shirt more than body"}  # fmt: skip
     if scatter is None:
         return out | {"why": "no fitted frame: no scatter measured"}
     if scatter <= reference:
@@ -74,13 +98,13 @@ def silhouette_balance(residual_px: torch.Tensor, flagged: torch.Tensor, side: i
 
 
 def fit_balanced(model, kp_map, detected: torch.Tensor, camera, cfg: FitConfig, *, side: int,
-                 close_up: bool = False, **kwargs) -> tuple[FitResult, dict]:  # fmt: skip
+                 close_up: bool = False, legs: float = 1.0, **kwargs) -> tuple[FitResult, dict]:  # fmt: skip
     """:func:`delta.fitting.fit.fit`, then, where :func:`silhouette_balance` weighs the silhouette more, its
     last stage again from that fit with the new weight. ``kwargs`` go to both fits (a ``start`` only to the
     first). Returns the result and the decision (with ``scatter_px_after``, the refit's median residual)."""
     res = fit(model, kp_map, detected, camera, cfg, **kwargs)
     balance = silhouette_balance(res.residual_px, res.flagged, side, cfg, masks=kwargs.get("masks") is not None,
-                                 close_up=close_up)  # fmt: skip
+                                 close_up=close_up, legs=legs)  # fmt: skip
     log.info("the silhouette's weight: %s", balance["why"])
     if balance["factor"] <= 1:
         return res, balance

@@ -21,7 +21,7 @@ from delta.data.person import confident_keypoints, no_person_message
 from delta.data.record import FrameRecord
 from delta import DeltaError
 from delta.body.face_points import FacePoints
-from delta.fitting.balance import fit_balanced
+from delta.fitting.balance import fit_balanced, legs_seen
 from delta.fitting.face import FaceFit, FaceFitConfig, fit_face
 from delta.fitting.fit import FitStart
 from delta.fitting.hold import HEAD_CHAIN, hold_decision
@@ -214,7 +214,8 @@ def run(record_path: str | Path, body_path: str | Path, out_dir: str | Path, ove
         fit_map, fit_detected = with_face_points(kp_map, detected, points, face_seen)
         depth = torch.from_numpy(rec.h5["keypoint_depth"][:]) if "keypoint_depth" in rec.h5 else None
         res, balance = fit_balanced(model, fit_map, fit_detected, camera, fit_cfg, side=rec.size,
-                                    close_up=points is not None, knees=knees, masks=masks, start=start,
+                                    close_up=points is not None, legs=legs_seen(detected, cfg.conf_threshold),
+                                    knees=knees, masks=masks, start=start,
                                     exterior=exterior, sequence=sequence, depth=depth, held_joints=held_joints,
                                     held_frames=held_frames, tied=hold["holds"] == "torso")  # fmt: skip
         check_result(rec.path, res, frame_ids)

@@ -10,7 +10,8 @@ import torch
 from delta.body.lbs import lbs
 from delta.cameras.models import OrthographicCamera
 from delta.fitting import silhouette as sil
-from delta.fitting.balance import fit_balanced, silhouette_balance
+from delta.body.keypoints import OPENPOSE18
+from delta.fitting.balance import LEGS, MIN_LEGS_SEEN, fit_balanced, legs_seen, silhouette_balance
 from delta.fitting.fit import fit
 from delta.fitting.settings import FitConfig, fit_config
 from tests.fitting.test_robust import keypoints
@@ -63,13 +64,40 @@ def test_where_the_weight_stands_as_set():
         assert decide(wide, **kw)["factor"] == 1.0
 
 
+def test_the_legs_seen_are_the_frames_with_a_hip_knee_or_ankle_detected():
+    conf = FitConfig().conf_threshold
+    assert sorted(OPENPOSE18[k] for k in LEGS) == sorted(
+        f"{side}_{part}" for side in ("left", "right") for part in ("hip", "knee", "ankle")
+    )
+    F = 8
+    detected = torch.zeros(F, len(OPENPOSE18), 3, dtype=D)
+    detected[:, : LEGS[0], 2] = 1.0  # head, shoulders and arms in every frame: framed from the hips up
+    assert legs_seen(detected, conf) == 0.0
+    detected[:3, OPENPOSE18.index("left_ankle"), 2] = 1.0  # one ankle in three frames, a hip in one more
+    detected[3, OPENPOSE18.index("right_hip"), 2] = conf
+    detected[4, OPENPOSE18.index("right_knee"), 2] = conf - 1e-3  # under the threshold: not seen
+    assert legs_seen(detected, conf) == pytest.approx(4 / F)
+    assert legs_seen(detected[:0], conf) == 0.0
+
+
+def test_a_capture_without_its_legs_in_view_is_left_as_fitted():
+    """Keypoints that scatter (hands leaving the frame) over an outline the image's edge cuts: no refit, and
+    the evidence says why; legs in view at the threshold weigh the silhouette as any capture's."""
+    wide = [2.0] * 4
+    out = decide(wide, legs=MIN_LEGS_SEEN - 0.01)
+    assert out["factor"] == 1.0 and out["sil_weight"] == FitConfig().sil_weight and "legs seen" in out["why"]
+    assert out["legs_seen"] == pytest.approx(MIN_LEGS_SEEN - 0.01)
+    assert decide(wide, legs=MIN_LEGS_SEEN)["factor"] == pytest.approx(16.0)
+    assert decide(wide)["factor"] == pytest.approx(16.0)  # legs given as seen unless said otherwise
+
+
 def test_scattered_keypoints_refit_with_the_outline_weighed_more(body):
     """Two frames of a turned body, masks its exact outline, each keypoint misplaced by 3 px at 96² (the same
     way in both frames, as a detector errs): the fit is fitted again with the silhouette weighed by the cap,
     and its outline then lies nearer the mask than the fit's with the weight as set. Keypoints without scatter
-    leave the weight as set and the fit as it was. The silhouette is drawn sharper than the fit's default: at
-    0.3 grid px² its outline stands half a grid pixel out, a limb's width at 96², which the heavier weight
-    would turn into a thinner body (test_silhouette_limits)."""
+    leave the weight as set and the fit as it was, and so do the scattered ones where the legs are not in view.
+    The silhouette is drawn sharper than the fit's default: at 0.3 grid px² its outline stands half a grid pixel
+    out, a limb's width at 96², which the heavier weight would turn into a thinner body (test_silhouette_limits)."""
     model, kp_map = body
     size, F = 96, 2
     truth = OrthographicCamera(torch.full((F,), 0.9, dtype=D), torch.tensor([[0.0, 0.05]] * F, dtype=D), size, size)
@@ -98,6 +126,10 @@ def test_scattered_keypoints_refit_with_the_outline_weighed_more(body):
     assert why["factor"] == cfg.sil_scatter_cap and why["sil_weight"] == cfg.sil_weight * cfg.sil_scatter_cap, why
     assert why["scatter_px"] > 1.0 and why["scatter_px_after"] > why["scatter_px"], why  # the outline pulls
     assert iou(balanced) > iou(plain) + 0.01, (iou(balanced), iou(plain))
+    # the same keypoints from a capture whose legs are out of view: the plain fit, not refitted
+    framed, why = fit_balanced(model, kp_map, noisy, template, cfg, side=size, masks=masks, legs=0.0)
+    assert why["factor"] == 1.0 and "legs seen" in why["why"] and "scatter_px_after" not in why, why
+    torch.testing.assert_close(framed.pose, plain.pose)
     quiet_cfg = dataclasses.replace(cfg, iterations=(20, 20, 20), sil_scatter=0.05)  # 4.8 px
     quiet, why = fit_balanced(model, kp_map, exact, template, quiet_cfg, side=size, masks=masks)
     assert why["factor"] == 1.0 and "scatter_px_after" not in why, why
