@@ -225,6 +225,16 @@ def test_an_upper_framing_shows_no_legs_and_the_capture_says_so(tmp_path, anny_f
     names = openpose18_map(model).names
     legs = [i for i, n in enumerate(names) if n.split("_")[-1] in ("hip", "knee", "ankle")]
     assert len(legs) == 6 and (kp[:, legs, 2] == 0).all()
+    # the init fit's silhouette balance reads no legs in view: the outline the image's edge cuts is not weighed up
+    from delta.fitting.balance import MIN_LEGS_SEEN, legs_seen, silhouette_balance
+    from delta.fitting.settings import FitConfig
+
+    seen = legs_seen(torch.from_numpy(kp), FitConfig().conf_threshold)
+    assert seen == 0.0 < MIN_LEGS_SEEN
+    scattered = torch.full((len(kp),), 10.0)  # hands off the frame: keypoints far from any fitted body
+    assert (
+        silhouette_balance(scattered, torch.zeros(len(kp), dtype=torch.bool), 96, FitConfig(), legs=seen)["factor"] == 1
+    )
     nose = names.index("nose")
     assert (kp[:, nose, 2] > 0).any()
     record = tmp_path / "head.h5"
