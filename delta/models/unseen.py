@@ -96,8 +96,9 @@ def unseen_albedo(model, frames, seen: torch.Tensor | None = None,
         border = torch.zeros_like(seen)
         border[faces[touch].reshape(-1)] = True
         border &= seen if mouth is None else seen & ~mouth
-        look = outside_look(model, torch.nonzero(border).squeeze(1), values[border]).to(values)
-        evidence["border_covered"] = int((look - values[border]).abs().amax(-1).gt(0.1).sum())
+        own = values[border]
+        look = outside_look(model, torch.nonzero(border).squeeze(1), own).to(values)
+        evidence["border_covered"] = int((look - own).abs().amax(-1).gt(0.1).sum())
         values[border] = look
     filled = harmonic_fill(values, seen, faces, mouth)
     return ids, filled[ids].float(), evidence
