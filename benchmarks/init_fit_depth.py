@@ -24,6 +24,8 @@ import torch
 
 from delta.body.lbs import lbs
 from delta.body.model import load_body_model
+from delta.data.record import FrameRecord
+from delta.geometry.sight import visible_vertices
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from table import save_table  # noqa: E402
@@ -47,6 +49,21 @@ def viewing_axis(gt, frame: int) -> torch.Tensor:
     return torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
 
 
+def seen_errors(model, fitted: torch.Tensor, true: torch.Tensor, record: str) -> np.ndarray:
+    """(F,) mean error (mm) of the vertices of each frame's fitted body (F, V, 3) that the record's pinhole
+    camera sees, against the same vertices of the true body, both centred on those vertices' centroid."""
+    with FrameRecord(record) as rec:
+        if rec.h5.attrs["camera_model"] != "pinhole":
+            raise SystemExit(f"{record}: --record takes a pinhole capture (its camera is the fit's)")
+        camera = rec.camera(0)
+    out = []
+    for fit_v, true_v in zip(fitted, true):
+        seen = visible_vertices(fit_v, model.faces, camera)
+        a, b = fit_v[seen], true_v[seen]
+        out.append(1000 * float(((a - a.mean(0)) - (b - b.mean(0))).norm(dim=-1).mean()) if len(a) else np.nan)
+    return np.array(out)
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--params", required=True, help="the init fit's params.npz")
@@ -56,6 +73,7 @@ def main(argv=None) -> None:
     ap.add_argument("--fit", default="from rest", help="what the rows' fit is, for the CSV's fit column")
     ap.add_argument("--csv", required=True)
     ap.add_argument("--append", action="store_true")
+    ap.add_argument("--record", help="the capture's frames.h5 (pinhole): adds the seen part's error")
     a = ap.parse_args(argv)
     torch.set_num_threads(2)
     model = load_body_model(a.body, dtype=torch.float64)
@@ -72,6 +90,7 @@ def main(argv=None) -> None:
     names = [str(n) for n in gt["joint_names"]]
     limbs = [j for j, n in enumerate(names) if n.split(".")[0] in LIMBS]
     split_of = {int(f): s for s, ids in splits.items() for f in ids}
+    seen_err = seen_errors(model, fv, gv, a.record) if a.record else np.full(len(frames), np.nan)
     rows = []
     for f in frames:
         err = joint_err[f, limbs].norm(dim=-1)
@@ -79,10 +98,13 @@ def main(argv=None) -> None:
         depth = float((joint_err[f, j] @ viewing_axis(gt, int(f))).abs())
         rows.append({"subject": a.subject, "fit": a.fit, "frame": int(f), "split": split_of.get(int(f), "?"),
                      "body_err_mm": float(body[f]), "worst_joint": names[j],
-                     "worst_joint_err_mm": 1000 * float(joint_err[f, j].norm()), "worst_joint_depth_mm": 1000 * depth})  # fmt: skip
+                     "worst_joint_err_mm": 1000 * float(joint_err[f, j].norm()), "worst_joint_depth_mm": 1000 * depth,
+                     "seen_body_err_mm": float(seen_err[f])})  # fmt: skip
     df = pd.DataFrame(rows)
     summary = df.groupby("split").agg(frames=("frame", "size"), body_err_mm=("body_err_mm", "mean"),
                                       body_err_median_mm=("body_err_mm", "median"), worst_joint_mm=("worst_joint_err_mm", "mean"),
+                                      seen_body_err_mm=("seen_body_err_mm", "mean"),
+                                      seen_body_err_median_mm=("seen_body_err_mm", "median"),
                                       depth_share=("worst_joint_depth_mm", "sum"))  # fmt: skip
     summary["depth_share"] /= df.groupby("split")["worst_joint_err_mm"].sum()
     print(summary.round(3).to_string())
