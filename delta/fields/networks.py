@@ -21,11 +21,12 @@ MAX_LOG_DENSITY = 15.0
 
 
 class MLP(nn.Module):
-    """ReLU MLP with an optional skip connection re-injecting the input."""
+    """ReLU (or softplus) MLP with an optional skip connection re-injecting the input."""
 
-    def __init__(self, in_dim: int, out_dim: int, depth: int, width: int, skip: int = -1):
+    def __init__(self, in_dim: int, out_dim: int, depth: int, width: int, skip: int = -1, activation: str = "relu"):
         super().__init__()
         self.skip = skip
+        self.act = nn.functional.softplus if activation == "softplus" else torch.relu
         layers, d = [], in_dim
         for i in range(depth):
             layers.append(nn.Linear(d, width))
@@ -36,16 +37,31 @@ class MLP(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h = x
         for i, layer in enumerate(self.hidden):
-            h = torch.relu(layer(h))
+            h = self.act(layer(h))
             if i == self.skip:
                 h = torch.cat([h, x], dim=-1)
         return self.out(h)
 
 
+def active_units(mlp: MLP, inputs: torch.Tensor) -> list[int]:
+    """Per hidden layer of ``mlp``, how many units are active (pre-activation above zero) on at least one
+    of ``inputs`` (N, in). A ReLU unit inactive on every input the field meets gets no gradient again:
+    a head whose last layer has few left is a constant, whatever it was meant to learn."""
+    h, counts = inputs, []
+    with torch.no_grad():
+        for i, layer in enumerate(mlp.hidden):
+            pre = layer(h)
+            counts.append(int((pre > 0).any(0).sum()))
+            h = mlp.act(pre)
+            if i == mlp.skip:
+                h = torch.cat([h, inputs], dim=-1)
+    return counts
+
+
 def _encoder_and_head(spec: FieldSpec, bounds: torch.Tensor, out_dim: int, extra_in: int = 0):
     enc = make_encoding(spec.encoding, bounds, num_freqs=spec.num_freqs, levels=spec.levels,
                         features=spec.features, base_res=spec.base_res, max_res=spec.max_res)  # fmt: skip
-    return enc, MLP(enc.out_dim + extra_in, out_dim, spec.depth, spec.width, spec.skip)
+    return enc, MLP(enc.out_dim + extra_in, out_dim, spec.depth, spec.width, spec.skip, spec.activation)
 
 
 class NeRFField(nn.Module):
@@ -248,11 +264,25 @@ class DeformationField(nn.Module):
 
     def forward(self, x_c: torch.Tensor, posed_ref: torch.Tensor, time: torch.Tensor | None = None) -> torch.Tensor:
         """``time``: (2 time_freqs,) features of the frame (None: zeros, the time-free deformation)."""
+        return torch.tanh(self.head(self._inputs(x_c, posed_ref, time))) * self.scale
+
+    def _inputs(self, x_c: torch.Tensor, posed_ref: torch.Tensor, time: torch.Tensor | None) -> torch.Tensor:
         cond = [positional_encoding(posed_ref.detach(), self.pose_freqs)]
         if self.time_freqs:
             t = time if time is not None else x_c.new_zeros(2 * self.time_freqs)
             cond.append(t.to(x_c).expand(len(x_c), -1))
-        return torch.tanh(self.head(torch.cat([self.encoding(x_c)] + cond, dim=-1))) * self.scale
+        return torch.cat([self.encoding(x_c)] + cond, dim=-1)
+
+    def active_units(self, times: torch.Tensor | None = None, points: int = 4096, seed: int = 0) -> list[int]:
+        """:func:`active_units` of the head over ``points`` drawn uniformly in the field's box, each taken as
+        its own pose cue, at each of ``times`` (T, 2 time_freqs) time inputs (None: the time-free input)."""
+        g = torch.Generator().manual_seed(seed)
+        lo, hi = self.encoding.lo, self.encoding.hi
+        x = lo + (hi - lo) * torch.rand(points, 3, generator=g).to(lo)
+        rows = [None] if times is None else list(times)
+        with torch.no_grad():
+            inputs = torch.cat([self._inputs(x, x, t) for t in rows])
+        return active_units(self.head, inputs)
 
 
 def time_features(tau: torch.Tensor, freqs: int) -> torch.Tensor:

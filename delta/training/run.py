@@ -215,8 +215,23 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
     summary = {"stage": stage, "steps": res.steps, "seconds": round(time.time() - t0, 1),
                "train_psnr_last5pct": round(float(last.get("psnr", float("nan"))), 2), "albedo_filled": filled,
                "exterior_cells_mirrored": mirrored}  # fmt: skip
+    if model.deformation is not None:
+        units = summary["deformation_units_active"] = deformation_units(model, data.train)
+        width = model.deformation.head.hidden[0].out_features
+        if min(units) < width // 4:
+            log.warning("F_e's head has few units left active (%s of %d a hidden layer, over its box and the "
+                        "training times): its deformation is nearly constant", units, width)  # fmt: skip
     log.info("stage %d done: %s", stage, json.dumps(summary))
     return summary
+
+
+def deformation_units(model, train) -> list[int]:
+    """Units of F_e's head active somewhere in its box at the training frames' times, per hidden layer."""
+    times = None
+    if model.spec.time_freqs:
+        times = [model.time_code(int(f)) for f in train]
+        times = torch.stack(times[:: max(1, len(times) // 16)])
+    return model.deformation.active_units(times)
 
 
 #: The layout of ``model.pt`` this code writes; :func:`migrate_model` brings older files up to it.

@@ -244,6 +244,9 @@ def test_both_stages_end_to_end(tiny_training, tmp_path, perceptual_weights):
                    str(tmp_path / "stage2"), "fast", [TINY], perceptual_dir=str(perceptual_weights))  # fmt: skip
     assert s2["steps"] == 4
     second = load_state(tmp_path / "stage2" / "model.pt")
+    # F_e's units, counted over its box at the training times: 4 steps leave most of a fresh head active
+    width = second["model"]["deformation.head.out.weight"].shape[1]
+    assert len(s2["deformation_units_active"]) == 3 and min(s2["deformation_units_active"]) > width // 2
     assert second["deformation"] and any(k.startswith("deformation.") for k in second["model"])
     # stage 2 starts from stage 1: the shared parameters moved on from there, the body is the same size
     assert second["model"]["betas"].shape == first["model"]["betas"].shape
