@@ -21,12 +21,11 @@ MAX_LOG_DENSITY = 15.0
 
 
 class MLP(nn.Module):
-    """ReLU (or softplus) MLP with an optional skip connection re-injecting the input."""
+    """ReLU MLP with an optional skip connection re-injecting the input."""
 
-    def __init__(self, in_dim: int, out_dim: int, depth: int, width: int, skip: int = -1, activation: str = "relu"):
+    def __init__(self, in_dim: int, out_dim: int, depth: int, width: int, skip: int = -1):
         super().__init__()
         self.skip = skip
-        self.act = nn.functional.softplus if activation == "softplus" else torch.relu
         layers, d = [], in_dim
         for i in range(depth):
             layers.append(nn.Linear(d, width))
@@ -37,7 +36,7 @@ class MLP(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         h = x
         for i, layer in enumerate(self.hidden):
-            h = self.act(layer(h))
+            h = torch.relu(layer(h))
             if i == self.skip:
                 h = torch.cat([h, x], dim=-1)
         return self.out(h)
@@ -52,7 +51,7 @@ def active_units(mlp: MLP, inputs: torch.Tensor) -> list[int]:
         for i, layer in enumerate(mlp.hidden):
             pre = layer(h)
             counts.append(int((pre > 0).any(0).sum()))
-            h = mlp.act(pre)
+            h = torch.relu(pre)
             if i == mlp.skip:
                 h = torch.cat([h, inputs], dim=-1)
     return counts
@@ -61,7 +60,7 @@ def active_units(mlp: MLP, inputs: torch.Tensor) -> list[int]:
 def _encoder_and_head(spec: FieldSpec, bounds: torch.Tensor, out_dim: int, extra_in: int = 0):
     enc = make_encoding(spec.encoding, bounds, num_freqs=spec.num_freqs, levels=spec.levels,
                         features=spec.features, base_res=spec.base_res, max_res=spec.max_res)  # fmt: skip
-    return enc, MLP(enc.out_dim + extra_in, out_dim, spec.depth, spec.width, spec.skip, spec.activation)
+    return enc, MLP(enc.out_dim + extra_in, out_dim, spec.depth, spec.width, spec.skip)
 
 
 class NeRFField(nn.Module):

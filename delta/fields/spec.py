@@ -9,8 +9,6 @@ import math
 #: The most nodes a colour grid decided from ``color_cell`` may have (a finest level of 2^24 nodes with
 #: two features holds 128 MB of parameters and three times that in its gradient and Adam's moments).
 MAX_COLOR_NODES = 1 << 24
-#: The hidden activations a field's head may use.
-ACTIVATIONS = ("relu", "softplus")
 
 
 @dataclasses.dataclass
@@ -30,9 +28,6 @@ class FieldSpec:
     width: int = 64
     skip: int = -1
     """Hidden layer after which the encoding is concatenated again (-1: none; the paper: 4)."""
-    activation: str = "relu"
-    """The head's hidden activation: ``relu`` or ``softplus`` (smooth, and no unit is ever without a
-    gradient: a ReLU unit that Adam's steps push below zero on every input stays so for good)."""
     color_max_res: int = 0
     """NeRF ``grid``: finest resolution of the colour grids (0: ``max_res``). Colour carries the
     texture, density only the shape, so the colour grid can be finer at little cost."""
@@ -63,8 +58,6 @@ class FieldSpec:
             raise ValueError(f"color_cell {self.color_cell!r}: expected a number of metres ≥ 0")
         if not isinstance(self.vertex_detail, bool):
             raise ValueError(f"vertex_detail {self.vertex_detail!r}: expected true or false")
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"activation {self.activation!r}: expected one of {', '.join(ACTIVATIONS)}")
         if self.density_activation not in ("exp", "relu"):
             raise ValueError(f"density_activation {self.density_activation!r}: expected 'exp' or 'relu'")
         if self.density_noise < 0 or self.density_noise_steps < 1:
