@@ -64,7 +64,6 @@ def main(argv=None) -> None:
         rows.append({"subject": a.subject, "variant": label, "width": field.head.hidden[0].out_features,
                      "units_active": " ".join(map(str, units)), "last_layer_active": units[-1],
                      "lr_deformation": tr.settings.stage2.lr.get("deformation"),
-                     "activation": tr.model.spec.deformation.activation,
                      **displacement_mm(field)})  # fmt: skip
     print(save_table(pd.DataFrame(rows), a.csv, a.append).to_string(index=False))
 
