@@ -32,9 +32,7 @@ from table import save_table  # noqa: E402
 @torch.no_grad()
 def displacement_mm(field, points: int = 4096, times: int = 41, seed: int = 0) -> dict:
     """F_e's mean displacement over ``points`` in its box and its motion over ``times`` even training times."""
-    g = torch.Generator().manual_seed(seed)
-    lo, hi = field.encoding.lo, field.encoding.hi
-    x = lo + (hi - lo) * torch.rand(points, 3, generator=g).to(lo)
+    x = field.box_points(points, seed)
     taus = torch.linspace(0, 1, times)
     codes = [time_features(t, field.time_freqs) if field.time_freqs else None for t in taus]
     out = torch.stack([field(x, x, c) for c in codes])  # (T, N, 3)

@@ -272,12 +272,16 @@ class DeformationField(nn.Module):
             cond.append(t.to(x_c).expand(len(x_c), -1))
         return torch.cat([self.encoding(x_c)] + cond, dim=-1)
 
+    def box_points(self, points: int, seed: int = 0) -> torch.Tensor:
+        """(points, 3) canonical points drawn uniformly (seeded) in the field's box."""
+        g = torch.Generator().manual_seed(seed)
+        lo, hi = self.encoding.lo, self.encoding.hi
+        return lo + (hi - lo) * torch.rand(points, 3, generator=g).to(lo)
+
     def active_units(self, times: torch.Tensor | None = None, points: int = 4096, seed: int = 0) -> list[int]:
         """:func:`active_units` of the head over ``points`` drawn uniformly in the field's box, each taken as
         its own pose cue, at each of ``times`` (T, 2 time_freqs) time inputs (None: the time-free input)."""
-        g = torch.Generator().manual_seed(seed)
-        lo, hi = self.encoding.lo, self.encoding.hi
-        x = lo + (hi - lo) * torch.rand(points, 3, generator=g).to(lo)
+        x = self.box_points(points, seed)
         rows = [None] if times is None else list(times)
         with torch.no_grad():
             inputs = torch.cat([self._inputs(x, x, t) for t in rows])

@@ -20,6 +20,7 @@ from delta.body.model import load_body_model
 from delta.cameras.models import OrthographicCamera
 from delta.data.frames import FrameData, frame_times, load_frames
 from delta.data.record import FrameRecord
+from delta.fields.networks import time_features
 from delta.io import atomic_path, load_state, save_json
 from delta.models.avatar import HybridAvatar, InitParams
 from delta.models.init import load_init
@@ -228,9 +229,9 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
 def deformation_units(model, train) -> list[int]:
     """Units of F_e's head active somewhere in its box at the training frames' times, per hidden layer."""
     times = None
-    if model.spec.time_freqs:
-        times = [model.time_code(int(f)) for f in train]
-        times = torch.stack(times[:: max(1, len(times) // 16)])
+    if model.spec.time_freqs:  # at most 16 of the training times, evenly spread
+        frames = torch.as_tensor(train, device=model.frame_time.device)[:: max(1, len(train) // 16)]
+        times = time_features(model.frame_time[frames], model.spec.time_freqs)
     return model.deformation.active_units(times)
 
 
