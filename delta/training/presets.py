@@ -27,8 +27,10 @@ _GRID_ALBEDO = {"encoding": "grid", "levels": 5, "features": 2, "base_res": 12, 
 _PE_DEFORM = {"encoding": "pe", "num_freqs": 6, "depth": 3, "width": 64}
 # stage 2 goes on from stage 1's fields at the rates a grid preset's stage 1 ends at (the default rates
 # times its lr_final 0.1: a fresh Adam at the full rates shook the trained grids, tight's held-out views
-# lost 0.45 dB in stage 2), while its new F_e learns at the full NeRF rate (benchmarks/stage2_rates.csv)
-_STAGE2_LR = {"nerf": 1e-3, "fields": 5e-4, "deformation": 1e-2}
+# lost 0.45 dB in stage 2: benchmarks/stage2_rates.csv); its new F_e learns at 1e-3: at the full NeRF rate
+# its ReLU head died (gen2: 1 of 64 last-layer units left after 800 steps, none after 3000) and it never
+# learned a garment's motion (benchmarks/deformation_rate.csv, docs/method.md)
+_STAGE2_LR = {"nerf": 1e-3, "fields": 5e-4, "deformation": 1e-3}
 
 PRESETS: dict[str, dict] = {
     "fast": {
