@@ -369,13 +369,16 @@ def test_init_fit_from_another_record_is_refused(tiny_training, tmp_path):
 
 def test_stage_two_goes_on_at_the_rates_stage_one_ended_at(tiny_training):
     """`fast`'s stage 2 starts its fields and NeRF at stage 1's base rates times its decay (where stage 1 ended),
-    its new deformation at the NeRF's full rate; an lr table without ``deformation`` gives F_e the NeRF's."""
+    its new deformation at its own rate, below the NeRF's full rate (at which its head died: test_deformation_rate.py);
+    an lr table without ``deformation`` gives F_e the NeRF's."""
     st = resolve("fast", TINY)
     model, _ = _model(tiny_training["loose"], st, stage=2)
     groups = {g["name"]: g["lr"] for g in model.param_groups(st.stage2.lr)}
     one = st.stage1
     assert groups["fields"] == pytest.approx(one.lr["fields"] * one.lr_final)
     assert groups["nerf"] == pytest.approx(one.lr["nerf"] * one.lr_final)
-    assert groups["deformation"] == pytest.approx(one.lr["nerf"])
+    assert (
+        groups["deformation"] == pytest.approx(st.stage2.lr["deformation"]) and groups["deformation"] < one.lr["nerf"]
+    )
     plain = {k: v for k, v in st.stage2.lr.items() if k != "deformation"}
     assert {g["name"]: g["lr"] for g in model.param_groups(plain)}["deformation"] == plain["nerf"]
