@@ -34,27 +34,29 @@ class MLP(nn.Module):
         self.out = nn.Linear(d, out_dim)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.out(self.features(x))
+
+    def features(self, x: torch.Tensor, pre: list | None = None) -> torch.Tensor:
+        """The output layer's input; each hidden layer's pre-activation is appended to ``pre`` when given."""
         h = x
         for i, layer in enumerate(self.hidden):
-            h = torch.relu(layer(h))
+            z = layer(h)
+            if pre is not None:
+                pre.append(z)
+            h = torch.relu(z)
             if i == self.skip:
                 h = torch.cat([h, x], dim=-1)
-        return self.out(h)
+        return h
 
 
 def active_units(mlp: MLP, inputs: torch.Tensor) -> list[int]:
     """Per hidden layer of ``mlp``, how many units are active (pre-activation above zero) on at least one
     of ``inputs`` (N, in). A ReLU unit inactive on every input the field meets gets no gradient again:
     a head whose last layer has few left is a constant, whatever it was meant to learn."""
-    h, counts = inputs, []
+    pre: list[torch.Tensor] = []
     with torch.no_grad():
-        for i, layer in enumerate(mlp.hidden):
-            pre = layer(h)
-            counts.append(int((pre > 0).any(0).sum()))
-            h = torch.relu(pre)
-            if i == mlp.skip:
-                h = torch.cat([h, inputs], dim=-1)
-    return counts
+        mlp.features(inputs, pre)
+    return [int((z > 0).any(0).sum()) for z in pre]
 
 
 def _encoder_and_head(spec: FieldSpec, bounds: torch.Tensor, out_dim: int, extra_in: int = 0):
