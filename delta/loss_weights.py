@@ -21,6 +21,8 @@ class LossWeights:
     layers, where the exterior is in layers."""
     empty_background: float = 0.0
     """The exterior's optical depth on rays the person mask puts on the background (off: 0)."""
+    shell: float = 0.1
+    """The exterior's optical depth beyond the soft shell (``render.shell``; no term where that is 0)."""
     face_points: float = 0.0
     """Where the record tracks a face: the posed face points against the detected ones (Huber of their
     distance over the image's size), so that training keeps the face where the frame shows it (off: 0)."""

@@ -60,6 +60,15 @@ def empty_background(optical_depth: torch.Tensor, person: torch.Tensor) -> torch
     return ((1 - 2 * person).clamp(0.0, 1.0) * optical_depth).mean()
 
 
+def shell(shell_depth: torch.Tensor) -> torch.Tensor:
+    """Mean over rays of the optical depth beyond the soft shell (``RayRender.shell_depth``): where a ray's
+    colour does not tell how deep its exterior lies, the density costs least nearest the body
+    (0 for no rays, as :func:`huber`)."""
+    if shell_depth.numel() == 0:
+        return shell_depth.sum()
+    return shell_depth.mean()
+
+
 def layer_targets(exterior_mask: torch.Tensor, hair_mask: torch.Tensor) -> dict[str, torch.Tensor]:
     """Each exterior layer's mask: the hair mask, and the rest of the exterior as clothing."""
     return {"hair": hair_mask, "clothing": (exterior_mask - hair_mask).clamp_min(0.0)}

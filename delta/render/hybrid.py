@@ -21,7 +21,7 @@ from delta.geometry import distance_grid
 from delta.geometry.raymesh import interpolate, ray_mesh_hits
 from delta.render.settings import RenderSettings
 from delta.render.silhouette import soft_silhouette
-from delta.render.volume import composite, ray_box, sample_deltas, stratified_samples
+from delta.render.volume import composite, ray_box, sample_deltas, shell_ramp, stratified_samples
 
 
 @dataclasses.dataclass
@@ -69,6 +69,9 @@ class RayRender:
     optical_depth: Optional[torch.Tensor] = None
     """(R,) the exterior's optical depth τ = Σ σ_k Δ_k along the ray (``nerf_mask`` = 1 - e^-τ), None
     without an exterior."""
+    shell_depth: Optional[torch.Tensor] = None
+    """(R,) the optical depth beyond the soft shell, Σ σ_k Δ_k r(d_k) with d_k the sample's distance to the
+    body and r :func:`delta.render.volume.shell_ramp` (``settings.shell`` > 0; else None)."""
 
 
 #: cells the occupied set grows by for the early cull: the rough canonical point lies within 3 cm of
@@ -122,7 +125,10 @@ def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixe
     t_far = torch.where(in_box | stop, t_far, t_in)
     t_near, t_far = body_span(mesh.skinning, origins, dirs, t_in, torch.maximum(t_far, t_in), stop, settings)
     t = stratified_samples(t_near, t_far, settings.samples, settings.perturb, generator)
-    sigma, rgb, layer_sigma, n = _query(mesh, origins, dirs, t, settings, nerf, nonrigid, occupied)
+    sigma, rgb, layer_sigma, dist, n = _query(mesh, origins, dirs, t, settings, nerf, nonrigid, occupied)
+    shell = None
+    if settings.shell > 0:
+        shell = (sigma * sample_deltas(t) * shell_ramp(dist, settings.shell, settings.max_dist)).sum(1)
     out = composite(t, sigma, rgb, background.expand_as(mesh_rgb) if through_mesh else mesh_rgb)
     nerf_rgb = (out.weights[:, :-1, None] * rgb).sum(1) + (1 - out.nerf_mask[:, None]) * background
     layer_masks = layer_depths = None
@@ -134,7 +140,7 @@ def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixe
             at = (seen * t[:, :-1, None]).sum(1) / layer_masks.clamp_min(torch.finfo(t.dtype).tiny)
             layer_depths = torch.where(layer_masks > 0, at, t[:, -1:])
     return RayRender(out.rgb, out.nerf_mask, nerf_rgb, mesh_rgb, hits.hit, sil, n, layer_masks, layer_depths,
-                     out.optical_depth)  # fmt: skip
+                     out.optical_depth, shell)  # fmt: skip
 
 
 @torch.no_grad()
@@ -187,7 +193,8 @@ OPAQUE = 1e-4
 
 def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: NeRF, nonrigid, occupied=None):
     """Densities and colours of the NeRF samples (all but the last), zero where culled, each layer's
-    density (R, S - 1, L) for a layered NeRF (else None), and the number of samples evaluated.
+    density (R, S - 1, L) for a layered NeRF (else None), each sample's distance to the body (R, S - 1;
+    0 where culled, not differentiated) and the number of samples evaluated.
 
     Culling, cheapest first: rays with an empty span, the early cull (distance grid and rough
     canonical point), samples beyond ``max_dist`` of the body (kNN), then samples whose canonical
@@ -202,6 +209,7 @@ def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: Ne
     layered = hasattr(nerf, "with_layers")
     sigma = flat.new_zeros(R * (S - 1))
     rgb = flat.new_zeros(R * (S - 1), 3)
+    dist = flat.new_zeros(R * (S - 1))
     layer_sigma = flat.new_zeros(R * (S - 1), len(nerf.names)) if layered else None
     open_rays = torch.nonzero(t[:, -1] > t[:, 0]).squeeze(1)  # rays with a non-empty interval
     march = S - 1 if torch.is_grad_enabled() else MARCH
@@ -212,9 +220,10 @@ def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: Ne
         if s0:
             open_rays = open_rays[optical[open_rays] < -math.log(OPAQUE)]
         idx = (open_rays[:, None] * (S - 1) + torch.arange(s0, s1, device=t.device)).reshape(-1)
-        at, s, c, s_layers = _query_points(mesh, flat, idx, settings, nerf, nonrigid, occupied)
+        at, s, c, s_layers, d = _query_points(mesh, flat, idx, settings, nerf, nonrigid, occupied)
         evaluated += len(at)
         sigma = sigma.index_put((at,), s)
+        dist[at] = d
         rgb = rgb.index_put((at,), c)
         if layered:
             layer_sigma = layer_sigma.index_put((at,), s_layers)
@@ -222,14 +231,16 @@ def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: Ne
             optical = optical + (sigma.view(R, S - 1)[:, s0:s1] * sample_deltas(t[:, s0 : s1 + 1])).sum(1)
     if layered:
         layer_sigma = layer_sigma.view(R, S - 1, -1)
-    return sigma.view(R, S - 1), rgb.view(R, S - 1, 3), layer_sigma, evaluated
+    return sigma.view(R, S - 1), rgb.view(R, S - 1, 3), layer_sigma, dist.view(R, S - 1), evaluated
 
 
 def _query_points(mesh: PosedMesh, flat, idx, settings: RenderSettings, nerf: NeRF, nonrigid, occupied):
     """The NeRF at posed points ``flat[idx]`` that pass the culls: their indices into ``flat`` (P,),
-    densities (P,), colours (P, 3) and each layer's density (P, L) (None for one NeRF)."""
+    densities (P,), colours (P, 3), each layer's density (P, L) (None for one NeRF) and distances to the
+    body (P,, detached)."""
     layered = hasattr(nerf, "with_layers")
-    none = idx[:0], flat.new_zeros(0), flat.new_zeros(0, 3), flat.new_zeros(0, len(nerf.names)) if layered else None
+    layers = flat.new_zeros(0, len(nerf.names)) if layered else None
+    none = idx[:0], flat.new_zeros(0), flat.new_zeros(0, 3), layers, flat.new_zeros(0)
     if settings.early_cull and mesh.skinning.near is not None and len(idx):
         cull = occupied
         if occupied is not None and mesh.mirror is not None:  # a point is culled by where it is read
@@ -265,7 +276,7 @@ def _query_points(mesh: PosedMesh, flat, idx, settings: RenderSettings, nerf: Ne
     at, pick = rows[keep], slice(None)  # one candidate a point: each is its point's own
     if d.other is not None:
         at, pick = denser(at, s)
-    return idx[at], s[pick], c[pick], None if s_layers is None else s_layers[pick]
+    return idx[at], s[pick], c[pick], None if s_layers is None else s_layers[pick], d.distance[at].detach()
 
 
 def denser(rows: torch.Tensor, sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

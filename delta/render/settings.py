@@ -43,6 +43,10 @@ class RenderSettings:
     sigma: float = 0.1
     max_dist: float = 0.2
     """Samples farther than this from every body vertex are empty and not evaluated."""
+    shell: float = 0.0
+    """The soft shell (m; 0: off): exterior density farther than this from the body costs, rising to its full
+    cost at ``max_dist`` (the ray's ``shell_depth``; the loss ``weights.shell``). A frame seen from one side
+    leaves an exterior's depth free along its rays; the shell puts it nearest the body the views allow."""
     sil_sigma: float = 1.0
     """Softness of the silhouette in pixels²."""
     sil_k: int = 16

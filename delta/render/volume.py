@@ -39,6 +39,15 @@ class Composite:
     """(R,) the NeRF samples' optical depth τ = Σ_k σ_k Δ_k (s_v = 1 - e^-τ)."""
 
 
+def shell_ramp(distance: torch.Tensor, start: float, room: float) -> torch.Tensor:
+    """The soft shell's cost of a unit of optical depth at ``distance`` (m) from the body: 0 up to ``start``,
+    rising linearly to 1 at ``room`` (the exterior's bound), 1 beyond; a step at ``start`` where ``room`` ≤
+    ``start``."""
+    if room <= start:
+        return (distance > start).to(distance.dtype)
+    return ((distance - start) / (room - start)).clamp(0.0, 1.0)
+
+
 def sample_deltas(t: torch.Tensor) -> torch.Tensor:
     """(R, S) sample positions -> (R, S - 1) spacings Δ_k = t_{k+1} - t_k, clamped at 0."""
     return (t[..., 1:] - t[..., :-1]).clamp_min(0.0)

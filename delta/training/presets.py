@@ -293,7 +293,7 @@ RANGES = {
     "resolution": (16, 4096, _INT), "seed": (0, None, _INT), "box_margin": (0, 10, _NUM), "offset_scale": (0, 1, _NUM),
     "mouth_shade": (0, 1, _NUM), "nerf_margin": (0, 10, _NUM), "freeze_rest": (None, None, _NUM),
     "render.samples": (1, 1024, _INT), "render.k": (1, 64, _INT), "render.contact_cell": (0, 1, _NUM), "render.sigma": (1e-6, None, _NUM),
-    "render.max_dist": (1e-6, None, _NUM), "render.sil_sigma": (1e-6, None, _NUM), "render.sil_k": (1, 256, _INT),
+    "render.max_dist": (1e-6, None, _NUM), "render.shell": (0, None, _NUM), "render.sil_sigma": (1e-6, None, _NUM), "render.sil_k": (1, 256, _INT),
     "render.probe": (1, 4096, _INT), "render.probe_cell": (1e-5, 1, _NUM), "render.box_margin": (0, 10, _NUM),
     "render.occupancy.resolution": (4, 512, _INT), "render.occupancy.update_every": (1, None, _INT),
     "render.occupancy.threshold": (0, None, _NUM), "render.occupancy.decay": (0, 1, _NUM),

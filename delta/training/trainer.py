@@ -76,6 +76,8 @@ def loss_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, skin_col
         terms["exterior"] = L.exterior(r.nerf_mask, batch.exterior)
         if st.weights.empty_background > 0:
             terms["empty_background"] = L.empty_background(r.optical_depth, batch.person)
+        if st.weights.shell > 0 and r.shell_depth is not None:
+            terms["shell"] = L.shell(r.shell_depth)
     if r.layer_masks is not None:
         terms["exterior_layers"] = L.exterior_layers(r.layer_masks, model.nerf.names, batch.exterior, batch.hair)
     if semantic is not None and batch.patch:

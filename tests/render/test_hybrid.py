@@ -269,3 +269,46 @@ def test_a_mirrored_exterior_is_read_at_its_mirror_image():
     seen = render_rays(dataclasses.replace(mesh, mirror=mirror), o, d, o[:, :2] * 100, BG, st, front_only)
     assert float(seen.nerf_mask[0]) > 0.99
     torch.testing.assert_close(seen.rgb, NERF_RGB[None], atol=1e-2, rtol=0)
+
+
+def band_nerf(near, far, sigma, scale=None):
+    """Density ``sigma`` (times ``scale``, a parameter to differentiate) between ``near`` and ``far`` m outside
+    the unit test's 0.3-m sphere, none elsewhere."""
+
+    def nerf(x):
+        r = x.norm(dim=-1) - 0.3
+        dens = torch.where((r > near) & (r < far), torch.full_like(r, sigma), torch.zeros_like(r))
+        return NERF_RGB.expand(len(x), 3), dens * (1.0 if scale is None else scale)
+
+    return nerf
+
+
+def test_the_soft_shell_charges_only_density_farther_from_the_body_than_it():
+    """Exterior density within ``render.shell`` of the body costs nothing; beyond it, it does, and the cost
+    reaches the density (its gradient, where the ray's colour would not)."""
+    mesh = sphere_avatar()
+    o, d = rays([0.0, 0.1, 0.2])  # hit the sphere: their exterior lies in front of the body
+    st = RenderSettings(samples=32, box_margin=0.3, max_dist=0.1, perturb=False, shell=0.03)
+    near = render_rays(mesh, o, d, o[:, :2] * 100, BG, st, band_nerf(0.0, 0.015, 40.0))
+    assert (near.optical_depth > 0.1).all()  # a band the rays cross...
+    assert (near.shell_depth == 0).all()  # ...inside the shell (vertex distances: within 2 cm of the surface)
+    scale = torch.tensor(1.0, requires_grad=True)
+    far = render_rays(mesh, o, d, o[:, :2] * 100, BG, st, band_nerf(0.06, 0.09, 40.0, scale))
+    assert (far.shell_depth > 0).all() and (far.shell_depth < far.optical_depth).all()  # the ramp is below 1
+    far.shell_depth.sum().backward()
+    torch.testing.assert_close(scale.grad, far.shell_depth.sum().detach())  # linear in the density
+    off = render_rays(mesh, o, d, o[:, :2] * 100, BG, dataclasses.replace(st, shell=0.0), band_nerf(0.06, 0.09, 40.0))
+    assert off.shell_depth is None
+
+
+def test_the_soft_shell_weighs_each_sample_s_optical_depth(monkeypatch):
+    """With the ramp at 1 everywhere the shell's depth is the ray's whole optical depth, sample by sample."""
+    import delta.render.hybrid as hybrid
+
+    monkeypatch.setattr(hybrid, "shell_ramp", lambda dist, start, room: torch.ones_like(dist))
+    mesh = sphere_avatar()
+    o, d = rays([0.0, 0.2, 0.35])
+    st = RenderSettings(samples=24, box_margin=0.3, max_dist=0.1, perturb=False, shell=0.01)
+    out = render_rays(mesh, o, d, o[:, :2] * 100, BG, st, band_nerf(0.0, 0.08, 25.0))
+    assert (out.optical_depth > 0).all()
+    torch.testing.assert_close(out.shell_depth, out.optical_depth)

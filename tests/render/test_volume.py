@@ -310,3 +310,11 @@ def test_optical_depth_keeps_its_gradient_where_the_opacity_saturates():
     bumped[0, 5] += h
     fd = (volume.optical_depth(bumped, sample_deltas(t)) - volume.optical_depth(sigma.detach(), sample_deltas(t))) / h
     torch.testing.assert_close(fd, torch.tensor([1 / 16], dtype=D), rtol=0, atol=1e-8)
+
+
+def test_the_shell_ramp_is_zero_inside_linear_across_the_room_and_one_beyond():
+    from delta.render.volume import shell_ramp
+
+    d = torch.tensor([0.0, 0.02, 0.03, 0.065, 0.1, 0.5])
+    torch.testing.assert_close(shell_ramp(d, 0.03, 0.1), torch.tensor([0.0, 0.0, 0.0, 0.5, 1.0, 1.0]))
+    torch.testing.assert_close(shell_ramp(d, 0.05, 0.05), torch.tensor([0.0, 0.0, 0.0, 1.0, 1.0, 1.0]))  # a step

@@ -1,5 +1,6 @@
 """Training: gradients reach every parameter group, exact resume, both stages end to end on tiny data."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -103,6 +104,31 @@ def test_empty_background_term_is_the_background_rays_optical_depth(tiny_trainin
     nerf = torch.cat([p.grad.flatten() for p in model.nerf.parameters() if p.grad is not None])
     assert torch.isfinite(nerf).all() and nerf.abs().sum() > 0
     assert all(p.grad is None or p.grad.abs().sum() == 0 for p in model.albedo_field.parameters())
+
+
+def test_shell_term_is_the_batch_s_optical_depth_beyond_the_shell(tiny_training):
+    """With render.shell the objective holds the mean of the rays' optical depth beyond it (none without a
+    shell, none at weight 0); a shell beyond the room charges nothing, one at the body charges most."""
+    on = {"render": {"shell": 0.01}}
+    st = resolve("fast", TINY, on)
+    model, data = _model(tiny_training["loose"], st)
+    batch = sample_rays(data, int(data.train[0]), 256, torch.Generator().manual_seed(0))
+    terms, r = loss_terms(model, batch, st, data.skin_color)
+    assert (
+        "shell"
+        not in loss_terms(model, batch, resolve("fast", TINY, on, {"weights": {"shell": 0}}), data.skin_color)[0]
+    )
+    torch.testing.assert_close(terms["shell"], r.shell_depth.mean())
+    assert 0 < float(terms["shell"]) and (r.shell_depth <= r.optical_depth + 1e-6).all()
+    model.zero_grad()
+    terms["shell"].backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.nerf.parameters())
+    spec = model.spec
+    for shell, charged in ((st.avatar.render.max_dist, 0.0), (0.0, None)):  # beyond the room; off
+        other = resolve("fast", TINY, {"render": {"shell": shell}})
+        model.spec = dataclasses.replace(spec, render=other.avatar.render)
+        got = loss_terms(model, batch, other, data.skin_color)[0].get("shell")
+        assert got is None if charged is None else float(got) == charged
 
 
 _RELU_NOISE = {"nerf": {"density_activation": "relu", "density_noise": 1.0, "density_noise_steps": 4}}
