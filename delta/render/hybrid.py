@@ -237,7 +237,7 @@ def _query(mesh: PosedMesh, origins, dirs, t, settings: RenderSettings, nerf: Ne
 def _query_points(mesh: PosedMesh, flat, idx, settings: RenderSettings, nerf: NeRF, nonrigid, occupied):
     """The NeRF at posed points ``flat[idx]`` that pass the culls: their indices into ``flat`` (P,),
     densities (P,), colours (P, 3), each layer's density (P, L) (None for one NeRF) and distances to the
-    body (P,, detached)."""
+    body (P,), detached."""
     layered = hasattr(nerf, "with_layers")
     layers = flat.new_zeros(0, len(nerf.names)) if layered else None
     none = idx[:0], flat.new_zeros(0), flat.new_zeros(0, 3), layers, flat.new_zeros(0)
