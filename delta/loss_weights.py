@@ -19,6 +19,10 @@ class LossWeights:
     exterior_layers: float = 0.5
     """L1 between each exterior layer's opacity and its own mask (clothing, hair), averaged over the
     layers, where the exterior is in layers."""
+    layer_shares: float = 0.05
+    """Cross-entropy between the layers' shares of the density each exterior ray sees and its pixel's
+    layers, where the exterior is in layers: a layer pushed out of its region wins it back (an opacity's
+    L1 cannot; not the paper's, measured in docs/method.md)."""
     empty_background: float = 0.0
     """The exterior's optical depth on rays the person mask puts on the background (off: 0)."""
     shell: float = 0.1

@@ -69,6 +69,32 @@ def shell(shell_depth: torch.Tensor) -> torch.Tensor:
     return shell_depth.mean()
 
 
+def layer_shares(log_shares: torch.Tensor, weights: torch.Tensor, names: tuple[str, ...],
+                 exterior_mask: torch.Tensor, hair_mask: torch.Tensor | None) -> torch.Tensor:  # fmt: skip
+    """Mean over the exterior's rays of the cross-entropy between the layers' shares of each sample the ray
+    sees and its pixel's layers: -Σ_k ŵ_k Σ_l q_l log(σ_l,k / σ_k), ŵ the ray's sample weights (R, S - 1)
+    normalised to sum 1 (not differentiated), q its layer masks normalised (the hair mask and the rest
+    of the exterior, :func:`layer_targets`), ``log_shares`` (R, S - 1, L) in ``names`` order.
+
+    With densities e^raw a share is a softmax of the raws, and a layer's opacity (:func:`exterior_layers`)
+    reaches its raw density through share (1 - share): a layer that another has pushed out of a region
+    (share -> 0) gets no gradient there and stays out. This term's gradient at a seen sample's raw
+    density is ŵ_k (share - q_l): the lost layer wins its region back. Rays outside the exterior (mask
+    under 0.5) and rays that see no density add nothing (0 for none, as :func:`huber`)."""
+    if hair_mask is None:
+        raise ValueError("an exterior in layers needs the hair mask (load the frames with hair=True)")
+    targets = layer_targets(exterior_mask, hair_mask)
+    q = torch.stack([targets[n] for n in names], -1)  # (R, L)
+    total = q.sum(-1)
+    seen = weights.sum(-1)
+    rays = (exterior_mask > 0.5) & (total > 0) & (seen > 0)
+    if not bool(rays.any()):
+        return log_shares.sum() * 0.0
+    q = q[rays] / total[rays, None]
+    w = weights[rays] / seen[rays, None]
+    return -(w[..., None] * q[:, None, :] * log_shares[rays]).sum((1, 2)).mean()
+
+
 def layer_targets(exterior_mask: torch.Tensor, hair_mask: torch.Tensor) -> dict[str, torch.Tensor]:
     """Each exterior layer's mask: the hair mask, and the rest of the exterior as clothing."""
     return {"hair": hair_mask, "clothing": (exterior_mask - hair_mask).clamp_min(0.0)}

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 
@@ -75,6 +77,45 @@ def test_exterior_layers():
     close(losses.exterior_layers(masks[:, [1, 0]], ("hair", "clothing"), exterior, hair), (clothing_err + hair_err) / 2)
     with pytest.raises(ValueError, match="hair mask"):
         losses.exterior_layers(masks, ("clothing", "hair"), exterior, None)
+
+
+def test_layer_shares():
+    """The cross-entropy of each seen sample's layer shares against its pixel's layers, the samples weighted
+    by their share of the ray's weight: by hand on two exterior rays; a ray off the exterior and one that
+    sees no density add nothing."""
+    shares = torch.tensor([[[0.5, 0.5], [0.9, 0.1]], [[0.2, 0.8], [0.6, 0.4]], [[0.5, 0.5], [0.5, 0.5]],
+                           [[0.3, 0.7], [0.3, 0.7]]], dtype=D)  # fmt: skip
+    weights = torch.tensor([[0.2, 0.6], [0.5, 0.0], [0.4, 0.4], [0.0, 0.0]], dtype=D)
+    exterior, hair = t(1.0, 1.0, 0.0, 1.0), t(0.25, 1.0, 0.0, 1.0)
+    # ray 0: q = (0.75, 0.25), ŵ = (0.25, 0.75); ray 1: q = (0, 1), ŵ = (1, 0)
+    ray0 = -(
+        0.25 * (0.75 * math.log(0.5) + 0.25 * math.log(0.5)) + 0.75 * (0.75 * math.log(0.9) + 0.25 * math.log(0.1))
+    )
+    ray1 = -math.log(0.8)
+    close(losses.layer_shares(shares.log(), weights, ("clothing", "hair"), exterior, hair), (ray0 + ray1) / 2)
+    flipped = losses.layer_shares(shares.log()[..., [1, 0]], weights, ("hair", "clothing"), exterior, hair)
+    close(flipped, (ray0 + ray1) / 2)
+    close(losses.layer_shares(shares.log(), weights, ("clothing", "hair"), t(0, 0, 0, 0), hair), 0.0)
+    with pytest.raises(ValueError, match="hair mask"):
+        losses.layer_shares(shares.log(), weights, ("clothing", "hair"), exterior, None)
+
+
+def test_layer_shares_gradient_wins_back_a_lost_layer():
+    """Densities e^raw make a share the softmax of the raws: the term's gradient at a raw is ŵ (share - q)
+    (autograd against the closed form), and at a hair share of e^-30 on a hair pixel it is -ŵ, where the
+    hair layer's opacity L1 (exterior_layers) gives it nothing to climb."""
+    raw = torch.tensor([[[0.0, -30.0], [1.0, -29.0]]], dtype=D, requires_grad=True)  # (1 ray, 2 samples, 2)
+    weights = torch.tensor([[0.25, 0.75]], dtype=D)
+    exterior, hair = t(1.0), t(1.0)
+    losses.layer_shares(torch.log_softmax(raw, -1), weights, ("clothing", "hair"), exterior, hair).backward()
+    share = torch.softmax(raw.detach(), -1)
+    expected = weights[..., None] * (share - torch.tensor([0.0, 1.0], dtype=D))
+    torch.testing.assert_close(raw.grad, expected, rtol=1e-12, atol=1e-15)
+    assert float(raw.grad[0, :, 1].sum()) < -0.999
+    raw.grad = None
+    opacity = (weights[..., None] * torch.softmax(raw, -1)).sum(1)  # (1, 2) each layer's opacity
+    losses.exterior_layers(opacity, ("clothing", "hair"), exterior, hair).backward()
+    assert float(raw.grad[0, :, 1].abs().max()) < 1e-12
 
 
 def test_silhouette():

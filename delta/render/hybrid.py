@@ -72,6 +72,12 @@ class RayRender:
     shell_depth: Optional[torch.Tensor] = None
     """(R,) the optical depth beyond the soft shell, Σ σ_k Δ_k r(d_k) with d_k the sample's distance to the
     body and r :func:`delta.render.volume.shell_ramp` (``settings.shell`` > 0; else None)."""
+    layer_log_shares: Optional[torch.Tensor] = None
+    """(R, S - 1, L) the log of each layer's share σ_l,k / σ_k of a sample's density (0 where the sample has
+    none), differentiable for shares down to e^-87; None for one NeRF."""
+    sample_weights: Optional[torch.Tensor] = None
+    """(R, S - 1) each NeRF sample's weight w_k in the ray's colour, not differentiated (a layered NeRF;
+    else None)."""
 
 
 #: cells the occupied set grows by for the early cull: the rough canonical point lies within 3 cm of
@@ -131,16 +137,19 @@ def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixe
         shell = (sigma * sample_deltas(t) * shell_ramp(dist, settings.shell, settings.max_dist)).sum(1)
     out = composite(t, sigma, rgb, background.expand_as(mesh_rgb) if through_mesh else mesh_rgb)
     nerf_rgb = (out.weights[:, :-1, None] * rgb).sum(1) + (1 - out.nerf_mask[:, None]) * background
-    layer_masks = layer_depths = None
+    layer_masks = layer_depths = log_shares = seen_w = None
     if layer_sigma is not None:
-        share = layer_sigma / sigma.clamp_min(torch.finfo(sigma.dtype).tiny)[..., None]
+        tiny = torch.finfo(sigma.dtype).tiny
+        share = layer_sigma / sigma.clamp_min(tiny)[..., None]
+        log_shares = layer_sigma.clamp_min(tiny).log() - sigma.clamp_min(tiny).log()[..., None]
+        seen_w = out.weights[:, :-1].detach()
         seen = out.weights[:, :-1, None] * share  # (R, S - 1, L)
         layer_masks = seen.sum(1)
         with torch.no_grad():  # a readout: where the layer lies, nothing to differentiate
             at = (seen * t[:, :-1, None]).sum(1) / layer_masks.clamp_min(torch.finfo(t.dtype).tiny)
             layer_depths = torch.where(layer_masks > 0, at, t[:, -1:])
     return RayRender(out.rgb, out.nerf_mask, nerf_rgb, mesh_rgb, hits.hit, sil, n, layer_masks, layer_depths,
-                     out.optical_depth, shell)  # fmt: skip
+                     out.optical_depth, shell, log_shares, seen_w)  # fmt: skip
 
 
 @torch.no_grad()

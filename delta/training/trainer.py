@@ -80,6 +80,9 @@ def loss_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, skin_col
             terms["shell"] = L.shell(r.shell_depth)
     if r.layer_masks is not None:
         terms["exterior_layers"] = L.exterior_layers(r.layer_masks, model.nerf.names, batch.exterior, batch.hair)
+        if st.weights.layer_shares > 0 and r.layer_log_shares is not None:
+            terms["layer_shares"] = L.layer_shares(r.layer_log_shares, r.sample_weights, model.nerf.names,
+                                                   batch.exterior, batch.hair)  # fmt: skip
     if semantic is not None and batch.patch:
         p = batch.patch
         img = lambda x: x[: p * p].T.reshape(1, 3, p, p)  # noqa: E731

@@ -1,6 +1,7 @@
 """Rendering rays through the hybrid avatar: culling far from the body, the mesh stop, misses."""
 
 import dataclasses
+import math
 
 import torch
 import trimesh
@@ -177,6 +178,28 @@ def test_layers_render_as_one_medium_and_each_layer_gets_its_share_of_the_opacit
     assert float(hair[0]) == 0.0 and float(clothing[1]) == 0.0
     # in the overlap band each layer has half the density: half the opacity each
     torch.testing.assert_close(clothing[2], hair[2])
+
+
+def test_layer_shares_are_each_samples_and_its_weights_the_composites():
+    """Each sample's log shares: log 1/2 each in the band where the layers overlap with equal density, 0
+    for the one layer elsewhere (the other's far below), 0 both where a sample has no density; the sample
+    weights are the composite's, summing to the NeRF mask and not differentiated."""
+    mesh = sphere_avatar()
+    o = torch.tensor([[0.0, -0.33, 2.0], [0.0, 0.0, 2.0]])
+    d = torch.tensor([[0.0, 0.0, -1.0]] * len(o))
+    st = RenderSettings(samples=64, box_margin=0.3, max_dist=0.1, perturb=False)
+    out = render_rays(mesh, o, d, o[:, :2] * 100, BG, st, TwoLayers(40.0))
+    assert out.layer_log_shares.shape == (2, out.sample_weights.shape[1], 2)
+    torch.testing.assert_close(out.sample_weights.sum(1), out.nerf_mask)
+    assert not out.sample_weights.requires_grad
+    dense = out.sample_weights > 0
+    clothing, hair = out.layer_log_shares.unbind(-1)
+    assert bool(dense[0].any()) and bool(dense[1].any())
+    assert float(clothing[0][dense[0]].abs().max()) < 1e-6 and float(hair[0][dense[0]].max()) < -80
+    half = torch.full_like(clothing[1][dense[1]], math.log(0.5))
+    torch.testing.assert_close(clothing[1][dense[1]], half)
+    torch.testing.assert_close(hair[1][dense[1]], half)
+    assert float(out.layer_log_shares[~dense].abs().max()) == 0.0
 
 
 def test_a_layer_is_seen_where_its_opacity_gathers():

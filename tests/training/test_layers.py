@@ -35,6 +35,7 @@ def test_clothing_and_hair_train_as_layers_and_load_back(layered, tmp_path):
     assert any(k.startswith("nerf.layers.hair.") for k in state["model"])
     losses = pd.read_csv(tmp_path / "s1" / "losses.csv")
     assert losses["exterior_layers"].notna().all() and (losses["exterior_layers"] > 0).all()
+    assert losses["layer_shares"].notna().all() and (losses["layer_shares"] >= 0).all()  # the presets' weight
     tr = load_trained(tmp_path / "s1" / "model.pt", inputs["record"], inputs["body"])
     assert isinstance(tr.model.nerf, LayeredNeRF) and tr.model.nerf.names == ("clothing", "hair")
     # the head may carry clothing (the presets' clothing_on_head: yes), in the file and loaded back
