@@ -9,6 +9,11 @@ From the frame record (person, clothing and hair masks) and the init fit, before
 - ``render.max_dist``: the room the exterior gets around the body, from how far the person's
   silhouette reaches beyond the fitted body per body region (:mod:`delta.scene.reach`), with a margin;
   never less than the preset's own;
+- ``render.shell``: for a head-and-shoulders capture, the soft shell at the measured reach × (1 + MARGIN):
+  the room has the preset's floor (10 cm) where the silhouette shows the exterior 1-2 cm from the body,
+  and no frame of a frontal video tells how deep along a ray the hair or a collar lies; the shell puts
+  it nearest the body the frames allow (the short-haired talker's held-out expressions and turns +2.0
+  dB, its views +0.1 dB: docs/heads.md). Full bodies get none: not yet measured there;
 - ``render.samples``: the samples a ray needs to cross that room at the preset's sample spacing, and
   at least one per :data:`SAMPLE_PIXELS` of a training pixel's footprint at the body (a pixel of 512²
   frames is 3.9 mm on a full body, 1.6 mm on a head and shoulders);
@@ -72,6 +77,8 @@ PERCENTILE, MIN_REGION_SHARE = 98.0, 0.02
 #: The room given is the measured reach × (1 + MARGIN) + PAD (a silhouette shows the reach sideways
 #: only: the margin covers what faces the camera), at most MAX_ROOM metres.
 MARGIN, PAD, MAX_ROOM = 0.25, 0.02, 0.6
+#: Captures whose exterior gets the soft shell (``render.shell``) at the reach × (1 + MARGIN).
+SHELL_CAPTURES = ("upper",)
 #: At most this many times the preset's samples a ray.
 MAX_SAMPLE_FACTOR = 4
 #: A ray's samples lie at most this many training pixels' footprint apart (at the body's depth). Trained
@@ -141,6 +148,14 @@ def stage2_factor(room: float, preset_room: float) -> float:
     return round(min(max(room / preset_room, 1.0), MAX_STAGE2_FACTOR), 3)
 
 
+def shell_start(reach: float, capture: str) -> float:
+    """The soft shell's start (m; 0: none) for a measured ``reach`` (m) and ``capture``: the reach × (1 +
+    MARGIN) for the :data:`SHELL_CAPTURES`, none for others or where nothing reaches beyond the body."""
+    if capture not in SHELL_CAPTURES or reach <= 0:
+        return 0.0
+    return round(reach * (1 + MARGIN), 3)
+
+
 def training_resolution(crop: int, frames: int, budget: int = FRAME_BUDGET) -> int:
     """The training frames' size: the capture's crop (``crop`` pixels a side), or, where ``frames`` of it
     would hold more than ``budget`` bytes, the largest multiple of 16 that fits (at least 16)."""
@@ -182,6 +197,9 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
     capture = "upper" if lower is not None and lower <= MAX_LOWER_IN_VIEW else "full"
     decisions = {"exterior": exterior, "capture": capture, "resolution": resolution,
                  "render": {"max_dist": room, "samples": samples}}  # fmt: skip
+    shell = shell_start(reach, capture) if exterior == "yes" else 0.0
+    if shell > 0:
+        decisions["render"]["shell"] = shell
     if exterior == "yes":
         decisions["stage2"] = {"length_factor": stage2_factor(room, preset_room)}
     rays = step_rays(samples, preset_samples, preset_rays, max_rays) if max_rays > preset_rays > 0 else None
@@ -213,6 +231,11 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
                            f"{SAMPLE_PIXELS:g} of the {resolution}² training pixels apart ({1000 * footprint:.1f} mm "
                            f"at the body), at most {MAX_SAMPLE_FACTOR}x the preset's"},
     }  # fmt: skip
+    if shell > 0:
+        evidence["shell"] = {"start_m": shell, "room_m": room,
+                             "why": f"a {capture} capture: exterior density farther than the silhouette's reach x "
+                                    f"{1 + MARGIN:g} ({100 * shell:.1f} cm) from the body costs, rising to its "
+                                    f"full cost at the room's edge ({100 * room:.0f} cm)"}  # fmt: skip
     if rays is not None:
         budget = step_budget(preset_rays, preset_samples)
         evidence["rays"] = {"preset": preset_rays, "max": max_rays, "samples": samples, "step_samples": budget,

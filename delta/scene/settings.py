@@ -20,6 +20,7 @@ DECIDED = (
     "resolution",
     "render.max_dist",
     "render.samples",
+    "render.shell",
     "stage1.rays",
     "stage2.iterations",
     "semantic",

@@ -13,6 +13,7 @@ from delta.scene.analysis import (
     SAMPLE_PIXELS,
     analyze,
     room_and_samples,
+    shell_start,
     stage2_factor,
     step_rays,
     training_resolution,
@@ -58,6 +59,21 @@ def test_room_and_samples_follow_the_reach_from_the_presets_floor():
     assert room_and_samples(5.0, 0.1, 16) == (0.6, 64)  # capped room, at most 4x the samples
     # a full body's 3.85-mm pixels at 512²: 26 samples across the preset's room at one a pixel
     assert room_and_samples(0.0, 0.1, 16, 0.00385 / SAMPLE_PIXELS) == (0.1, 26)
+
+
+def test_a_head_and_shoulders_exterior_gets_a_shell_at_its_reach_and_a_full_body_none():
+    assert shell_start(0.0126, "upper") == 0.016  # 1.26 cm x 1.25
+    assert shell_start(0.2, "upper") == 0.25
+    assert shell_start(0.0126, "full") == 0.0  # not measured on full bodies: none
+    assert shell_start(0.0, "upper") == 0.0  # nothing beyond the body: no shell
+
+
+def test_the_scenes_shell_reaches_training_where_the_config_is_silent(tmp_path):
+    scene = tmp_path / "scene.json"
+    scene.write_text(json.dumps({"decisions": {"render": {"max_dist": 0.1, "shell": 0.016}}}))
+    resolved = resolve("fast").raw
+    assert scene_settings(scene, resolved, [])["render"] == {"max_dist": 0.1, "shell": 0.016}
+    assert scene_settings(scene, resolved, ["render.shell"])["render"] == {"max_dist": 0.1}
 
 
 @pytest.mark.parametrize("footprint, room", [
@@ -206,6 +222,7 @@ def test_a_dress_reaches_farther_than_trousers_and_a_wider_silhouette_reaches_fa
     assert factors == [stage2_factor(r, 0.1) for r in rooms] and factors[1] >= factors[0]
     assert tight["decisions"]["exterior"] == dress["decisions"]["exterior"] == "yes"
     assert tight["decisions"]["capture"] == "full"
+    assert "shell" not in tight["decisions"]["render"] and "shell" not in dress["evidence"]  # full bodies: none
     with h5py.File(t["record"], "r") as h5:  # trained at the capture's crop, which fits the budget
         assert tight["decisions"]["resolution"] == h5["images"].shape[1] == 64
     # a training pixel's footprint does not depend on the size the analysis looks at, and sets the samples
