@@ -65,6 +65,8 @@ SCORES = [
     "outline_error_share",
     "body_err_mm",
     "body_err_pa_mm",
+    "hair_layer_iou",
+    "clothing_layer_iou",
 ]
 EVAL = {"max_frames": 5, "refine_lr": 0.0005, "refine_rays": 4096, "refine_steps": 30, "refine_tol": 0.0,
         "report_unrefined": True, "splits": ["test_view", "test_pose"], "stage": 2, "supersample": 2, "worst": 0}  # fmt: skip
