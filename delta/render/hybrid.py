@@ -74,7 +74,8 @@ class RayRender:
     body and r :func:`delta.render.volume.shell_ramp` (``settings.shell`` > 0; else None)."""
     layer_log_shares: Optional[torch.Tensor] = None
     """(R, S - 1, L) the log of each layer's share σ_l,k / σ_k of a sample's density (0 where the sample has
-    none), differentiable for shares down to e^-87; None for one NeRF."""
+    none), differentiable where the layer's density is above the dtype's smallest normal (e^-87 in
+    float32); None for one NeRF."""
     sample_weights: Optional[torch.Tensor] = None
     """(R, S - 1) each NeRF sample's weight w_k in the ray's colour, not differentiated (a layered NeRF;
     else None)."""

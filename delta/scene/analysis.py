@@ -233,9 +233,9 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
     }  # fmt: skip
     if shell > 0:
         evidence["shell"] = {"start_m": shell, "room_m": room,
-                             "why": f"a head-and-shoulders capture ({capture!r}): exterior density farther than the silhouette's reach x "
-                                    f"{1 + MARGIN:g} ({100 * shell:.1f} cm) from the body costs, rising to its "
-                                    f"full cost at the room's edge ({100 * room:.0f} cm)"}  # fmt: skip
+                             "why": f"a head-and-shoulders capture ({capture!r}): exterior density farther than "
+                                    f"the silhouette's reach x {1 + MARGIN:g} ({100 * shell:.1f} cm) from the body "
+                                    f"costs, rising to its full cost at the room's edge ({100 * room:.0f} cm)"}  # fmt: skip
     if rays is not None:
         budget = step_budget(preset_rays, preset_samples)
         evidence["rays"] = {"preset": preset_rays, "max": max_rays, "samples": samples, "step_samples": budget,
