@@ -216,6 +216,13 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
     summary = {"stage": stage, "steps": res.steps, "seconds": round(time.time() - t0, 1),
                "train_psnr_last5pct": round(float(last.get("psnr", float("nan"))), 2), "albedo_filled": filled,
                "exterior_cells_mirrored": mirrored}  # fmt: skip
+    seen = {n: round(float(last[f"seen_{n}"]), 3) for n in getattr(model.nerf, "names", ()) if f"seen_{n}" in last}
+    if seen:
+        summary["layers_seen"] = seen
+        for name in dead_layers(seen):
+            log.warning("stage %d: the %s layer's opacity on its own mask's rays is %.2f over the last steps: the "
+                        "layer has died and another draws its region (weights.layer_shares > 0 keeps a layer "
+                        "alive: docs/method.md)", stage, name, seen[name])  # fmt: skip
     if model.deformation is not None:
         units = summary["deformation_units_active"] = deformation_units(model, data.train)
         width = model.deformation.head.hidden[0].out_features
@@ -224,6 +231,16 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
                         "training times): its deformation is nearly constant", units, width)  # fmt: skip
     log.info("stage %d done: %s", stage, json.dumps(summary))
     return summary
+
+
+#: A layer whose mean opacity on its own mask's rays is under this at a stage's end has died.
+DEAD_LAYER = 0.1
+
+
+def dead_layers(seen: dict[str, float], floor: float = DEAD_LAYER) -> list[str]:
+    """The layers of ``seen`` (each layer's mean opacity on its own mask's rays, NaN: never met) under
+    ``floor``."""
+    return [name for name, value in seen.items() if value == value and value < floor]
 
 
 def deformation_units(model, train) -> list[int]:

@@ -90,6 +90,20 @@ def loss_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, skin_col
     return terms, r
 
 
+def layers_seen(layer_masks: torch.Tensor, names, exterior_mask: torch.Tensor,
+                hair_mask: Optional[torch.Tensor]) -> dict[str, torch.Tensor]:  # fmt: skip
+    """``{"seen_{layer}": mean opacity of the layer (``layer_masks`` (R, L), in ``names`` order) on the rays
+    its own mask holds (over half)}``, NaN where the batch has none of its rays: a readout, not a term (a
+    layer near 0 here has died: another layer draws its region)."""
+    if hair_mask is None:
+        return {}
+    targets = L.layer_targets(exterior_mask, hair_mask)
+    with torch.no_grad():
+        mine = torch.stack([targets[n] for n in names], -1) > 0.5  # (R, L)
+        seen = (layer_masks * mine).sum(0) / mine.sum(0)  # 0 / 0: NaN where no ray is the layer's
+    return {f"seen_{n}": seen[k] for k, n in enumerate(names)}
+
+
 def nerf_only_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, generator=None) -> tuple[dict, object]:
     """The NeRF-only warm-up's objective (SCARF's stage 0): rays pass through the mesh and the NeRF alone
     learns the whole person — its colour against the image, its opacity against the person mask.
@@ -320,11 +334,14 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
         with frame_locked(model.per_frame_parameters(), frame):
             optimizer.step()
         seen += 1
-        logged = _read_back(loss, ((r.rgb.detach() - batch.rgb) ** 2).mean(), *terms.values())
+        seen_layers = {}
+        if not warm and r.layer_masks is not None:
+            seen_layers = layers_seen(r.layer_masks, model.nerf.names, batch.exterior, batch.hair)
+        logged = _read_back(loss, ((r.rgb.detach() - batch.rgb) ** 2).mean(), *terms.values(), *seen_layers.values())
         rows.append({"step": step + 1, "loss": logged[0], "psnr": _psnr_of(logged[1]),
                      "samples": r.samples_evaluated, "seconds": round(before + time.time() - t0, 3),
                      **({"warmup": float(warm)} if warmup_end else {}),
-                     **dict(zip(terms, logged[2:]))})  # fmt: skip
+                     **dict(zip([*terms, *seen_layers], logged[2:]))})  # fmt: skip
         if (step + 1) % cfg.log_every == 0 or step + 1 == end:
             row = rows[-1]
             progress.report(

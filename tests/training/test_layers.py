@@ -36,6 +36,9 @@ def test_clothing_and_hair_train_as_layers_and_load_back(layered, tmp_path):
     losses = pd.read_csv(tmp_path / "s1" / "losses.csv")
     assert losses["exterior_layers"].notna().all() and (losses["exterior_layers"] > 0).all()
     assert losses["layer_shares"].notna().all() and (losses["layer_shares"] >= 0).all()  # the presets' weight
+    for name in ("clothing", "hair"):  # each layer's opacity on its own mask's rays: a readout in [0, 1]
+        seen = losses[f"seen_{name}"].dropna()
+        assert len(seen) and ((seen >= 0) & (seen <= 1 + 1e-6)).all()
     tr = load_trained(tmp_path / "s1" / "model.pt", inputs["record"], inputs["body"])
     assert isinstance(tr.model.nerf, LayeredNeRF) and tr.model.nerf.names == ("clothing", "hair")
     # the head may carry clothing (the presets' clothing_on_head: yes), in the file and loaded back
@@ -94,3 +97,18 @@ def test_each_layer_is_scored_against_its_own_mask(layered):
     img = render_image(tr.model, frame, view=full_view(full, tr.model.resolution), soft_silhouette=False)
     for name in ("clothing", "hair"):  # the same IoU, taken here from the render and the record's mask
         assert df[f"{name}_layer_iou"].iloc[0] == pytest.approx(iou(img[f"layer_{name}"] > 0.5, full.parts[name][0]))
+
+
+def test_each_layers_opacity_on_its_own_masks_rays_and_a_dead_layer_named():
+    from delta.training.run import dead_layers
+    from delta.training.trainer import layers_seen
+
+    masks = torch.tensor([[0.9, 0.05], [0.1, 0.02], [0.0, 0.0]])  # (R, L) clothing, hair
+    exterior, hair = torch.tensor([1.0, 1.0, 0.0]), torch.tensor([0.0, 1.0, 0.0])
+    seen = layers_seen(masks, ("clothing", "hair"), exterior, hair)
+    torch.testing.assert_close(seen["seen_clothing"], torch.tensor(0.9))  # ray 0 alone is the clothing's
+    torch.testing.assert_close(seen["seen_hair"], torch.tensor(0.02))  # ray 1 alone is the hair's
+    none = layers_seen(masks, ("clothing", "hair"), exterior, torch.zeros(3))
+    assert bool(torch.isnan(none["seen_hair"])) and layers_seen(masks, ("clothing", "hair"), exterior, None) == {}
+    assert dead_layers({"clothing": 0.9, "hair": 0.02}) == ["hair"]
+    assert dead_layers({"clothing": 0.9, "hair": float("nan")}) == []  # never met: not judged
