@@ -83,9 +83,8 @@ def layer_shares(log_shares: torch.Tensor, weights: torch.Tensor, names: tuple[s
     under 0.5) and rays that see no density add nothing (0 for none, as :func:`huber`)."""
     if hair_mask is None:
         raise ValueError("an exterior in layers needs the hair mask (load the frames with hair=True)")
-    targets = layer_targets(exterior_mask, hair_mask)
-    q = torch.stack([targets[n] for n in names], -1)  # (R, L)
-    total = q.sum(-1)
+    q = stacked_targets(exterior_mask, hair_mask, names)
+    total = q.sum(-1)  # 0 only where the names leave out the pixel's layer
     seen = weights.sum(-1)
     rays = (exterior_mask > 0.5) & (total > 0) & (seen > 0)
     if not bool(rays.any()):
@@ -98,6 +97,12 @@ def layer_shares(log_shares: torch.Tensor, weights: torch.Tensor, names: tuple[s
 def layer_targets(exterior_mask: torch.Tensor, hair_mask: torch.Tensor) -> dict[str, torch.Tensor]:
     """Each exterior layer's mask: the hair mask, and the rest of the exterior as clothing."""
     return {"hair": hair_mask, "clothing": (exterior_mask - hair_mask).clamp_min(0.0)}
+
+
+def stacked_targets(exterior_mask: torch.Tensor, hair_mask: torch.Tensor, names: tuple[str, ...]) -> torch.Tensor:
+    """(R, L) the layers' masks (:func:`layer_targets`) in ``names`` order."""
+    targets = layer_targets(exterior_mask, hair_mask)
+    return torch.stack([targets[n] for n in names], -1)
 
 
 def silhouette(mesh_sil: torch.Tensor, person: torch.Tensor, delta: float = 0.1) -> torch.Tensor:

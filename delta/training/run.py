@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import time
 from pathlib import Path
 
@@ -240,7 +241,7 @@ DEAD_LAYER = 0.1
 def dead_layers(seen: dict[str, float], floor: float = DEAD_LAYER) -> list[str]:
     """The layers of ``seen`` (each layer's mean opacity on its own mask's rays, NaN: never met) under
     ``floor``."""
-    return [name for name, value in seen.items() if value == value and value < floor]
+    return [name for name, value in seen.items() if not math.isnan(value) and value < floor]
 
 
 def deformation_units(model, train) -> list[int]:

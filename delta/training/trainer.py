@@ -97,9 +97,8 @@ def layers_seen(layer_masks: torch.Tensor, names, exterior_mask: torch.Tensor,
     layer near 0 here has died: another layer draws its region)."""
     if hair_mask is None:
         return {}
-    targets = L.layer_targets(exterior_mask, hair_mask)
     with torch.no_grad():
-        mine = torch.stack([targets[n] for n in names], -1) > 0.5  # (R, L)
+        mine = L.stacked_targets(exterior_mask, hair_mask, names) > 0.5  # (R, L)
         seen = (layer_masks * mine).sum(0) / mine.sum(0)  # 0 / 0: NaN where no ray is the layer's
     return {f"seen_{n}": seen[k] for k, n in enumerate(names)}
 
