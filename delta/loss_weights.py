@@ -27,6 +27,9 @@ class LossWeights:
     """The exterior's optical depth on rays the person mask puts on the background (off: 0)."""
     shell: float = 0.1
     """The exterior's optical depth beyond the soft shell (``render.shell``; no term where that is 0)."""
+    distortion: float = 0.0
+    """Per metre: the exterior's weight along each ray spread in depth (Mip-NeRF 360's distortion,
+    ``delta.render.volume.distortion``; off: 0)."""
     face_points: float = 0.0
     """Where the record tracks a face: the posed face points against the detected ones (Huber of their
     distance over the image's size), so that training keeps the face where the frame shows it (off: 0)."""

@@ -69,6 +69,15 @@ def shell(shell_depth: torch.Tensor) -> torch.Tensor:
     return shell_depth.mean()
 
 
+def distortion(spread: torch.Tensor) -> torch.Tensor:
+    """Mean over rays of how far apart along each ray the exterior's weight lies (``RayRender.distortion``,
+    metres): of the depths that give a ray its colour, the most compact costs least, so an exterior no
+    frame sees from the side is drawn as a sheet, not a slab (0 for no rays, as :func:`huber`)."""
+    if spread.numel() == 0:
+        return spread.sum()
+    return spread.mean()
+
+
 def layer_shares(log_shares: torch.Tensor, weights: torch.Tensor, names: tuple[str, ...],
                  exterior_mask: torch.Tensor, hair_mask: torch.Tensor | None) -> torch.Tensor:  # fmt: skip
     """Mean over the exterior's rays of the cross-entropy between the layers' shares of each sample the ray

@@ -21,7 +21,7 @@ from delta.geometry import distance_grid
 from delta.geometry.raymesh import interpolate, ray_mesh_hits
 from delta.render.settings import RenderSettings
 from delta.render.silhouette import soft_silhouette
-from delta.render.volume import composite, ray_box, sample_deltas, shell_ramp, stratified_samples
+from delta.render.volume import composite, distortion, ray_box, sample_deltas, shell_ramp, stratified_samples
 
 
 @dataclasses.dataclass
@@ -79,6 +79,9 @@ class RayRender:
     sample_weights: Optional[torch.Tensor] = None
     """(R, S - 1) each NeRF sample's weight w_k in the ray's colour, not differentiated (a layered NeRF;
     else None)."""
+    distortion: Optional[torch.Tensor] = None
+    """(R,) how far apart along the ray the exterior's weight lies, in metres (:func:`delta.render.volume.distortion`),
+    None without an exterior."""
 
 
 #: cells the occupied set grows by for the early cull: the rough canonical point lies within 3 cm of
@@ -150,7 +153,7 @@ def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixe
             at = (seen * t[:, :-1, None]).sum(1) / layer_masks.clamp_min(torch.finfo(t.dtype).tiny)
             layer_depths = torch.where(layer_masks > 0, at, t[:, -1:])
     return RayRender(out.rgb, out.nerf_mask, nerf_rgb, mesh_rgb, hits.hit, sil, n, layer_masks, layer_depths,
-                     out.optical_depth, shell, log_shares, seen_w)  # fmt: skip
+                     out.optical_depth, shell, log_shares, seen_w, distortion(t, out.weights))  # fmt: skip
 
 
 @torch.no_grad()

@@ -100,6 +100,29 @@ def optical_depth(sigma: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
     return (sigma.clamp_min(0.0) * deltas).sum(-1)
 
 
+def distortion(t: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """(R,) how far apart along each ray its NeRF weight lies (Mip-NeRF 360's distortion, in metres):
+
+        Σ_i Σ_j w_i w_j |m_i - m_j| + 1/3 Σ_i w_i² Δ_i
+
+    over the NeRF samples' intervals [t_k, t_{k+1}] (midpoints m_k, lengths Δ_k, weights w_k: the last
+    column of ``weights``, the mesh's or background's share, is not the NeRF's). Zero for no weight, Δ/3
+    for one opaque interval of length Δ, D/3 for an opacity of one spread evenly over a depth D: it costs
+    a ray's exterior spread in depth, not its opacity. ``t`` (R, S) sorted along each ray, ``weights``
+    (R, S) as :func:`nerf_weights`; O(S) a ray by the prefix sums of the sorted midpoints.
+
+    Worked example (a test oracle): t = (0, 1, 3, ·), w = (0.5, 0.25, ·): m = (0.5, 2), Δ = (1, 2);
+    2 · 0.5 · 0.25 · 1.5 + (0.25 · 1 + 0.0625 · 2) / 3 = 0.375 + 0.125 = 0.5.
+    """
+    w = weights[..., :-1]
+    mid = 0.5 * (t[..., 1:] + t[..., :-1])
+    deltas = sample_deltas(t)
+    # Σ_{i,j} w_i w_j |m_i - m_j| = 2 Σ_i w_i (m_i W_<i - M_<i) for sorted m, W and M the exclusive prefix sums
+    w_before = torch.cumsum(w, -1) - w
+    wm_before = torch.cumsum(w * mid, -1) - w * mid
+    return 2 * (w * (mid * w_before - wm_before)).sum(-1) + (w * w * deltas).sum(-1) / 3
+
+
 def stratified_samples(
     t_near: torch.Tensor, t_far: torch.Tensor, num: int, perturb: bool = True,
     generator: torch.Generator | None = None,

@@ -78,6 +78,8 @@ def loss_terms(model: HybridAvatar, batch: RayBatch, st: TrainSettings, skin_col
             terms["empty_background"] = L.empty_background(r.optical_depth, batch.person)
         if st.weights.shell > 0 and r.shell_depth is not None:
             terms["shell"] = L.shell(r.shell_depth)
+        if st.weights.distortion > 0 and r.distortion is not None:
+            terms["distortion"] = L.distortion(r.distortion)
     if r.layer_masks is not None:
         terms["exterior_layers"] = L.exterior_layers(r.layer_masks, model.nerf.names, batch.exterior, batch.hair)
         if st.weights.layer_shares > 0 and r.layer_log_shares is not None:

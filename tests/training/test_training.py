@@ -131,6 +131,23 @@ def test_shell_term_is_the_batch_s_optical_depth_beyond_the_shell(tiny_training)
         assert got is None if charged is None else float(got) == charged
 
 
+def test_distortion_term_is_the_batch_s_mean_spread_in_depth(tiny_training):
+    """With weights.distortion the objective holds the rays' mean distortion (none at weight 0): finite,
+    positive where the exterior has density, and its gradient reaches the NeRF and nothing of the mesh's
+    colour."""
+    st = resolve("fast", TINY, {"weights": {"distortion": 1.0}})
+    model, data = _model(tiny_training["loose"], st)
+    batch = sample_rays(data, int(data.train[0]), 256, torch.Generator().manual_seed(0))
+    terms, r = loss_terms(model, batch, st, data.skin_color)
+    assert "distortion" not in loss_terms(model, batch, resolve("fast", TINY), data.skin_color)[0]
+    torch.testing.assert_close(terms["distortion"], r.distortion.mean())
+    assert torch.isfinite(r.distortion).all() and float(terms["distortion"]) > 0
+    model.zero_grad()
+    terms["distortion"].backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.nerf.parameters())
+    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in model.albedo_field.parameters())
+
+
 _RELU_NOISE = {"nerf": {"density_activation": "relu", "density_noise": 1.0, "density_noise_steps": 4}}
 
 
