@@ -20,11 +20,14 @@ def huber_each(x: torch.Tensor, delta: float = 0.1) -> torch.Tensor:
     return torch.where(a <= delta, 0.5 * a * a, delta * (a - 0.5 * delta))
 
 
+def ray_mean(x: torch.Tensor) -> torch.Tensor:
+    """The mean of x, 0 for an empty x (a batch with no such rays; the mean of nothing is NaN)."""
+    return x.mean() if x.numel() else x.sum()
+
+
 def huber(x: torch.Tensor, delta: float = 0.1) -> torch.Tensor:
     """Mean Huber penalty of residuals x (:func:`huber_each`; 0 for an empty x)."""
-    if x.numel() == 0:
-        return x.sum()
-    return huber_each(x, delta).mean()
+    return ray_mean(huber_each(x, delta))
 
 
 def pixel(rgb: torch.Tensor, target: torch.Tensor, delta: float = 0.1) -> torch.Tensor:
@@ -33,8 +36,7 @@ def pixel(rgb: torch.Tensor, target: torch.Tensor, delta: float = 0.1) -> torch.
 
 def exterior(nerf_mask: torch.Tensor, exterior_mask: torch.Tensor) -> torch.Tensor:
     """‖S_v - S_e‖_1, averaged over rays (0 for no rays, as :func:`huber`)."""
-    d = (nerf_mask - exterior_mask).abs()
-    return d.mean() if d.numel() else d.sum()  # the mean of nothing is NaN
+    return ray_mean((nerf_mask - exterior_mask).abs())
 
 
 def exterior_layers(layer_masks: torch.Tensor, names: tuple[str, ...], exterior_mask: torch.Tensor,
@@ -43,8 +45,7 @@ def exterior_layers(layer_masks: torch.Tensor, names: tuple[str, ...], exterior_
     clothing layer's against the rest of the exterior mask (R rays, ``layer_masks`` (R, L))."""
     if hair_mask is None:
         raise ValueError("an exterior in layers needs the hair mask (load the frames with hair=True)")
-    targets = layer_targets(exterior_mask, hair_mask)
-    return torch.stack([exterior(layer_masks[:, k], targets[n]) for k, n in enumerate(names)]).mean()
+    return ray_mean((layer_masks - stacked_targets(exterior_mask, hair_mask, names)).abs())
 
 
 def empty_background(optical_depth: torch.Tensor, person: torch.Tensor) -> torch.Tensor:
@@ -55,27 +56,21 @@ def empty_background(optical_depth: torch.Tensor, person: torch.Tensor) -> torch
     vanishes once a ray is opaque: density that a moving outline (hair, a hem) put where other frames see
     background stays there, and the exterior's silhouette grows to the union of its frames' outlines.
     τ's gradient, Δ_k, does not vanish (0 for no rays, as :func:`huber`)."""
-    if optical_depth.numel() == 0:
-        return optical_depth.sum()
-    return ((1 - 2 * person).clamp(0.0, 1.0) * optical_depth).mean()
+    return ray_mean((1 - 2 * person).clamp(0.0, 1.0) * optical_depth)
 
 
 def shell(shell_depth: torch.Tensor) -> torch.Tensor:
     """Mean over rays of the optical depth beyond the soft shell (``RayRender.shell_depth``): where a ray's
     colour does not tell how deep its exterior lies, the density costs least nearest the body
     (0 for no rays, as :func:`huber`)."""
-    if shell_depth.numel() == 0:
-        return shell_depth.sum()
-    return shell_depth.mean()
+    return ray_mean(shell_depth)
 
 
 def distortion(spread: torch.Tensor) -> torch.Tensor:
     """Mean over rays of how far apart along each ray the exterior's weight lies (``RayRender.distortion``,
     metres): of the depths that give a ray its colour, the most compact costs least, so an exterior no
     frame sees from the side is drawn as a sheet, not a slab (0 for no rays, as :func:`huber`)."""
-    if spread.numel() == 0:
-        return spread.sum()
-    return spread.mean()
+    return ray_mean(spread)
 
 
 def layer_shares(log_shares: torch.Tensor, weights: torch.Tensor, names: tuple[str, ...],
