@@ -32,13 +32,14 @@ offset): the floor no skinning can go below.
         --truth data/synthetic/gen6/gt --csv benchmarks/canonical_spread.csv
     PYTHONPATH=$PWD python3 benchmarks/canonical_spread.py --model results/synthetic/talker/stage2/model.pt \\
         --record results/synthetic/talker/frames.h5 --body resources/body/anny_sub1_face.npz --subject talker \\
-        --truth data/synthetic/talker/gt --poses fitted --held-out test_view test_pose --diffused 0.015 \\
+        --truth data/synthetic/talker/gt --poses fitted --held-out test_view test_pose --diffused 0.015 --head-bound \\
         --config config/config.yaml config/heads.yaml --csv benchmarks/canonical_spread.csv --append
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -105,6 +106,8 @@ def canonical_points(model, frames, meshes: h5py.File, frame_ids, layers,
             passes = {"knn": d.canonical}
             if diffuse_cell > 0:
                 passes["diffused"] = diffused(mesh.skinning, points, diffuse_cell)
+            if mesh.skinning.head_index is not None:  # every layer as a hair layer bound to the head goes
+                passes["head-bound"] = deformer.head_bound(mesh.skinning, points, d.canonical, d.distance)
             if model.deformation is not None:
                 passes["knn+F_e"] = d.canonical + model.deformation(d.canonical, d.posed_ref, model.time_code(int(f)))
                 passes["knn+F_e (no time)"] = d.canonical + model.deformation(d.canonical, d.posed_ref)
@@ -172,6 +175,7 @@ def main(argv=None) -> None:
         metavar="CELL",
         help="also rows of a weight field diffused from one vertex per CELL m (0: none)",
     )
+    ap.add_argument("--head-bound", action="store_true", help="also rows of the carriage bound to the head")
     ap.add_argument("--csv", required=True)
     ap.add_argument("--append", action="store_true")
     ap.add_argument("--threads", type=int, default=2)
@@ -190,6 +194,9 @@ def main(argv=None) -> None:
                                  f"{model.body.num_vertices}: not the same body model")  # fmt: skip
             split = np.asarray(data.split)
             held = {name: np.flatnonzero(split == SPLITS[name])[:: max(1, a.every // 2)] for name in a.held_out}
+            if a.head_bound:  # the frames carry the head's vertices: rows of the carriage bound to the head
+                bound = dataclasses.replace(model.spec.render, hair_carriage="head")
+                model.spec = dataclasses.replace(model.spec, render=bound, layers=tuple(model.spec.layers) or ("hair",))
             if poses == "true":
                 put_true_poses(model, train, ids, train, truth)
                 held = {}  # the true poses are put in for the training frames only

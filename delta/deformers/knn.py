@@ -33,6 +33,13 @@ the part it is nearest to. So a canonical point is kept only if the map of its n
 carries it back to within ``ROUND_TRIP_SLACK`` + ``ROUND_TRIP_RATIO`` × (its distance to the body) of
 the posed point; the rest are empty (no NeRF query).
 
+Bound to the head (a frame prepared with ``head``): a hair layer's samples are carried by the map of their
+nearest head vertex blended into the kNN's canonical point by β = min(1, d_body / d_head), the ratio of the
+point's distances to the body and to the head (``head_bound``). Where the nearest vertex is the head's, β = 1;
+a strand hanging beside the neck as far from the jaw as from the neck goes halfway with the head; one lying
+on the shoulder goes with the shoulder. Nearest-vertex skinning carries the whole strand below the chin by
+the neck and shoulders, and tears it from the head in a turn.
+
 Contract (InstantAvatar-style, with no hidden state): ``prepare(...) -> SkinningFrame``
 once per frame, then ``deform(frame, points)``.
 """
@@ -78,6 +85,10 @@ class SkinningFrame:
     trip's test (None: off)."""
     to_posed: Optional[torch.Tensor] = None
     """(V, 3, 4) detached maps canonical -> posed space (with ``canonical_near``)."""
+    head_ids: Optional[torch.Tensor] = None
+    """(H,) int64 the head's vertices (with ``head``): what carries a layer bound to the head."""
+    head_index: Optional[PointIndex] = None
+    """kNN structure over those vertices' detached posed positions."""
 
 
 #: a neighbour is on the nearest vertex's surface when their canonical distance is at most this many
@@ -143,7 +154,8 @@ def compose(P: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
 
 def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tensor, canonical_T: torch.Tensor,
             weights: torch.Tensor, near_cell: float = 0.0, near_pad: float = 0.0,
-            contact_cell: float = 0.0, canonical_near: Optional[distance_grid.DistanceGrid] = None) -> SkinningFrame:  # fmt: skip
+            contact_cell: float = 0.0, canonical_near: Optional[distance_grid.DistanceGrid] = None,
+            head: Optional[torch.Tensor] = None) -> SkinningFrame:  # fmt: skip
     """Per-vertex maps posed -> canonical.
 
     Args:
@@ -154,6 +166,7 @@ def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tens
         contact_cell: tell surfaces in contact apart, probing one vertex per voxel of this size (0: off).
         canonical_near: the round trip's grid over the vertices' canonical positions (``canonical_grid``;
             None: no round trip). The canonical positions do not depend on the frame: build it once.
+        head: (V,) bool, the head's vertices, for a layer bound to the head (``head_bound``; None: none).
     """
     inv = affine_inverse(posed_T)
     eye = torch.eye(3, dtype=inv.dtype, device=inv.device).expand_as(inv[..., :3])
@@ -162,6 +175,11 @@ def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tens
     pts = posed.detach()
     near = distance_grid.build(pts, near_cell, near_pad, nearest=True) if near_cell > 0 else None
     frame = SkinningFrame(posed=posed, to_canonical=to_canonical, weights=weights, index=PointIndex(pts), near=near)
+    if head is not None:
+        frame.head_ids = torch.nonzero(head.to(pts.device)).squeeze(1)
+        if len(frame.head_ids) == 0:
+            raise ValueError("head: no vertex of the frame is the head's; a layer cannot be bound to it")
+        frame.head_index = PointIndex(pts[frame.head_ids])
     if canonical_near is not None:
         frame.canonical_near = canonical_near
         frame.to_posed = affine_inverse(to_canonical.detach())
@@ -330,6 +348,23 @@ def _other_surface(frame: SkinningFrame, points, nearest, nearest_dist, sigma: f
     c2, p2 = _blend(frame, points[rows], i2, alpha)
     valid = (ref_dist < max_dist) & round_trip_holds(frame, points[rows], c2, ref_dist)
     return Other(rows, c2, valid, p2, ref)
+
+
+def head_bound(frame: SkinningFrame, points: torch.Tensor, canonical: torch.Tensor,
+               distance: torch.Tensor) -> torch.Tensor:  # fmt: skip
+    """Canonical points (N, 3) of posed ``points`` (N, 3) for a layer bound to the head (the module's note):
+    the nearest head vertex's map blended into ``canonical`` (N, 3, the kNN's) by β = min(1, distance /
+    d_head), ``distance`` (N,) the points' distance to the body. Needs a frame prepared with ``head``."""
+    if frame.head_index is None:
+        raise ValueError("head_bound needs a SkinningFrame prepared with the head's vertices (head=...)")
+    if len(points) == 0:
+        return canonical
+    d_head, j = frame.head_index.query(points, 1)
+    M = frame.to_canonical[frame.head_ids[j[:, 0]]]
+    by_head = (M[..., :3] @ points[..., None]).squeeze(-1) + M[..., 3]
+    d_head = d_head[:, 0].to(points.dtype)
+    beta = (distance.detach() / d_head.clamp_min(torch.finfo(points.dtype).tiny)).clamp(0.0, 1.0)
+    return canonical + beta[:, None] * (by_head - canonical)
 
 
 @torch.no_grad()

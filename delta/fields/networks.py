@@ -169,11 +169,15 @@ class LayeredNeRF(nn.Module):
         """(N, 3) -> rgb (N, 3), sigma (N,) of the layers together."""
         return self.with_layers(x)[:2]
 
-    def with_layers(self, x: torch.Tensor, carriers: torch.Tensor | None = None) -> tuple[torch.Tensor, ...]:
+    def with_layers(self, x: torch.Tensor, carriers: torch.Tensor | None = None,
+                    at: dict[str, torch.Tensor] | None = None) -> tuple[torch.Tensor, ...]:  # fmt: skip
         """(N, 3) -> rgb (N, 3), sigma (N,) together, and each layer's sigma (N, L) in ``names`` order.
         ``carriers`` (N,): the body vertex that carries each point (backward skinning's nearest); a layer
-        has no density at points carried by its ``barred_carriers`` (a clothing layer by the head)."""
-        outs = [self.layers[n](x) for n in self.names]
+        has no density at points carried by its ``barred_carriers`` (a clothing layer by the head).
+        ``at``: a layer's own canonical points (N, 3) of the same samples where another carriage takes it
+        there (a hair layer bound to the head); the others read ``x``."""
+        at = at or {}
+        outs = [self.layers[n](at.get(n, x)) for n in self.names]
         if carriers is not None:  # a layer may be any field (a confined one, another avatar's)
             barred = [getattr(self.layers[n], "barred_carriers", None) for n in self.names]
             outs = [(c, s if b is None else s.masked_fill(b[carriers], 0.0)) for (c, s), b in zip(outs, barred)]

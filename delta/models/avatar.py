@@ -148,6 +148,8 @@ class HybridAvatar(nn.Module):
             part = bool((modelled & ~region).any())  # no exterior beyond the box around what is framed
             self.nerf = (LayeredNeRF(spec.nerf, nbox, tuple(spec.layers), bounded=part) if spec.layers
                          else NeRFField(spec.nerf, nbox, bounded=part))  # fmt: skip
+        if spec.render.hair_carriage not in ("nearest", "head"):
+            raise ValueError(f"render.hair_carriage: '{spec.render.hair_carriage}' (expected 'nearest' or 'head')")
         if spec.clothing_off_head and "clothing" in spec.layers and self.nerf is not None:
             # the head's vertices carry no clothing (backward skinning's nearest vertex of a point)
             self.nerf.layers["clothing"].barred_carriers = head_vertices(body).to(self.knn_ids.device)[self.knn_ids]
@@ -264,6 +266,7 @@ class HybridAvatar(nn.Module):
                 rs.max_dist + 2 * rs.probe_cell,
                 rs.contact_cell,
                 self._round_trip_grid() if rs.round_trip and cell > 0 else None,
+                self.hair_carriers,
             )
         mesh = PosedMesh(verts, self.body.faces, self.albedo(), uv, skinning, self.exterior_mirror)
         return mesh, offsets, out
@@ -281,6 +284,15 @@ class HybridAvatar(nn.Module):
             grid = deformer.canonical_grid(canonical, rs.probe_cell, rs.max_dist + 2 * rs.probe_cell)
             self._round_trip_cache = cached = (key, grid)
         return cached[1]
+
+    @property
+    def hair_carriers(self) -> Optional[torch.Tensor]:
+        """(K,) bool over the kNN's vertices: the head's, which carry a hair layer bound to the head
+        (``render.hair_carriage: head``); None where the hair is not bound (or there is no hair layer).
+        Read from the spec, so an exterior worn from another avatar carries its hair as that one did."""
+        if self.spec.render.hair_carriage != "head" or "hair" not in self.spec.layers or self.nerf is None:
+            return None
+        return head_vertices(self.body).to(self.knn_ids.device)[self.knn_ids]
 
     def time_code(self, frame: int) -> Optional[torch.Tensor]:
         """F_e's time input for a frame (zeros outside the training sequence); None without one."""

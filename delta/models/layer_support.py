@@ -143,9 +143,12 @@ def seen_points(model, frame: int, masks: dict[str, torch.Tensor] | None = None,
     found = {name: [] for name in names}
     ruled_out = {name: [] for name in names}
 
-    def canonical(posed):
+    def canonical(posed, name):
         d = deformer.deform(mesh.skinning, posed, rs.k, rs.sigma, rs.max_dist)
-        return d.canonical[d.valid]
+        c = d.canonical
+        if name == "hair" and mesh.skinning.head_index is not None:  # the hair's own carriage, as it renders
+            c = deformer.head_bound(mesh.skinning, posed, c, d.distance)
+        return c[d.valid]
 
     try:
         for s in range(0, len(pixels), chunk):
@@ -159,7 +162,7 @@ def seen_points(model, frame: int, masks: dict[str, torch.Tensor] | None = None,
             for k, name in enumerate(names):
                 seen = opaque[:, k] if given[name] is None else opaque[:, k] & given[name]
                 if bool(seen.any()):
-                    found[name].append(canonical(origins[seen] + r.layer_depths[seen, k, None] * dirs[seen]))
+                    found[name].append(canonical(origins[seen] + r.layer_depths[seen, k, None] * dirs[seen], name))
                 over = [given[o] for o in NEVER_UNDER.get(name, ()) if o in names and given[o] is not None]
                 if given[name] is None or not over:
                     continue
@@ -171,7 +174,7 @@ def seen_points(model, frame: int, masks: dict[str, torch.Tensor] | None = None,
                 t1 = torch.where(hits.hit, hits.t, front[out] + GROW * CELL) + CELL  # a cell into the body
                 steps = torch.arange(int(float((t1 - t0).max()) / (CELL / 2)) + 1, device=o.device) * (CELL / 2)
                 t = t0[:, None] + steps
-                ruled_out[name].append(canonical((o[:, None] + t[..., None] * d[:, None])[t <= t1[:, None]]))
+                ruled_out[name].append(canonical((o[:, None] + t[..., None] * d[:, None])[t <= t1[:, None]], name))
     finally:
         rs.perturb = perturb
     empty = model.background.new_zeros(0, 3)

@@ -268,22 +268,35 @@ def _query_points(mesh: PosedMesh, flat, idx, settings: RenderSettings, nerf: Ne
         x_c, ref = torch.cat([x_c, d.other.canonical]), torch.cat([ref, d.other.posed_ref])
         rows, valid = torch.cat([rows, d.other.rows]), torch.cat([valid, d.other.valid])
         carrier = torch.cat([carrier, d.other.nearest])
+    x_hair = None  # a hair layer bound to the head reads its own canonical points (the first candidates')
+    if layered and "hair" in nerf.names and mesh.skinning.head_index is not None:
+        first = deformer.head_bound(mesh.skinning, flat[idx], d.canonical, d.distance)
+        x_hair = torch.cat([first, x_c[len(first) :]])
     if mesh.mirror is not None:
         x_c = mesh.mirror(x_c)
+        x_hair = None if x_hair is None else mesh.mirror(x_hair)
     if occupied is not None:
-        valid = valid & occupied(x_c)
+        valid = valid & (occupied(x_c) if x_hair is None else occupied(x_c) | occupied(x_hair))
     keep = torch.nonzero(valid).squeeze(1)
     x_c = x_c[keep]
+    x_hair = None if x_hair is None else x_hair[keep]
     if nonrigid is not None and len(keep):
-        x_c = x_c + nonrigid(x_c, ref[keep])
+        moved = nonrigid(x_c, ref[keep])
+        x_c = x_c + moved
+        x_hair = None if x_hair is None else x_hair + moved
         if occupied is not None:  # the test above allowed for F_e's reach; the moved point meets the set itself
-            settled = torch.nonzero(occupied(x_c.detach(), settled=True)).squeeze(1)
+            inside = occupied(x_c.detach(), settled=True)
+            if x_hair is not None:
+                inside |= occupied(x_hair.detach(), settled=True)
+            settled = torch.nonzero(inside).squeeze(1)
             keep, x_c = keep[settled], x_c[settled]
+            x_hair = None if x_hair is None else x_hair[settled]
     if not len(keep):
         return none
     s_layers = None
     if layered:
-        c, s, s_layers = nerf.with_layers(x_c, carrier[keep])
+        at = () if x_hair is None else ({"hair": x_hair},)  # a layer's own points only where it has them
+        c, s, s_layers = nerf.with_layers(x_c, carrier[keep], *at)
     else:
         c, s = nerf(x_c)
     at, pick = rows[keep], slice(None)  # one candidate a point: each is its point's own

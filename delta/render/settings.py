@@ -69,6 +69,12 @@ class RenderSettings:
     (a sleeve's ghost beside the torso when the arms are crossed). Needs ``max_dist`` ≤ 1 m (a grid)."""
     knn_vertices: str = "base"
     """Backward skinning over the ``base`` mesh's vertices (before upsampling; 4× fewer) or ``all``."""
+    hair_carriage: str = "nearest"
+    """What carries a hair layer's samples to the canonical space: ``nearest``, the body vertices nearest
+    each (as every layer), or ``head``: bound to the head, by the nearest head vertex's map blended into
+    the nearest vertices' by the ratio of the distances to the body and to the head (a strand beside the
+    neck halfway, one lying on the shoulder by the shoulder; ``deformers/knn.py``). Exports still pose the
+    exterior's mesh by the nearest vertices."""
     perturb: bool = True
     early_cull: bool = True
     """Before the kNN query, drop samples that the distance grid puts beyond ``max_dist`` of the body

@@ -123,3 +123,44 @@ def test_an_unknown_clothing_on_head_setting_is_named():
 
     with pytest.raises(DeltaError, match="training.clothing_on_head: 'maybe'"):
         resolve("fast", {"clothing_on_head": "maybe"})
+
+
+@pytest.mark.slow
+def test_a_hair_layer_bound_to_the_head_reads_the_head_bound_points(tiny_training):
+    from delta.render.hybrid import _query_points
+
+    st, data, body, init = _loose_in_layers(tiny_training, "yes")
+    bound = dataclasses.replace(st, avatar=dataclasses.replace(
+        st.avatar, render=dataclasses.replace(st.avatar.render, hair_carriage="head", early_cull=False)))  # fmt: skip
+    model = build_avatar(body, bound, init, data, 1, "cpu")
+    plain = build_avatar(body, st, init, data, 1, "cpu")
+    assert model.hair_carriers is not None and plain.hair_carriers is None
+    f = int(data.train[0])
+    with torch.no_grad():
+        model.poses[f, body.joint_names.index("head"), 1] += 0.6  # the head turned
+        mesh = model.posed_mesh(f)[0]
+    assert mesh.skinning.head_index is not None and plain.posed_mesh(f)[0].skinning.head_index is None
+    v, head = mesh.vertices, head_vertices(body)
+    # points beside the neck, from the jaw down to the shoulder, 3 cm out to the side
+    side = v[head][:, 0].argmax()
+    top = v[head][side]
+    points = top + torch.stack([torch.tensor([0.03, -0.03 * k, 0.0]) for k in range(6)])
+    rs = model.spec.render
+    with torch.no_grad():
+        at, s, _, layers, _ = _query_points(mesh, points, torch.arange(6), rs, model.nerf, None, None)
+        d = deformer.deform(mesh.skinning, points[at], rs.k, rs.sigma, rs.max_dist)
+        hair_at = deformer.head_bound(mesh.skinning, points[at], d.canonical, d.distance)
+    assert len(at) >= 4
+    torch.testing.assert_close(layers[:, 0], model.nerf.layers["clothing"](d.canonical)[1])
+    torch.testing.assert_close(layers[:, 1], model.nerf.layers["hair"](hair_at)[1])
+    torch.testing.assert_close(s, layers.sum(-1))
+    assert float((hair_at - d.canonical).norm(dim=-1).max()) > 0.005  # somewhere the head carries it apart
+
+
+@pytest.mark.slow
+def test_an_unknown_hair_carriage_is_named(tiny_training):
+    st, data, body, init = _loose_in_layers(tiny_training, "yes")
+    odd = dataclasses.replace(st, avatar=dataclasses.replace(
+        st.avatar, render=dataclasses.replace(st.avatar.render, hair_carriage="scalp")))  # fmt: skip
+    with pytest.raises(ValueError, match="render.hair_carriage: 'scalp'"):
+        build_avatar(body, odd, init, data, 1, "cpu")
