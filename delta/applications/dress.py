@@ -96,21 +96,24 @@ def put_on(body: HybridAvatar, wearer: HybridAvatar, layers: Sequence[str] = ())
             log.warning("the body avatar's exterior is one NeRF: it is taken off, the wearer's %s put on alone",
                         ", ".join(layers))  # fmt: skip
         if kept:
-            _wear_mixed(body, wearer, LayeredNeRF.of(kept | given))
+            _wear_mixed(body, wearer, LayeredNeRF.of(kept | given), "hair" in given)
             return
     _wear(body, wearer, LayeredNeRF.of(given) if layers else wearer.nerf.to(dev))
 
 
-def _wear_mixed(body: HybridAvatar, wearer: HybridAvatar, nerf: LayeredNeRF) -> None:
+def _wear_mixed(body: HybridAvatar, wearer: HybridAvatar, nerf: LayeredNeRF, their_hair: bool) -> None:
     """``body`` with layers of two avatars: no F_e, no occupancy grid, no mirror where no frame looked (each
-    avatar's reads its own exterior), the larger room of the two."""
+    avatar's reads its own exterior), the larger room of the two; the hair carried as its avatar carried it
+    (``their_hair``: the wearer's)."""
     b, w = body.spec, wearer.spec
+    carriage = (w if their_hair else b).render.hair_carriage
     body.exterior_mirror = None
     room = max(b.render.max_dist, w.render.max_dist)
     samples = max(b.render.samples, w.render.samples)
     body.nerf, body.deformation, body.occupancy = nerf, None, None
     body.spec = dataclasses.replace(b, deformation=None, nerf_margin=max(b.nerf_margin, w.nerf_margin), layers=nerf.names,
-                                    render=dataclasses.replace(b.render, max_dist=room, samples=samples))  # fmt: skip
+                                    render=dataclasses.replace(b.render, max_dist=room, samples=samples,
+                                                               hair_carriage=carriage))  # fmt: skip
     body.frame_time.fill_(float("nan"))
 
 

@@ -54,6 +54,28 @@ def test_the_wearers_mirror_where_no_frame_looked_comes_with_its_whole_exterior_
     assert body.model.exterior_mirror is None
 
 
+def test_worn_hair_is_carried_as_its_own_avatar_carried_it(tiny_trained):
+    import dataclasses
+
+    def bound(avatar):
+        spec = avatar.model.spec
+        avatar.model.spec = dataclasses.replace(spec, render=dataclasses.replace(spec.render, hair_carriage="head"))
+
+    for given, expected in ((["hair"], "head"), (["clothing"], "nearest")):
+        body, wearer = load(tiny_trained["tight"]), load(tiny_trained["loose"])
+        layered(body.model, (0.1, 0.2, 0.9), (0.9, 0.9, 0.1))
+        layered(wearer.model, (0.9, 0.1, 0.1), (0.1, 0.8, 0.2))
+        bound(wearer)  # the wearer's hair bound to its head, the body's carried by its nearest vertices
+        put_on(body.model, wearer.model, given)
+        assert body.model.spec.render.hair_carriage == expected
+        assert (body.model.hair_carriers is not None) == (expected == "head")
+    body, wearer = load(tiny_trained["tight"]), load(tiny_trained["loose"])
+    layered(wearer.model, (0.9, 0.1, 0.1), (0.1, 0.8, 0.2))
+    bound(wearer)
+    put_on(body.model, wearer.model)  # the whole exterior: the wearer's settings with it
+    assert body.model.spec.render.hair_carriage == "head" and body.model.hair_carriers is not None
+
+
 def inflated_silhouette(model, frame: int, betas: torch.Tensor, view: View) -> np.ndarray:
     """The body of shape ``betas`` in ``frame``'s pose, inflated by SHELL along its normals, projected into ``view``."""
     out = lbs(model.body, betas[None], model.poses[frame : frame + 1], transl=model.transl[frame : frame + 1])
