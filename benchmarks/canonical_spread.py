@@ -116,9 +116,10 @@ def canonical_points(model, frames, meshes: h5py.File, frame_ids, layers,
     return {k: np.stack(v) for k, v in out.items()}
 
 
-def truth_points(config: list[str], subject: str, body: str, truth: Path, frames, layers) -> dict:
-    """(``truth``, layer) -> (F, V, 3): the generator's canonical vertices of each layer plus their non-rigid
-    offsets in ``frames`` (capture frame numbers), rebuilt from the subject's spec and true shape."""
+def truth_points(config: list[str], subject: str, body: str, truth: Path, splits: dict, layers) -> dict:
+    """split -> (``truth``, layer) -> (F, V, 3): the generator's canonical vertices of each layer plus their
+    non-rigid offsets in each split's frames (``splits``: name -> capture frame numbers), rebuilt once from the
+    subject's spec and true shape."""
     raw = load_config(config, device=False)["datasets"]["synthetic"]["subjects"].get(subject)
     if raw is None:
         raise SystemExit(f"{subject}: not a synthetic subject of {' '.join(config)}")
@@ -131,13 +132,14 @@ def truth_points(config: list[str], subject: str, body: str, truth: Path, frames
     built = {l.name: l for l in build_layers(model, rest.vertices[0].numpy(), rest.joints[0].numpy(), spec.garments,
                                              spec.hair)}  # fmt: skip
     _, rates, _, times = scene_motion(spec, model.joint_names, model.expression_names)
-    out = {}
-    for name in layers:
+    normals = {n: trimesh.Trimesh(built[n].vertices, built[n].faces, process=False).vertex_normals for n in layers}
+
+    def moved(name: str, frames) -> np.ndarray:
         layer = built[name]
-        normals = trimesh.Trimesh(layer.vertices, layer.faces, process=False).vertex_normals
-        moved = [layer.vertices + nonrigid_offsets(layer, normals, times[f], rates[f], spec.sway) for f in frames]
-        out[("truth", name)] = np.stack(moved)
-    return out
+        return np.stack([layer.vertices + nonrigid_offsets(layer, normals[name], times[f], rates[f], spec.sway)
+                         for f in frames])  # fmt: skip
+
+    return {split: {("truth", n): moved(n, frames) for n in layers} for split, frames in splits.items()}
 
 
 def spread_rows(points: np.ndarray, reference: np.ndarray | None = None) -> list[dict]:
@@ -204,8 +206,9 @@ def main(argv=None) -> None:
             sets = {"train": canonical_points(model, frames, meshes, ids, layers, a.diffused)}
             sets |= {name: canonical_points(model, f, meshes, ids, layers, a.diffused) for name, f in held.items()}
             if a.config and poses == "fitted":
-                for name, f in {"train": frames, **held}.items():
-                    sets[name] |= truth_points(a.config, a.subject, a.body, Path(a.truth), ids[f], layers)
+                splits = {name: ids[f] for name, f in {"train": frames, **held}.items()}
+                for name, found in truth_points(a.config, a.subject, a.body, Path(a.truth), splits, layers).items():
+                    sets[name] |= found
             for name, found in sets.items():
                 for (deformation, layer), points in found.items():
                     reference = None if name == "train" else sets["train"][(deformation, layer)]

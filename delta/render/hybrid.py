@@ -268,41 +268,42 @@ def _query_points(mesh: PosedMesh, flat, idx, settings: RenderSettings, nerf: Ne
         x_c, ref = torch.cat([x_c, d.other.canonical]), torch.cat([ref, d.other.posed_ref])
         rows, valid = torch.cat([rows, d.other.rows]), torch.cat([valid, d.other.valid])
         carrier = torch.cat([carrier, d.other.nearest])
-    x_hair = None  # a hair layer bound to the head reads its own canonical points (the first candidates')
+    points = [x_c]  # and a hair layer bound to the head its own canonical points (the first candidates')
     if layered and "hair" in nerf.names and mesh.skinning.head_index is not None:
-        first = deformer.head_bound(mesh.skinning, flat[idx], d.canonical, d.distance)
-        x_hair = torch.cat([first, x_c[len(first) :]])
+        points.append(torch.cat([deformer.head_bound(mesh.skinning, flat[idx], d.canonical, d.distance),
+                                 x_c[len(idx) :]]))  # fmt: skip
     if mesh.mirror is not None:
-        x_c = mesh.mirror(x_c)
-        x_hair = None if x_hair is None else mesh.mirror(x_hair)
-    if occupied is not None:
-        valid = valid & (occupied(x_c) if x_hair is None else occupied(x_c) | occupied(x_hair))
+        points = [mesh.mirror(p) for p in points]
+    if occupied is not None:  # a sample stays where any layer's point may have density
+        valid = valid & _any_occupied(occupied, points)
     keep = torch.nonzero(valid).squeeze(1)
-    x_c = x_c[keep]
-    x_hair = None if x_hair is None else x_hair[keep]
+    points = [p[keep] for p in points]
     if nonrigid is not None and len(keep):
-        moved = nonrigid(x_c, ref[keep])
-        x_c = x_c + moved
-        x_hair = None if x_hair is None else x_hair + moved
+        moved = nonrigid(points[0], ref[keep])
+        points = [p + moved for p in points]
         if occupied is not None:  # the test above allowed for F_e's reach; the moved point meets the set itself
-            inside = occupied(x_c.detach(), settled=True)
-            if x_hair is not None:
-                inside |= occupied(x_hair.detach(), settled=True)
-            settled = torch.nonzero(inside).squeeze(1)
-            keep, x_c = keep[settled], x_c[settled]
-            x_hair = None if x_hair is None else x_hair[settled]
+            settled = torch.nonzero(_any_occupied(occupied, [p.detach() for p in points], settled=True)).squeeze(1)
+            keep, points = keep[settled], [p[settled] for p in points]
     if not len(keep):
         return none
     s_layers = None
     if layered:
-        at = () if x_hair is None else ({"hair": x_hair},)  # a layer's own points only where it has them
-        c, s, s_layers = nerf.with_layers(x_c, carrier[keep], *at)
+        own = ({"hair": points[1]},) if len(points) > 1 else ()  # a layer's own points only where it has them
+        c, s, s_layers = nerf.with_layers(points[0], carrier[keep], *own)
     else:
-        c, s = nerf(x_c)
+        c, s = nerf(points[0])
     at, pick = rows[keep], slice(None)  # one candidate a point: each is its point's own
     if d.other is not None:
         at, pick = denser(at, s)
     return idx[at], s[pick], c[pick], None if s_layers is None else s_layers[pick], d.distance[at].detach()
+
+
+def _any_occupied(occupied, points: list[torch.Tensor], **kw) -> torch.Tensor:
+    """(N,) bool: any of the candidate canonical points (each (N, 3)) of the same samples is occupied."""
+    inside = occupied(points[0], **kw)
+    for p in points[1:]:
+        inside = inside | occupied(p, **kw)
+    return inside
 
 
 def denser(rows: torch.Tensor, sigma: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
