@@ -9,6 +9,9 @@ import torch
 
 from delta.body.model import BodyModel
 
+#: The joints at the tops of the arms (the shoulders) in Anny and SMPL-X.
+SHOULDER_JOINTS = ("upperarm01.L", "upperarm01.R", "left_shoulder", "right_shoulder")
+
 #: Joints that start the lower body (with all their descendants): hips/thighs in Anny and SMPL-X.
 LOWER_BODY_ROOTS = ("upperleg01", "left_hip", "right_hip")
 
@@ -37,3 +40,15 @@ def head_vertices(body: BodyModel) -> torch.Tensor:
     tongue), not the neck; none for a body model without a ``head`` joint."""
     head = body.subtree("head").to(body.weights.device)
     return body.weights[:, head].sum(1) > 0.5
+
+
+def hair_span(body: BodyModel, joints: torch.Tensor) -> tuple[float, float] | None:
+    """(low, high): the heights (y) of the shoulders' joints (their mean) and of the head's joint among
+    ``joints`` (J, 3), the body's canonical joints: long hair hangs from the head above ``high`` and comes
+    to rest on the trunk at ``low``. None for a body model without a ``head`` joint or shoulders."""
+    names = body.joint_names
+    shoulders = [names.index(n) for n in SHOULDER_JOINTS if n in names]
+    if "head" not in names or not shoulders:
+        return None
+    low, high = float(joints[shoulders, 1].mean()), float(joints[names.index("head"), 1])
+    return (low, high) if high > low else None

@@ -38,7 +38,9 @@ nearest head vertex blended into the kNN's canonical point by β = min(1, d_body
 point's distances to the body and to the head (``head_bound``). Where the nearest vertex is the head's, β = 1;
 a strand hanging beside the neck as far from the jaw as from the neck goes halfway with the head; one lying
 on the shoulder goes with the shoulder. Nearest-vertex skinning carries the whole strand below the chin by
-the neck and shoulders, and tears it from the head in a turn.
+the neck and shoulders, and tears it from the head in a turn. A frame prepared with a ``head_span`` (low, high)
+blends by the canonical height of the kNN point instead: the body's below ``low`` (the shoulders), the head's
+above ``high`` (its joint), linear between, whatever the distances.
 
 Contract (InstantAvatar-style, with no hidden state): ``prepare(...) -> SkinningFrame``
 once per frame, then ``deform(frame, points)``.
@@ -89,6 +91,9 @@ class SkinningFrame:
     """(H,) int64 the head's vertices (with ``head``): what carries a layer bound to the head."""
     head_index: Optional[PointIndex] = None
     """kNN structure over those vertices' detached posed positions."""
+    head_span: Optional[tuple[float, float]] = None
+    """(low, high) canonical heights: a bound layer's share of the head rises with the canonical height of
+    its kNN point from 0 at ``low`` to 1 at ``high`` (``head_bound``); None: by the distances."""
 
 
 #: a neighbour is on the nearest vertex's surface when their canonical distance is at most this many
@@ -155,7 +160,7 @@ def compose(P: torch.Tensor, Q: torch.Tensor) -> torch.Tensor:
 def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tensor, canonical_T: torch.Tensor,
             weights: torch.Tensor, near_cell: float = 0.0, near_pad: float = 0.0,
             contact_cell: float = 0.0, canonical_near: Optional[distance_grid.DistanceGrid] = None,
-            head: Optional[torch.Tensor] = None) -> SkinningFrame:  # fmt: skip
+            head: Optional[torch.Tensor] = None, head_span: Optional[tuple[float, float]] = None) -> SkinningFrame:  # fmt: skip
     """Per-vertex maps posed -> canonical.
 
     Args:
@@ -167,6 +172,8 @@ def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tens
         canonical_near: the round trip's grid over the vertices' canonical positions (``canonical_grid``;
             None: no round trip). The canonical positions do not depend on the frame: build it once.
         head: (V,) bool, the head's vertices, for a layer bound to the head (``head_bound``; None: none).
+        head_span: (low, high) canonical heights over which that layer passes from the body to the head
+            (``head_bound``; None: by its distances to the body and to the head).
     """
     inv = affine_inverse(posed_T)
     eye = torch.eye(3, dtype=inv.dtype, device=inv.device).expand_as(inv[..., :3])
@@ -180,6 +187,7 @@ def prepare(posed: torch.Tensor, posed_T: torch.Tensor, displacement: torch.Tens
         if len(frame.head_ids) == 0:
             raise ValueError("head: no vertex of the frame is the head's; a layer cannot be bound to it")
         frame.head_index = PointIndex(pts[frame.head_ids])
+        frame.head_span = head_span
     if canonical_near is not None:
         frame.canonical_near = canonical_near
         frame.to_posed = affine_inverse(to_canonical.detach())
@@ -354,7 +362,9 @@ def head_bound(frame: SkinningFrame, points: torch.Tensor, canonical: torch.Tens
                distance: torch.Tensor) -> torch.Tensor:  # fmt: skip
     """Canonical points (N, 3) of posed ``points`` (N, 3) for a layer bound to the head (the module's note):
     the nearest head vertex's map blended into ``canonical`` (N, 3, the kNN's) by β = min(1, distance /
-    d_head), ``distance`` (N,) the points' distance to the body. Needs a frame prepared with ``head``."""
+    d_head), ``distance`` (N,) the points' distance to the body, or, in a frame with a ``head_span`` (low,
+    high), by the canonical height y of ``canonical``: β = clamp((y − low) / (high − low), 0, 1). Needs a frame
+    prepared with ``head``."""
     if frame.head_index is None:
         raise ValueError("head_bound needs a SkinningFrame prepared with the head's vertices (head=...)")
     if len(points) == 0:
@@ -362,8 +372,12 @@ def head_bound(frame: SkinningFrame, points: torch.Tensor, canonical: torch.Tens
     d_head, j = frame.head_index.query(points, 1)
     M = frame.to_canonical[frame.head_ids[j[:, 0]]]
     by_head = (M[..., :3] @ points[..., None]).squeeze(-1) + M[..., 3]
-    d_head = d_head[:, 0].to(points.dtype)
-    beta = (distance.detach() / d_head.clamp_min(torch.finfo(points.dtype).tiny)).clamp(0.0, 1.0)
+    if frame.head_span is not None:
+        low, high = frame.head_span
+        beta = ((canonical[:, 1].detach() - low) / (high - low)).clamp(0.0, 1.0)
+    else:
+        d_head = d_head[:, 0].to(points.dtype)
+        beta = (distance.detach() / d_head.clamp_min(torch.finfo(points.dtype).tiny)).clamp(0.0, 1.0)
     return canonical + beta[:, None] * (by_head - canonical)
 
 

@@ -16,7 +16,7 @@ from torch import nn
 
 from delta.body.lbs import batch_rodrigues, lbs, posed_joints
 from delta.body.model import REGION, BodyModel
-from delta.body.parts import head_vertices, lower_body_vertices
+from delta.body.parts import hair_span, head_vertices, lower_body_vertices
 from delta.cameras.models import OrthographicCamera, PinholeCamera
 from delta.deformers import knn as deformer
 from delta.fields.networks import DeformationField, LayeredNeRF, NeRFField, VertexField, colour_logit, time_features
@@ -26,6 +26,9 @@ from delta.render.hybrid import PosedMesh, RayRender, render_rays, room_margin
 from delta.models.trajectory import Trajectory
 from delta.models.spec import AvatarSpec
 from delta.render.occupancy import OccupancyGrid
+
+#: What carries a hair layer's samples to the canonical space (``render.hair_carriage``).
+HAIR_CARRIAGES = ("nearest", "head", "height")
 
 
 @dataclasses.dataclass
@@ -148,8 +151,14 @@ class HybridAvatar(nn.Module):
             part = bool((modelled & ~region).any())  # no exterior beyond the box around what is framed
             self.nerf = (LayeredNeRF(spec.nerf, nbox, tuple(spec.layers), bounded=part) if spec.layers
                          else NeRFField(spec.nerf, nbox, bounded=part))  # fmt: skip
-        if spec.render.hair_carriage not in ("nearest", "head"):
-            raise ValueError(f"render.hair_carriage: '{spec.render.hair_carriage}' (expected 'nearest' or 'head')")
+        if spec.render.hair_carriage not in HAIR_CARRIAGES:
+            raise ValueError(f"render.hair_carriage: '{spec.render.hair_carriage}' (expected one of "
+                             f"{', '.join(HAIR_CARRIAGES)})")  # fmt: skip
+        # (J, 3) the joints in the canonical space (derived from the body, not saved)
+        self.register_buffer("canonical_joints", cano.joints[0].clone(), persistent=False)
+        if spec.render.hair_carriage == "height" and hair_span(body, cano.joints[0]) is None:
+            raise ValueError(f"render.hair_carriage: 'height' needs a head joint and shoulders; the body "
+                             f"model '{body.name}' has not both")  # fmt: skip
         if spec.clothing_off_head and "clothing" in spec.layers and self.nerf is not None:
             # the head's vertices carry no clothing (backward skinning's nearest vertex of a point)
             self.nerf.layers["clothing"].barred_carriers = head_vertices(body).to(self.knn_ids.device)[self.knn_ids]
@@ -267,6 +276,7 @@ class HybridAvatar(nn.Module):
                 rs.contact_cell,
                 self._round_trip_grid() if rs.round_trip and cell > 0 else None,
                 self.hair_carriers,
+                self.hair_span,
             )
         mesh = PosedMesh(verts, self.body.faces, self.albedo(), uv, skinning, self.exterior_mirror)
         return mesh, offsets, out
@@ -288,11 +298,21 @@ class HybridAvatar(nn.Module):
     @property
     def hair_carriers(self) -> Optional[torch.Tensor]:
         """(K,) bool over the kNN's vertices: the head's, which carry a hair layer bound to the head
-        (``render.hair_carriage: head``); None where the hair is not bound (or there is no hair layer).
+        (``render.hair_carriage``: ``head`` or ``height``); None where the hair is not bound (or there is no
+        hair layer).
         Read from the spec, so an exterior worn from another avatar carries its hair as that one did."""
-        if self.spec.render.hair_carriage != "head" or "hair" not in self.spec.layers or self.nerf is None:
+        if self.spec.render.hair_carriage == "nearest" or "hair" not in self.spec.layers or self.nerf is None:
             return None
         return head_vertices(self.body).to(self.knn_ids.device)[self.knn_ids]
+
+    @property
+    def hair_span(self) -> Optional[tuple[float, float]]:
+        """(low, high): the canonical heights of the shoulders and the head's joint, over which a hair layer
+        carried by height (``render.hair_carriage: height``) passes from the body's carriage to the head's;
+        None for another carriage (or no hair layer). Read from the spec, as :attr:`hair_carriers` is."""
+        if self.spec.render.hair_carriage != "height" or self.hair_carriers is None:
+            return None
+        return hair_span(self.body, self.canonical_joints)
 
     def time_code(self, frame: int) -> Optional[torch.Tensor]:
         """F_e's time input for a frame (zeros outside the training sequence); None without one."""

@@ -75,8 +75,10 @@ class RenderSettings:
     the nearest vertices' by the ratio of the distances to the body and to the head (a strand beside the
     neck halfway, one lying on the shoulder by the shoulder; ``deformers/knn.py``). On the long-haired talker
     and on loose the hair region gains 0.4–1.3 dB with it and the whole image loses 0.06–0.23 dB on held-out
-    poses: strands that rest on a shoulder turn with the head (docs/method.md). Exports still pose the
-    exterior's mesh by the nearest vertices."""
+    poses: strands that rest on a shoulder turn with the head (docs/method.md). ``height``: the same blend
+    by the canonical height of the sample's kNN point instead, the body's below the shoulders' joints, the
+    head's above the head's joint, linear between (hair hangs from the head and comes to rest on the
+    trunk). Exports still pose the exterior's mesh by the nearest vertices."""
     perturb: bool = True
     early_cull: bool = True
     """Before the kNN query, drop samples that the distance grid puts beyond ``max_dist`` of the body

@@ -12,19 +12,20 @@ from delta.fields.spec import FieldSpec
 D = torch.float64
 
 
-def translations_frame(posed: torch.Tensor, shifts: torch.Tensor, weights: torch.Tensor, head: torch.Tensor):
+def translations_frame(posed: torch.Tensor, shifts: torch.Tensor, weights: torch.Tensor, head: torch.Tensor,
+                       span=None):  # fmt: skip
     """A frame whose vertex i maps posed space to canonical space by the translation ``shifts[i]`` (posed
     transforms the identity, canonical transforms translations, no displacement)."""
     V = len(posed)
     eye = torch.eye(3, dtype=D).expand(V, 3, 3)
     identity = torch.cat([eye, torch.zeros(V, 3, 1, dtype=D)], -1)
     canonical_T = torch.cat([eye, shifts[..., None]], -1)
-    return prepare(posed, identity, torch.zeros(V, 3, dtype=D), canonical_T, weights, head=head)
+    return prepare(posed, identity, torch.zeros(V, 3, dtype=D), canonical_T, weights, head=head, head_span=span)
 
 
-def two_parts():
+def two_parts(span=None):
     """A 'head' of vertices around (0, 1, 0) moved by (0, 0, 1) and a 'shoulder' around the origin moved by
-    (1, 0, 0); the two carry different skinning weights."""
+    (1, 0, 0); the two carry different skinning weights (``span``: the frame's head span)."""
     gen = torch.Generator().manual_seed(0)
     head = torch.tensor([0.0, 1.0, 0.0], dtype=D) + 0.01 * torch.randn(8, 3, generator=gen, dtype=D)
     shoulder = 0.01 * torch.randn(8, 3, generator=gen, dtype=D)
@@ -36,7 +37,7 @@ def two_parts():
         [torch.tensor([[1.0, 0.0]], dtype=D).expand(8, 2), torch.tensor([[0.0, 1.0]], dtype=D).expand(8, 2)]
     )
     is_head = torch.cat([torch.ones(8, dtype=torch.bool), torch.zeros(8, dtype=torch.bool)])
-    return translations_frame(posed, shifts, weights, is_head)
+    return translations_frame(posed, shifts, weights, is_head, span)
 
 
 def test_a_point_nearest_the_head_goes_with_the_head():
@@ -64,6 +65,24 @@ def test_between_head_and_shoulder_the_share_is_the_ratio_of_the_distances():
     d = deform(frame, on, k=6, sigma=0.1, max_dist=10.0)
     shoulder = on + torch.tensor([1.0, 0.0, 0.0], dtype=D)
     assert float((head_bound(frame, on, d.canonical, d.distance) - shoulder).norm()) < 0.1
+
+
+def test_by_height_the_share_rises_from_the_shoulders_to_the_head():
+    frame = two_parts(span=(0.2, 0.6))
+    # beside the shoulder (its kNN point the shoulder's: canonical height = y) at heights 0, 0.2, 0.3, 0.4
+    # (below the span, at its foot, a quarter and half way up) and one beside the head (above the span)
+    x = torch.tensor([[0.6, 0.0, 0.0], [0.6, 0.2, 0.0], [0.6, 0.3, 0.0], [0.6, 0.4, 0.0], [0.05, 1.1, 0.0]], dtype=D)
+    d = deform(frame, x, k=6, sigma=0.1, max_dist=10.0)
+    torch.testing.assert_close(d.canonical[:4], x[:4] + torch.tensor([1.0, 0.0, 0.0], dtype=D))
+    beta = torch.tensor([0.0, 0.0, 0.25, 0.5, 1.0], dtype=D)[:, None]
+    by_head = x + torch.tensor([0.0, 0.0, 1.0], dtype=D)
+    expected = d.canonical + beta * (by_head - d.canonical)
+    torch.testing.assert_close(head_bound(frame, x, d.canonical, d.distance), expected)
+    # the distances play no part: the same heights farther out give the same shares
+    far = x[:4] + torch.tensor([0.3, 0.0, 0.0], dtype=D)
+    d = deform(frame, far, k=6, sigma=0.1, max_dist=10.0)
+    # (the head's map moves a point by 1 along z, the shoulder's by none: the z moved is the head's share)
+    torch.testing.assert_close((head_bound(frame, far, d.canonical, d.distance) - d.canonical)[:, 2], beta[:4, 0])
 
 
 def test_continuous_where_the_nearest_vertex_changes_part():

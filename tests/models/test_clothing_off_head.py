@@ -126,20 +126,28 @@ def test_an_unknown_clothing_on_head_setting_is_named():
 
 
 @pytest.mark.slow
-def test_a_hair_layer_bound_to_the_head_reads_the_head_bound_points(tiny_training):
+@pytest.mark.parametrize("carriage", ["head", "height"])
+def test_a_hair_layer_bound_to_the_head_reads_the_head_bound_points(tiny_training, carriage):
     from delta.render.hybrid import _query_points
 
     st, data, body, init = _loose_in_layers(tiny_training, "yes")
     bound = dataclasses.replace(st, avatar=dataclasses.replace(
-        st.avatar, render=dataclasses.replace(st.avatar.render, hair_carriage="head", early_cull=False)))  # fmt: skip
+        st.avatar, render=dataclasses.replace(st.avatar.render, hair_carriage=carriage, early_cull=False)))  # fmt: skip
     model = build_avatar(body, bound, init, data, 1, "cpu")
     plain = build_avatar(body, st, init, data, 1, "cpu")
     assert model.hair_carriers is not None and plain.hair_carriers is None
+    if carriage == "height":  # from the shoulders' joints up to the head's, in the canonical space
+        names, J = body.joint_names, model.canonical_joints
+        low = float(J[[names.index("upperarm01.L"), names.index("upperarm01.R")], 1].mean())
+        assert model.hair_span == pytest.approx((low, float(J[names.index("head"), 1])))
+    else:
+        assert model.hair_span is None
     f = int(data.train[0])
     with torch.no_grad():
         model.poses[f, body.joint_names.index("head"), 1] += 0.6  # the head turned
         mesh = model.posed_mesh(f)[0]
     assert mesh.skinning.head_index is not None and plain.posed_mesh(f)[0].skinning.head_index is None
+    assert mesh.skinning.head_span == model.hair_span
     v, head = mesh.vertices, head_vertices(body)
     # points beside the neck, from the jaw down to the shoulder, 3 cm out to the side
     side = v[head][:, 0].argmax()
