@@ -158,7 +158,7 @@ class HybridAvatar(nn.Module):
         self.register_buffer("canonical_joints", cano.joints[0].clone(), persistent=False)
         if spec.render.hair_carriage == "height" and hair_span(body, cano.joints[0]) is None:
             raise ValueError(f"render.hair_carriage: 'height' needs a head joint and shoulders; the body "
-                             f"model '{body.name}' has not both")  # fmt: skip
+                             f"model '{body.name}' lacks one of them")  # fmt: skip
         if spec.clothing_off_head and "clothing" in spec.layers and self.nerf is not None:
             # the head's vertices carry no clothing (backward skinning's nearest vertex of a point)
             self.nerf.layers["clothing"].barred_carriers = head_vertices(body).to(self.knn_ids.device)[self.knn_ids]
