@@ -78,7 +78,8 @@ class RenderSettings:
     poses: strands that rest on a shoulder turn with the head (docs/method.md). ``height``: the same blend
     by the canonical height of the sample's kNN point instead, the body's below the shoulders' joints, the
     head's above the head's joint, linear between (hair hangs from the head and comes to rest on the
-    trunk). Exports still pose the exterior's mesh by the nearest vertices."""
+    trunk; on loose the hair between the other two, the whole image as with the distances). Exports still pose
+    the exterior's mesh by the nearest vertices."""
     perturb: bool = True
     early_cull: bool = True
     """Before the kNN query, drop samples that the distance grid puts beyond ``max_dist`` of the body
