@@ -154,14 +154,17 @@ class HybridAvatar(nn.Module):
         if spec.render.hair_carriage not in HAIR_CARRIAGES:
             raise ValueError(f"render.hair_carriage: '{spec.render.hair_carriage}' (expected one of "
                              f"{', '.join(HAIR_CARRIAGES)})")  # fmt: skip
-        # (J, 3) the joints in the canonical space (derived from the body, not saved)
-        self.register_buffer("canonical_joints", cano.joints[0].clone(), persistent=False)
-        if spec.render.hair_carriage == "height" and hair_span(body, cano.joints[0]) is None:
+        # (K,) bool over the kNN's vertices: the head's (derived from the body, not saved)
+        self.register_buffer("head_carriers", head_vertices(body).to(self.knn_ids.device)[self.knn_ids],
+                             persistent=False)  # fmt: skip
+        # (low, high) canonical heights of the shoulders' and the head's joints (None: the body has not both)
+        self._head_span = hair_span(body, cano.joints[0])
+        if spec.render.hair_carriage == "height" and self._head_span is None:
             raise ValueError(f"render.hair_carriage: 'height' needs a head joint and shoulders; the body "
                              f"model '{body.name}' lacks one of them")  # fmt: skip
         if spec.clothing_off_head and "clothing" in spec.layers and self.nerf is not None:
             # the head's vertices carry no clothing (backward skinning's nearest vertex of a point)
-            self.nerf.layers["clothing"].barred_carriers = head_vertices(body).to(self.knn_ids.device)[self.knn_ids]
+            self.nerf.layers["clothing"].barred_carriers = self.head_carriers
         self.deformation = None
         if spec.deformation is not None:
             self.deformation = DeformationField(spec.deformation, nbox, spec.deformation_scale,
@@ -303,7 +306,7 @@ class HybridAvatar(nn.Module):
         Read from the spec, so an exterior worn from another avatar carries its hair as that one did."""
         if self.spec.render.hair_carriage == "nearest" or "hair" not in self.spec.layers or self.nerf is None:
             return None
-        return head_vertices(self.body).to(self.knn_ids.device)[self.knn_ids]
+        return self.head_carriers
 
     @property
     def hair_span(self) -> Optional[tuple[float, float]]:
@@ -312,7 +315,7 @@ class HybridAvatar(nn.Module):
         None for another carriage (or no hair layer). Read from the spec, as :attr:`hair_carriers` is."""
         if self.spec.render.hair_carriage != "height" or self.hair_carriers is None:
             return None
-        return hair_span(self.body, self.canonical_joints)
+        return self._head_span
 
     def time_code(self, frame: int) -> Optional[torch.Tensor]:
         """F_e's time input for a frame (zeros outside the training sequence); None without one."""
