@@ -2,9 +2,14 @@
 
 ``torch.optim``'s first ``step()`` imports ``torch._dynamo`` (its compile-time hooks), about 2 s on two
 cores, paid by every ``delta`` process that optimises anything, one process per workflow job. This is
-the same algorithm with the same arithmetic, in the same order (``torch.optim.Adam`` without weight decay,
-AMSGrad or maximisation: its results are matched bit for bit in the tests), and the same ``state_dict``
-layout, so a checkpoint written by either resumes in the other.
+the same algorithm through the same fused kernel (``torch.optim.Adam(fused=True)`` without weight decay,
+AMSGrad or maximisation: its results are matched bit for bit in the tests; the unfused ``foreach`` update
+differs from it in the last bits), and the same ``state_dict`` layout, so a checkpoint written by either
+resumes in the other.
+
+The fused kernel reads a parameter, its gradient and both moments once and writes them once, where the
+``foreach`` update makes about ten passes: on a dense colour grid of 17.6 M values, 11 ms a step against
+64 ms on two cores.
 
 Parameter groups are dicts as ``torch.optim``'s: ``params`` and ``lr``, any other key (a ``name``) kept;
 a group's ``lr`` may be changed between steps. A parameter without a gradient is skipped, as there.
@@ -19,7 +24,7 @@ import torch
 ParamsOrGroups = Union[Iterable[torch.Tensor], Iterable[dict]]
 #: The rest of a ``torch.optim.Adam`` group's settings, as this update has them (its state loads there).
 TORCH_GROUP = {"weight_decay": 0.0, "amsgrad": False, "maximize": False, "foreach": None, "capturable": False,
-               "differentiable": False, "fused": None, "decoupled_weight_decay": False}  # fmt: skip
+               "differentiable": False, "fused": True, "decoupled_weight_decay": False}  # fmt: skip
 
 
 class Adam:
@@ -52,33 +57,26 @@ class Adam:
 
     @torch.no_grad()
     def step(self) -> None:
-        """One update of every parameter that has a gradient, a group's tensors at once (``torch._foreach_*``:
-        a few kernels a group rather than a few a tensor, as ``torch.optim.Adam(foreach=True)``)."""
+        """One update of every parameter that has a gradient: a group's tensors of one device and dtype in one
+        call of ``torch._fused_adam_`` (the kernel of ``torch.optim.Adam(fused=True)``)."""
         for group in self.param_groups:
             beta1, beta2 = group["betas"]
-            lr, eps = group["lr"], group["eps"]
             params = [p for p in group["params"] if p.grad is not None]
-            if not params:
-                continue
-            states = [self.state.get(p) or self._new_state(p) for p in params]
-            grads = [p.grad for p in params]
-            exp_avgs, exp_avg_sqs = [s["exp_avg"] for s in states], [s["exp_avg_sq"] for s in states]
-            steps = []
-            for s in states:
-                s["step"] += 1
-                steps.append(s["step"].item())
-            torch._foreach_lerp_(exp_avgs, grads, 1 - beta1)
-            torch._foreach_mul_(exp_avg_sqs, beta2)
-            torch._foreach_addcmul_(exp_avg_sqs, grads, grads, 1 - beta2)
-            step_size = [-(lr / (1 - beta1**t)) for t in steps]
-            denom = torch._foreach_sqrt(exp_avg_sqs)
-            torch._foreach_div_(denom, [(1 - beta2**t) ** 0.5 for t in steps])
-            torch._foreach_add_(denom, eps)
-            torch._foreach_addcdiv_(params, exp_avgs, denom, step_size)
+            batches: dict[tuple, list[torch.Tensor]] = {}
+            for p in params:
+                batches.setdefault((p.device, p.dtype), []).append(p)
+            for batch in batches.values():
+                states = [self.state.get(p) or self._new_state(p) for p in batch]
+                steps = [s["step"] for s in states]
+                torch._foreach_add_(steps, 1)
+                torch._fused_adam_(batch, [p.grad for p in batch], [s["exp_avg"] for s in states],
+                                   [s["exp_avg_sq"] for s in states], [], steps, lr=group["lr"], beta1=beta1,
+                                   beta2=beta2, weight_decay=0.0, eps=group["eps"], amsgrad=False,
+                                   maximize=False)  # fmt: skip
 
     def _new_state(self, p: torch.Tensor) -> dict:
         state = self.state[p] = {
-            "step": torch.tensor(0.0),
+            "step": torch.tensor(0.0, device=p.device),  # on the parameter's device, as the fused kernel reads it
             "exp_avg": torch.zeros_like(p, memory_format=torch.preserve_format),
             "exp_avg_sq": torch.zeros_like(p, memory_format=torch.preserve_format),
         }
@@ -114,7 +112,7 @@ class Adam:
         for key, s in state_dict["state"].items():
             p = params[int(key)]
             self.state[p] = {
-                "step": torch.as_tensor(s["step"], dtype=torch.float32).cpu().clone(),
+                "step": torch.as_tensor(s["step"], dtype=torch.float32).to(p.device).clone(),
                 "exp_avg": s["exp_avg"].to(device=p.device, dtype=p.dtype).clone(),
                 "exp_avg_sq": s["exp_avg_sq"].to(device=p.device, dtype=p.dtype).clone(),
             }
