@@ -10,6 +10,7 @@ from pathlib import Path
 
 from delta import DeltaError, settings
 from delta.fields import LAYERS
+from delta.host_memory import hold_freed_memory
 
 log = logging.getLogger("delta")
 
@@ -797,6 +798,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     args = build_parser().parse_args(argv)
     try:
+        hold_freed_memory()  # before the job's first large tensor
         args.func(args)
     except DeltaError as exc:
         print(f"delta {args.command}: error: {exc}", file=sys.stderr)

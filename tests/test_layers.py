@@ -41,7 +41,9 @@ LAYERS: tuple[tuple[str, ...], ...] = (
         "delta.loss_weights",
         "delta.optim",
         "delta.devices",
-    ),  # files, unpickling, settings, progress, loss weights, the optimiser, the host's or a GPU's paths
+        "delta.host_memory",
+    ),  # files, unpickling, settings, progress, loss weights, the optimiser, the host's or a GPU's paths, the
+    # host's allocator
     ("delta.body", "delta.cameras", "delta.geometry", "delta.fields", "delta.metrics", "delta.perceptual"),
     ("delta.data", "delta.losses", "delta.deformers"),
     ("delta.render",),
