@@ -41,6 +41,7 @@ from delta.training.trainer import _to, loss_terms, train_stage
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from table import save_table  # noqa: E402
+from delta.host_memory import hold_freed_memory  # noqa: E402
 
 
 def _terms_and_grads(model, batch, st, skin, seed):
@@ -111,6 +112,7 @@ def render_time(model, device: str, size: int, supersample: int, frame: int) -> 
 
 
 def main() -> None:
+    hold_freed_memory()  # the host allocator as every delta command has it, so the clocks are the workflow's
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--record", required=True)
     p.add_argument("--body", required=True)

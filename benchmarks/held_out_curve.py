@@ -48,9 +48,11 @@ from delta.training.trainer import train_stage
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from table import device_name, save_table  # noqa: E402
+from delta.host_memory import hold_freed_memory  # noqa: E402
 
 
 def main() -> None:
+    hold_freed_memory()  # the host allocator as every delta command has it, so the clocks are the workflow's
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--settings", required=True, help="settings.json of the finished stage 1")
     p.add_argument("--record", required=True)

@@ -53,6 +53,7 @@ from delta.training.trainer import train_stage
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from table import save_table  # noqa: E402
+from delta.host_memory import hold_freed_memory  # noqa: E402
 
 
 def train(args: argparse.Namespace) -> None:
@@ -163,6 +164,7 @@ def rebound(args: argparse.Namespace) -> None:
 
 
 def main() -> None:
+    hold_freed_memory()  # the host allocator as every delta command has it, so the clocks are the workflow's
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = p.add_subparsers(dest="cmd", required=True)
     t = sub.add_parser("train")

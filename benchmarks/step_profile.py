@@ -35,6 +35,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from table import device_name, save_table  # noqa: E402
+from delta.host_memory import hold_freed_memory  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -207,6 +208,7 @@ def fresh_model(settings: str, override: str, record: str, body: str, init: str,
 
 
 def main() -> None:
+    hold_freed_memory()  # the host allocator as every delta command has it, so the clocks are the workflow's
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", help="a stage's model.pt (or --settings and --init)")
     ap.add_argument("--settings", help="a stage 1's settings.json: profile a fresh model from it")
