@@ -1,5 +1,7 @@
 """The host allocator's setting: freed memory kept for the next step on glibc, the system's own on request."""
 
+import json
+import os
 import platform
 import subprocess
 import sys
@@ -26,9 +28,6 @@ print(json.dumps({"held": held, "during": during, "after": rss()}))
 
 
 def probe(env_value: str | None) -> dict:
-    import json
-    import os
-
     env = {k: v for k, v in os.environ.items() if k != "DELTA_HOST_MALLOC"}
     if env_value is not None:
         env["DELTA_HOST_MALLOC"] = env_value
@@ -47,8 +46,6 @@ def test_freed_memory_stays_with_the_process_and_goes_back_with_the_systems_sett
 
 
 def test_an_unknown_setting_is_named():
-    import os
-
     env = {**os.environ, "DELTA_HOST_MALLOC": "jemalloc"}
     code = "from delta.host_memory import hold_freed_memory\nhold_freed_memory()"
     res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
