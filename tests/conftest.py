@@ -18,8 +18,11 @@ import pytest
 import torch
 
 from delta.body.model import BodyModel
+from delta.host_memory import hold_freed_memory
 from tests import caches
 from tests.caches import ANNY_CACHE, MODELS_DIR, REPO, exclusive  # noqa: F401 (tests import them from here)
+
+hold_freed_memory()  # the tests' training steps take their memory as a delta command's do
 
 if os.environ.get("PYTEST_XDIST_WORKER"):
     torch.set_num_threads(1)
