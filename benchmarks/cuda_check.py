@@ -39,9 +39,10 @@ from delta.training.presets import resolve
 from delta.training.run import build_avatar, load_init, stage_frames
 from delta.training.trainer import _to, loss_terms, train_stage
 
+from delta.host_memory import hold_freed_memory
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from table import save_table  # noqa: E402
-from delta.host_memory import hold_freed_memory  # noqa: E402
 
 
 def _terms_and_grads(model, batch, st, skin, seed):

@@ -1,4 +1,5 @@
 """What the occupancy grid saves: samples evaluated, step time and PSNR at equal steps, with and without.
+from delta.host_memory import hold_freed_memory
 
 Stage 1 of the `fast` preset on one synthetic subject, run in-process twice back to back (grid off, then
 on) with the same seed, rays and steps; only ``render.occupancy.enabled`` differs. Samples per step are
@@ -19,7 +20,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import torch
-from delta.host_memory import hold_freed_memory  # noqa: E402
+
+from delta.host_memory import hold_freed_memory
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -51,9 +51,10 @@ from delta.training.presets import deep_merge, resolve
 from delta.training.run import build_avatar, load_init, pick_device, save_model, stage_frames
 from delta.training.trainer import train_stage
 
+from delta.host_memory import hold_freed_memory
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from table import save_table  # noqa: E402
-from delta.host_memory import hold_freed_memory  # noqa: E402
 
 
 def train(args: argparse.Namespace) -> None:

@@ -33,9 +33,10 @@ from pathlib import Path
 import pandas as pd
 import torch
 
+from delta.host_memory import hold_freed_memory
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from table import device_name, save_table  # noqa: E402
-from delta.host_memory import hold_freed_memory  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

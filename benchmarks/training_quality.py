@@ -26,7 +26,7 @@ import pandas as pd
 import torch
 
 from delta.io import load_state
-from delta.host_memory import hold_freed_memory  # noqa: E402
+from delta.host_memory import hold_freed_memory
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -119,7 +119,7 @@ def test_shell_term_is_the_batch_s_optical_depth_beyond_the_shell(tiny_training)
         not in loss_terms(model, batch, resolve("fast", TINY, on, {"weights": {"shell": 0}}), data.skin_color)[0]
     )
     torch.testing.assert_close(terms["shell"], r.shell_depth.mean())
-    assert 0 < float(terms["shell"]) and (r.shell_depth <= r.optical_depth + 1e-6).all()
+    assert 0 < float(terms["shell"].detach()) and (r.shell_depth <= r.optical_depth + 1e-6).all()
     model.zero_grad()
     terms["shell"].backward()
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.nerf.parameters())
@@ -128,7 +128,7 @@ def test_shell_term_is_the_batch_s_optical_depth_beyond_the_shell(tiny_training)
         other = resolve("fast", TINY, {"render": {"shell": shell}})
         model.spec = dataclasses.replace(spec, render=other.avatar.render)
         got = loss_terms(model, batch, other, data.skin_color)[0].get("shell")
-        assert got is None if charged is None else float(got) == charged
+        assert got is None if charged is None else float(got.detach()) == charged
 
 
 def test_distortion_term_is_the_batch_s_mean_spread_in_depth(tiny_training):
