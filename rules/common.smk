@@ -25,7 +25,7 @@ from delta.eval.settings import EvalSettings
 from delta.export.settings import ExportSettings
 from delta.export.settings import part_settings as _export_part_settings
 from delta.settings import from_mapping as _from_mapping
-from delta.scene.settings import FRAME_BUDGET, user_decided
+from delta.scene.settings import FRAME_BUDGET, set_keys, user_decided
 from delta.synthetic.spec import (
     dressed_raw,
     parse_subject,
@@ -467,18 +467,6 @@ def wildcard_training(wildcards):
     if "variant" in wildcards.keys():
         return variant_training(wildcards.subject, wildcards.variant)
     return subject_training(wildcards.subject)
-
-
-def set_keys(overrides, prefix=""):
-    """The dotted keys the config's overrides set (what the scene analysis leaves alone)."""
-    keys = []
-    for over in overrides:
-        for k, v in over.items():
-            if isinstance(v, dict) and v:
-                keys += set_keys([v], f"{prefix}{k}.")
-            else:
-                keys.append(f"{prefix}{k}")
-    return sorted(set(keys))
 
 
 def stage_training(wildcards):

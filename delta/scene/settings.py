@@ -59,6 +59,15 @@ AUTO = ("exterior", "capture")
 NOT_READ_BY_STAGE = {1: ("stage2", "deformation", "semantic"), 2: ("stage1",)}
 
 
+def set_keys(overrides: list[dict], prefix: str = "") -> list[str]:
+    """The dotted keys a list of overrides sets (a nested dict's leaves; an empty dict is a leaf), sorted."""
+    keys = []
+    for over in overrides:
+        for k, v in over.items():
+            keys += set_keys([v], f"{prefix}{k}.") if isinstance(v, dict) and v else [f"{prefix}{k}"]
+    return sorted(set(keys))
+
+
 def user_decided(user_set: list[str], stage: int | None = None) -> list[str]:
     """The config's own keys (``user_set``, dotted) that overrule a scene decision, sorted; with a
     ``stage``, only those that stage reads (another stage's key must not rerun it)."""

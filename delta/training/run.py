@@ -167,6 +167,18 @@ def fine_frames(record, st: TrainSettings, stage: int) -> FrameData | None:
     return stage_frames(record, st, size)
 
 
+def stage_settings(preset: str, overrides: list[dict], scene: str | None = None, user_set=()) -> TrainSettings:
+    """A stage's settings as the workflow resolves them: the preset, the config's ``overrides`` over it, and
+    the scene's decisions (``scene.json``) for the keys the config does not set itself (``user_set``)."""
+    st = resolve(preset, *overrides)
+    if scene:
+        decided = scene_settings(scene, st.raw, list(user_set))
+        if decided:
+            log.info("from the scene analysis (%s): %s", scene, json.dumps(decided, sort_keys=True))
+            st = resolve(preset, *overrides, decided)
+    return st
+
+
 def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str, preset: str,
               overrides: list[dict], device: str = "cpu", perceptual_dir: str | None = None,
               scene: str | None = None, user_set: list[str] = ()) -> dict:  # fmt: skip
@@ -174,12 +186,7 @@ def run_stage(stage: int, record: str, body_path: str, start: str, out_dir: str,
 
     ``scene``: the subject's scene.json; its decisions apply to the keys not in ``user_set`` (the keys
     the config sets itself)."""
-    st = resolve(preset, *overrides)
-    if scene:
-        decided = scene_settings(scene, st.raw, list(user_set))
-        if decided:
-            log.info("from the scene analysis (%s): %s", scene, json.dumps(decided, sort_keys=True))
-            st = resolve(preset, *overrides, decided)
+    st = stage_settings(preset, overrides, scene, user_set)
     dev = pick_device(device)
     data = stage_frames(record, st)
     body = load_body_model(body_path)  # on the CPU: the avatar's .to(dev) moves it

@@ -18,7 +18,7 @@ from delta.scene.analysis import (
     step_rays,
     training_resolution,
 )
-from delta.scene.settings import FRAME_BUDGET, HEAD_SEMANTIC, HEAD_WEIGHTS, scene_settings, user_decided
+from delta.scene.settings import FRAME_BUDGET, HEAD_SEMANTIC, HEAD_WEIGHTS, scene_settings, set_keys, user_decided
 from delta.training.presets import resolve
 from delta.scene.reach import beyond_body, region_reach
 
@@ -122,6 +122,25 @@ def test_the_scenes_rays_reach_stage_one_only_where_the_config_is_silent(tmp_pat
     path.write_text(json.dumps({"decisions": {"stage1": {"rays": 4096}}}))  # and one with more keeps its own
     assert scene_settings(path, {"stage1": {"rays": 16384}}, []) == {"stage1": {"rays": 16384}}
     assert user_decided(["stage1.rays"], 2) == [] and user_decided(["stage1.rays"], 1) == ["stage1.rays"]
+
+
+def test_a_stage_resolves_as_the_workflow_resolves_it_the_configs_keys_over_the_scenes(tmp_path):
+    from delta.training.run import stage_settings
+
+    assert set_keys([{"stage1": {"rays": 2048, "lr": {}}, "seed": 1}, {"stage1": {"rays": 1}}]) == [
+        "seed", "stage1.lr", "stage1.rays"]  # fmt: skip
+    path = tmp_path / "scene.json"
+    path.write_text(json.dumps({"decisions": {"stage1": {"rays": 8192}, "render": {"samples": 40}}}))
+    over = {"stage1": {"max_rays": 8192}}
+    st = stage_settings("balanced", [over], str(path), set_keys([over]))
+    assert (st.stage1.rays, st.avatar.render.samples) == (8192, 40)  # the scene's, where the config is silent
+    over = {"stage1": {"max_rays": 8192}, "render": {"samples": 24}}
+    st = stage_settings("balanced", [over], str(path), set_keys([over]))
+    # the config's samples: the rays the scene decided for its own samples do not follow them
+    assert (st.stage1.rays, st.avatar.render.samples) == (4096, 24)
+    plain = stage_settings("balanced", [], str(path))
+    assert (plain.stage1.rays, plain.avatar.render.samples) == (4096, 40)  # balanced allows no more than its rays
+    assert stage_settings("balanced", []).raw == resolve("balanced").raw  # no scene: the preset
 
 
 def test_stage_two_grows_with_the_room_from_the_configured_length(tmp_path):
