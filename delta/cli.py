@@ -250,11 +250,14 @@ def cmd_analyze_scene(args: argparse.Namespace) -> None:
     if not isinstance(configured, dict) or {"max_dist", "samples"} - set(configured):
         raise DeltaError(
             '--settings: expected {"max_dist": metres, "samples": count} (the configured render settings; '
-            'optionally stage 1\'s "rays" and "max_rays")'
+            'optionally stage 1\'s "rays" and "max_rays", the exterior\'s finest colour grid "color_res" '
+            'and its box\'s "nerf_margin")'
         )
     write_scene(args.out, analyze(args.record, args.init, args.body, float(configured["max_dist"]),
                                   int(configured["samples"]), preset_rays=int(configured.get("rays", 0)),
-                                  max_rays=int(configured.get("max_rays", 0))))  # fmt: skip
+                                  max_rays=int(configured.get("max_rays", 0)),
+                                  colour_res=int(configured.get("color_res", 0)),
+                                  nerf_margin=float(configured.get("nerf_margin", 0.3))))  # fmt: skip
 
 
 def cmd_export(args: argparse.Namespace) -> None:

@@ -487,8 +487,9 @@ def stage_training(wildcards):
 
 
 def scene_settings_json(wildcards):
-    """The configured room and samples of a subject's exterior (the scene analysis's floor and spacing)
-    and its stage 1's rays (the most the scene may give)."""
+    """The configured room and samples of a subject's exterior (the scene analysis's floor and spacing),
+    its stage 1's rays (the most the scene may give) and its colour grids (what a pattern is measured against).
+    """
     st = TRAINING[wildcards.subject]
     render = st.avatar.render
     return json.dumps(
@@ -497,6 +498,8 @@ def scene_settings_json(wildcards):
             "samples": render.samples,
             "rays": st.stage1.rays,
             "max_rays": st.stage1.max_rays,
+            "color_res": st.avatar.nerf.colour_nodes() if st.avatar.nerf else 0,
+            "nerf_margin": st.avatar.nerf_margin,
         },
         sort_keys=True,
     )

@@ -64,6 +64,10 @@ class FieldSpec:
             raise ValueError(f"density_noise {self.density_noise} must be ≥ 0 and density_noise_steps "
                              f"{self.density_noise_steps} ≥ 1")  # fmt: skip
 
+    def colour_nodes(self) -> int:
+        """The configured colour grids' finest resolution (nodes along the box; 0: no grids, ``pe``)."""
+        return (self.color_max_res or self.max_res) if self.encoding == "grid" else 0
+
     def color_grid(self, extent: tuple[float, float, float]) -> tuple[int, int]:
         """The colour grids' (finest resolution, levels) for a box of ``extent`` (metres a side): the
         configured ones, or finer where ``color_cell`` asks for it (levels added so that each is at most

@@ -80,6 +80,26 @@ def _box(points: torch.Tensor, margin: float) -> torch.Tensor:
     return torch.stack([points.amin(0) - margin, points.amax(0) + margin])
 
 
+def canonical_vertices(body: BodyModel) -> torch.Tensor:
+    """(V, 3) the body's template in its canonical pose (the canonical space the fields live in)."""
+    return lbs(body, torch.zeros(1, 1), body.canonical_pose[None].float()).vertices[0]
+
+
+def modelled_vertices(body: BodyModel, capture: str) -> torch.Tensor:
+    """(V,) bool: the vertices a ``capture`` models (a head-and-shoulders one not the lower body)."""
+    if capture not in ("full", "upper"):
+        raise ValueError(f"capture: '{capture}' (expected 'full' or 'upper')")
+    if capture == "upper":
+        return ~lower_body_vertices(body)
+    return torch.ones(body.num_vertices, dtype=torch.bool, device=body.v_template.device)
+
+
+def exterior_box(canonical: torch.Tensor, region: torch.Tensor, nerf_margin: float, max_dist: float) -> torch.Tensor:
+    """(2, 3) the exterior fields' canonical box: the ``region``'s vertices of ``canonical`` (V, 3) with a
+    margin that holds the exterior's whole room (a decided ``max_dist`` may exceed ``nerf_margin``)."""
+    return _box(canonical[region], room_margin(nerf_margin, max_dist))
+
+
 class HybridAvatar(nn.Module):
     def __init__(self, body: BodyModel, spec: AvatarSpec, init: InitParams, skin_color: torch.Tensor,
                  background: torch.Tensor, resolution: int, frame_time: Optional[torch.Tensor] = None,
@@ -108,11 +128,7 @@ class HybridAvatar(nn.Module):
             self.ortho_trans = nn.Parameter(init.camera.trans.float().clone())
         template = body.v_template.float()
         self.register_buffer("edges", mesh_edges(body.faces))
-        if spec.capture not in ("full", "upper"):
-            raise ValueError(f"capture: '{spec.capture}' (expected 'full' or 'upper')")
-        modelled = torch.ones(body.num_vertices, dtype=torch.bool, device=template.device)
-        if spec.capture == "upper":
-            modelled = ~lower_body_vertices(body)
+        modelled = modelled_vertices(body, spec.capture).to(template.device)
         # (V,) bool: the vertices this capture models (derived from the body, not saved)
         self.register_buffer("modelled", modelled, persistent=False)
         ids = knn_vertex_ids(body, spec.render.knn_vertices).to(template.device)
@@ -144,8 +160,7 @@ class HybridAvatar(nn.Module):
         self.register_buffer("fill_values", template.new_zeros(0, 3), persistent=False)
         # the exterior read at its mirror through the body where no training frame looked (delta.models.unseen)
         self.exterior_mirror = None
-        # the canonical fields' box holds the exterior's whole room (a decided max_dist may exceed the margin)
-        nbox = _box(self.canonical_vertices[region], room_margin(spec.nerf_margin, spec.render.max_dist))
+        nbox = exterior_box(self.canonical_vertices, region, spec.nerf_margin, spec.render.max_dist)
         self.nerf = None
         if spec.nerf is not None:
             part = bool((modelled & ~region).any())  # no exterior beyond the box around what is framed

@@ -29,6 +29,11 @@ From the frame record (person, clothing and hair masks) and the init fit, before
   preset's: stage 2 learns the exterior's motion about the body (F_e), and a garment hanging farther
   from the body sways farther (on the loose dress, 300 -> 600 stage-2 steps lifted held-out views
   25.5 -> 26.3 dB; a T-shirt's stage 2 keeps the configured length);
+- ``nerf.color_cell``: the exterior's colour cells, :data:`~delta.scene.pattern.CELL_PIXELS` training
+  pixels' footprint at the body where a colour grid of the preset's cells draws the exterior's pattern
+  (its clothing or its hair, in the capture's frames) no better than :data:`~delta.scene.pattern.PATTERN_DB`
+  (:mod:`delta.scene.pattern`): dots, checks and prints get cells as fine as the frames resolve, a plain
+  garment keeps the preset's;
 - ``weights`` and ``semantic``: for a tracked face (the init fit tracked its expressions: a talking head),
   the paper's head weights where they differ from its body weights (:data:`HEAD_WEIGHTS`: the stage-2
   semantic term 30 times the body's, the hidden skin's pull to the visible skin colour a tenth) and the
@@ -61,9 +66,11 @@ from delta.data.record import FrameRecord
 from delta.geometry.raymesh import ray_mesh_hits
 from delta.io import save_json
 from delta.models.image import pixel_grid
+from delta.models.avatar import canonical_vertices, exterior_box, modelled_vertices
 from delta.models.init import load_init
-from delta.scene.framing import MAX_LOWER_IN_VIEW, frame_camera, lower_body_in_view
+from delta.scene.framing import MAX_LOWER_IN_VIEW, frame_camera, framed_vertices, lower_body_in_view
 from delta.scene.mouth import mouth_shade
+from delta.scene.pattern import CELL_PIXELS, PATTERN_DB, colour_cell, exterior_ceilings
 from delta.scene.reach import Beyond, beyond_body, region_reach
 from delta.scene.settings import FRAME_BUDGET, HEAD_SEMANTIC, HEAD_WEIGHTS
 
@@ -163,11 +170,40 @@ def training_resolution(crop: int, frames: int, budget: int = FRAME_BUDGET) -> i
     return crop if crop <= fits else max(16, fits // 16 * 16)
 
 
+def preset_colour_cell(body, init, frames: list[int], capture: str, room: float, nerf_margin: float,
+                       colour_res: int) -> tuple[float, float]:  # fmt: skip
+    """(the preset's finest colour cell, the exterior box's longest side), metres: the box the avatar's
+    exterior fields get (:func:`delta.models.avatar.exterior_box`: what the capture frames of what it
+    models, with the room) over ``colour_res`` nodes along its longest side."""
+    framed = framed_vertices(body, init.betas, init.poses, init.transl, init.camera, frames, SIZE)
+    region = modelled_vertices(body, capture).cpu()
+    region = region & framed if bool((region & framed).any()) else region
+    box = exterior_box(canonical_vertices(body).cpu(), region, nerf_margin, room)
+    longest = float((box[1] - box[0]).max())
+    return longest / max(colour_res - 1, 1), longest
+
+
+def pattern_evidence(record: str | Path, frames: list[int], parts: list[str], preset_cell: float,
+                     footprint: float, record_mpp: float) -> dict:  # fmt: skip
+    """Each exterior part's ceilings (dB) at the preset's colour cell and at :data:`CELL_PIXELS` training
+    pixels' footprint, measured on ``frames`` of the record at its own size (``record_mpp`` m a pixel)."""
+    cells = {"preset": preset_cell / record_mpp, "fine": CELL_PIXELS * footprint / record_mpp}
+    out = {}
+    with FrameRecord(record) as rec:
+        images = [rec.h5["images"][f] for f in frames]
+        person = [rec.h5["person"][f] > 127 for f in frames]
+        for part in parts:
+            masks = [(rec.h5[part][f] > 0) & p for f, p in zip(frames, person)]
+            out[part] = exterior_ceilings(images, masks, cells)
+    return out
+
+
 def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, preset_room: float,
             preset_samples: int, size: int = SIZE, frames: int = FRAMES, preset_rays: int = 0,
-            max_rays: int = 0) -> dict:  # fmt: skip
+            max_rays: int = 0, colour_res: int = 0, nerf_margin: float = 0.3) -> dict:  # fmt: skip
     """The scene of one subject: ``{"decisions": {...}, "evidence": {...}}``. Stage 1's rays are decided
-    only where ``max_rays`` exceeds ``preset_rays`` (the preset's stage 1)."""
+    only where ``max_rays`` exceeds ``preset_rays`` (the preset's stage 1); the exterior's colour cell only
+    where ``colour_res`` (the preset's finest colour grid, nodes along its box; 0: none) is given."""
     if preset_room <= 0 or preset_samples < 1:
         raise DeltaError(
             f"scene analysis: the preset's max_dist {preset_room} and samples {preset_samples} must be > 0"
@@ -197,6 +233,26 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
     capture = "upper" if lower is not None and lower <= MAX_LOWER_IN_VIEW else "full"
     decisions = {"exterior": exterior, "capture": capture, "resolution": resolution,
                  "render": {"max_dist": room, "samples": samples}}  # fmt: skip
+    colour = None
+    if exterior == "yes" and colour_res > 0 and footprint > 0:
+        preset_cell, longest = preset_colour_cell(body, init, [int(f) for f in train], capture, room, nerf_margin,
+                                                  colour_res)  # fmt: skip
+        parts = [p for p, share in shares.items() if share >= MIN_EXTERIOR_FRACTION]
+        record_mpp = float(np.median(body_mpp)) * size / crop
+        ceilings = pattern_evidence(record, picked, parts, preset_cell, footprint, record_mpp)
+        cell = colour_cell(ceilings, preset_cell, footprint)
+        if cell > 0:
+            decisions["nerf"] = {"color_cell": cell}
+        worst = min(ceilings, key=lambda p: ceilings[p]["preset"]) if ceilings else None
+        colour = {"preset_cell_mm": round(1000 * preset_cell, 2), "fine_cell_mm": round(1000 * CELL_PIXELS * footprint, 2),
+                  "box_m": round(longest, 3), "preset_nodes": colour_res, "pattern_db": PATTERN_DB, "parts": ceilings,
+                  "why": "no clothing or hair to draw" if worst is None else
+                         f"the preset's {1000 * preset_cell:.1f}-mm colour cells draw the {worst}'s pattern to "
+                         f"{ceilings[worst]['preset']:g} dB in the frames ({CELL_PIXELS:g}-pixel cells of "
+                         f"{1000 * CELL_PIXELS * footprint:.1f} mm: {ceilings[worst]['fine']:g} dB): "
+                         + (f"under {PATTERN_DB:g} dB, colour cells of {1000 * cell:.1f} mm" if cell > 0 else
+                            "the preset's cells" + ("" if CELL_PIXELS * footprint < preset_cell else
+                                                      " (two pixels are no finer)"))}  # fmt: skip
     shell = shell_start(reach, capture) if exterior == "yes" else 0.0
     if shell > 0:
         decisions["render"]["shell"] = shell
@@ -231,6 +287,8 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
                            f"{SAMPLE_PIXELS:g} of the {resolution}² training pixels apart ({1000 * footprint:.1f} mm "
                            f"at the body), at most {MAX_SAMPLE_FACTOR}x the preset's"},
     }  # fmt: skip
+    if colour is not None:
+        evidence["colour"] = colour
     if shell > 0:
         evidence["shell"] = {"start_m": shell, "room_m": room,
                              "why": f"a head-and-shoulders capture ({capture!r}): exterior density farther than "

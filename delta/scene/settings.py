@@ -28,6 +28,7 @@ DECIDED = (
     "weights.skin_inside",
     "weights.face_points",
     "mouth_shade",
+    "nerf.color_cell",
 )
 #: The paper's head weights (DELTA §Implementation, head videos) where they differ from its body weights
 #: (:class:`delta.loss_weights.LossWeights`: semantic 0.0005, skin_inside 0.01); a tracked face takes them,
@@ -47,7 +48,9 @@ SCALED = {"stage2.iterations": "stage2.length_factor"}
 #: Keys decided from another decided key: taken only where the user set neither (stage 1's rays spend what
 #: the scene's samples a ray leave of a step; a user's own samples keep the preset's rays).
 #: The semantic loss and its weight are one decision: a config that sets either keeps its own pair.
-DEPENDS = {"stage1.rays": ("render.samples",), "semantic": ("weights.semantic",), "weights.semantic": ("semantic",)}
+#: The colour cell is not decided where the config sets the colour grids' own size.
+DEPENDS = {"stage1.rays": ("render.samples",), "semantic": ("weights.semantic",), "weights.semantic": ("semantic",),
+           "nerf.color_cell": ("nerf.color_max_res", "nerf.color_levels")}  # fmt: skip
 #: Keys decided within what the resolved settings allow: key -> (its floor, its ceiling) among them (the
 #: floor also where the ceiling is lower or unset). A run of another preset than the one the scene was
 #: analysed for (a sweep's variant) keeps its own rays where that preset allows no more, never fewer.
@@ -72,7 +75,8 @@ def user_decided(user_set: list[str], stage: int | None = None) -> list[str]:
     """The config's own keys (``user_set``, dotted) that overrule a scene decision, sorted; with a
     ``stage``, only those that stage reads (another stage's key must not rerun it)."""
     unread = NOT_READ_BY_STAGE.get(stage, ())
-    return sorted(k for k in set(user_set) if k in DECIDED and k.split(".")[0] not in unread)
+    followed = {k for keys in DEPENDS.values() for k in keys}
+    return sorted(k for k in set(user_set) if (k in DECIDED or k in followed) and k.split(".")[0] not in unread)
 
 
 def _get(d: dict, dotted: str):
