@@ -131,6 +131,19 @@ def test_a_patterned_exterior_gets_fine_colour_cells_and_a_plain_one_the_presets
     )
     assert evidence["preset_cell_mm"] == pytest.approx(1000 * evidence["box_m"] / 15, rel=1e-3)
     assert "clothing" in evidence["why"] and "nerf" not in plain["decisions"]
+    # the cells were measured against the box the avatar's exterior gets: the same room, the same framing
+    from delta.body.model import load_body_model
+    from delta.data.frames import load_frames
+    from delta.models.init import load_init
+    from delta.training.presets import resolve
+    from delta.training.run import build_avatar
+
+    room = checks["decisions"]["render"]["max_dist"]
+    st = resolve("fast", {"resolution": 32, "render": {"max_dist": room}, "nerf": {"max_res": 16, "levels": 3}})
+    data = load_frames(t["record"], st.resolution, st.background, st.box_margin)
+    avatar = build_avatar(load_body_model(t["body"]), st, load_init(t["init"], data), data, 1, "cpu")
+    lo, hi = avatar.nerf.encoding.lo, avatar.nerf.encoding.hi
+    assert float((hi - lo).max()) == pytest.approx(evidence["box_m"], abs=1e-3)
     # without the preset's colour grids (a PE field, or a caller that does not say) nothing is decided
     none = analyze(tmp_path / "checks.h5", t["init"], t["body"], 0.1, 16, size=64, frames=6)
     assert "nerf" not in none["decisions"] and "colour" not in none["evidence"]
