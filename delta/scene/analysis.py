@@ -70,7 +70,7 @@ from delta.models.avatar import canonical_vertices, exterior_box, modelled_verti
 from delta.models.init import load_init
 from delta.scene.framing import MAX_LOWER_IN_VIEW, frame_camera, framed_vertices, lower_body_in_view
 from delta.scene.mouth import mouth_shade
-from delta.scene.pattern import CELL_PIXELS, PATTERN_DB, colour_cell, exterior_ceilings
+from delta.scene.pattern import CELL_PIXELS, PATTERN_DB, colour_cell, colour_why, exterior_ceilings
 from delta.scene.reach import Beyond, beyond_body, region_reach
 from delta.scene.settings import FRAME_BUDGET, HEAD_SEMANTIC, HEAD_WEIGHTS
 
@@ -243,16 +243,9 @@ def analyze(record: str | Path, init_path: str | Path, body_path: str | Path, pr
         cell = colour_cell(ceilings, preset_cell, footprint)
         if cell > 0:
             decisions["nerf"] = {"color_cell": cell}
-        worst = min(ceilings, key=lambda p: ceilings[p]["preset"]) if ceilings else None
         colour = {"preset_cell_mm": round(1000 * preset_cell, 2), "fine_cell_mm": round(1000 * CELL_PIXELS * footprint, 2),
                   "box_m": round(longest, 3), "preset_nodes": colour_res, "pattern_db": PATTERN_DB, "parts": ceilings,
-                  "why": "no clothing or hair to draw" if worst is None else
-                         f"the preset's {1000 * preset_cell:.1f}-mm colour cells draw the {worst}'s pattern to "
-                         f"{ceilings[worst]['preset']:g} dB in the frames ({CELL_PIXELS:g}-pixel cells of "
-                         f"{1000 * CELL_PIXELS * footprint:.1f} mm: {ceilings[worst]['fine']:g} dB): "
-                         + (f"under {PATTERN_DB:g} dB, colour cells of {1000 * cell:.1f} mm" if cell > 0 else
-                            "the preset's cells" + ("" if CELL_PIXELS * footprint < preset_cell else
-                                                      " (two pixels are no finer)"))}  # fmt: skip
+                  "why": colour_why(ceilings, preset_cell, footprint, cell)}  # fmt: skip
     shell = shell_start(reach, capture) if exterior == "yes" else 0.0
     if shell > 0:
         decisions["render"]["shell"] = shell

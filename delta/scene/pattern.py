@@ -64,8 +64,7 @@ def exterior_ceilings(images, masks, cells: dict[str, float]) -> dict:
     sq = dict.fromkeys(cells, 0.0)
     pixels = 0
     for image, mask in zip(images, masks):
-        image = np.asarray(image, np.float32)
-        image = image / 255.0 if image.max() > 1.0 else image
+        image = np.asarray(image, np.float32) / (255.0 if np.asarray(image).dtype == np.uint8 else 1.0)
         inner = cv2.erode(np.asarray(mask, np.uint8), kernel) > 0 if ERODE else np.asarray(mask, bool)
         pixels += int(inner.sum())
         for name, cell in cells.items():
@@ -81,3 +80,17 @@ def colour_cell(ceilings: dict[str, dict], preset_cell: float, footprint: float)
     if footprint <= 0 or fine >= preset_cell or not ceilings:
         return 0.0
     return round(fine, 5) if min(c["preset"] for c in ceilings.values()) < PATTERN_DB else 0.0
+
+
+def colour_why(ceilings: dict[str, dict], preset_cell: float, footprint: float, cell: float) -> str:
+    """Why the exterior got colour cell ``cell`` (m; 0: the preset's), in words, from the same evidence as
+    :func:`colour_cell`."""
+    if not ceilings:
+        return "no clothing or hair to draw"
+    worst = min(ceilings, key=lambda p: ceilings[p]["preset"])
+    fine = CELL_PIXELS * footprint
+    verdict = (f"under {PATTERN_DB:g} dB, colour cells of {1000 * cell:.1f} mm" if cell > 0 else
+               "the preset's cells" + ("" if fine < preset_cell else f" ({CELL_PIXELS:g} pixels are no finer)"))  # fmt: skip
+    return (f"the preset's {1000 * preset_cell:.1f}-mm colour cells draw the {worst}'s pattern to "
+            f"{ceilings[worst]['preset']:g} dB in the frames ({CELL_PIXELS:g}-pixel cells of {1000 * fine:.1f} mm: "
+            f"{ceilings[worst]['fine']:g} dB): {verdict}")  # fmt: skip
