@@ -64,7 +64,8 @@ def exterior_ceilings(images, masks, cells: dict[str, float]) -> dict:
     sq = dict.fromkeys(cells, 0.0)
     pixels = 0
     for image, mask in zip(images, masks):
-        image = np.asarray(image, np.float32) / (255.0 if np.asarray(image).dtype == np.uint8 else 1.0)
+        image = np.asarray(image)
+        image = image.astype(np.float32) / (255.0 if image.dtype == np.uint8 else 1.0)
         inner = cv2.erode(np.asarray(mask, np.uint8), kernel) > 0 if ERODE else np.asarray(mask, bool)
         pixels += int(inner.sum())
         for name, cell in cells.items():
