@@ -33,6 +33,10 @@ class LossWeights:
     face_points: float = 0.0
     """Where the record tracks a face: the posed face points against the detected ones (Huber of their
     distance over the image's size), so that training keeps the face where the frame shows it (off: 0)."""
+    track: float = 0.0
+    """Per metre, stage 2: across the rays, the distance between the canonical points where the two ends of a
+    point of the exterior followed through the training frames are seen (``delta.data.tracks``), moving F_e
+    alone (off: 0, in every preset: it lowered loose's held-out views, docs/method.md)."""
     silhouette: float = 0.001
     """Huber between the soft mesh silhouette and the person mask."""
     interior_mask: float = 30.0

@@ -163,6 +163,28 @@ def face_points(uv: torch.Tensor, target: torch.Tensor, confidence: torch.Tensor
     return (w * h).sum() / w.sum().clamp_min(torch.finfo(h.dtype).tiny)
 
 
+#: metres: the track term is √(d² + ε²), a distance that stays smooth where two points meet
+TRACK_EPS = 1e-3
+#: the exterior opacity both ends of a track need for the term to read it
+TRACK_OPACITY = 0.5
+
+
+def track(start: torch.Tensor, end: torch.Tensor, along_start: torch.Tensor, along_end: torch.Tensor,
+          opacity_start: torch.Tensor, opacity_end: torch.Tensor, floor: float = TRACK_OPACITY) -> torch.Tensor:  # fmt: skip
+    """Mean distance (metres, √(d² + ε²)) across the rays between the canonical points (M, 3) where the rays
+    of a tracked point's two ends see the exterior, over the tracks whose rays are both at least ``floor``
+    opaque (their (M,) opacities; 0 where none is). The same point of the cloth should be one canonical point;
+    how deep along its ray a ray sees a cloth is the density's to say (a smeared or thick exterior spreads it
+    over centimetres), so the component along the rays' mean canonical direction (``along_*``, (M, 3) unit)
+    is left out."""
+    keep = (torch.minimum(opacity_start, opacity_end) >= floor).detach().to(start.dtype)
+    u = torch.nn.functional.normalize(along_start + along_end, dim=-1).detach()
+    gap = start - end
+    across = gap - (gap * u).sum(-1, keepdim=True) * u
+    d = (across**2).sum(-1).add(TRACK_EPS**2).sqrt()
+    return (d * keep).sum() / keep.sum().clamp_min(1.0)
+
+
 def vertex_detail(details: list[torch.Tensor]) -> torch.Tensor:
     """Mean over the given (V, C) per-vertex details of their mean squared value."""
     return sum((d**2).sum(-1).mean() for d in details) / len(details)

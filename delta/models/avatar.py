@@ -22,7 +22,7 @@ from delta.deformers import knn as deformer
 from delta.fields.networks import DeformationField, LayeredNeRF, NeRFField, VertexField, colour_logit, time_features
 from delta.geometry.distance_grid import GRID_REACH
 from delta.losses import mesh_edges
-from delta.render.hybrid import PosedMesh, RayRender, render_rays, room_margin
+from delta.render.hybrid import PosedMesh, RayRender, exterior_surface, render_rays, room_margin
 from delta.models.trajectory import Trajectory
 from delta.models.spec import AvatarSpec
 from delta.render.occupancy import OccupancyGrid
@@ -355,6 +355,33 @@ class HybridAvatar(nn.Module):
             nonrigid = functools.partial(self.deformation, time=code)
         return render_rays(mesh, origins, dirs, pixels, self.background, self.spec.render, self.nerf,
                            nonrigid, generator, occupied, through_mesh, soft)  # fmt: skip
+
+    def canonical_points(self, frame: int, pixels: torch.Tensor, generator: torch.Generator | None = None,
+                         timeless: bool = False) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+        """Where rays through pixels (R, 2) of a frame see the exterior, taken to the canonical space (R, 3),
+        the rays' directions there (R, 3, unit: by the linear part of the map of the point's nearest vertex)
+        and the opacity of the exterior (R,), 0 where that point is beyond the body's reach.
+
+        The posed point is the rays' opacity-weighted depth (:func:`delta.render.hybrid.exterior_surface`,
+        not differentiated); it goes back by the frame's kNN maps and F_e, differentiable in F_e alone (the
+        frame's pose and camera held): what registers the same point of the cloth across frames."""
+        if self.nerf is None:
+            raise ValueError("canonical_points: the avatar has no exterior")
+        rs = self.spec.render
+        occ = self.occupancy
+        occupied = occ.contains if occ is not None and bool(occ.active) else None
+        nonrigid, code = self.deformation, None if timeless else self.time_code(frame)
+        if nonrigid is not None and code is not None:
+            nonrigid = functools.partial(self.deformation, time=code)
+        with torch.no_grad():
+            mesh = self.posed_mesh(frame)[0]
+            origins, dirs = self.camera(frame).rays(pixels)
+            surface, opacity = exterior_surface(mesh, origins, dirs, rs, self.nerf, nonrigid, generator, occupied)
+        d = deformer.deform(mesh.skinning, surface, rs.k, rs.sigma, rs.max_dist)
+        points = d.canonical if nonrigid is None else d.canonical + nonrigid(d.canonical, d.posed_ref)
+        linear = mesh.skinning.to_canonical[d.nearest, :, :3]
+        along = torch.nn.functional.normalize((linear @ dirs[:, :, None]).squeeze(-1), dim=-1)
+        return points, along, opacity * d.valid
 
     def update_occupancy(self, seed: int, early: bool = False) -> None:
         """Re-evaluate the occupancy grid's densities (a training step calls this every few steps;

@@ -126,15 +126,7 @@ def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixe
     if nerf is None or mesh.skinning is None:
         zero = torch.zeros_like(sil)
         return RayRender(mesh_rgb, zero, background.expand_as(mesh_rgb), mesh_rgb, hits.hit, sil, 0)
-    margin = room_margin(settings.box_margin, settings.max_dist)
-    lo = mesh.vertices.detach().amin(0) - margin
-    hi = mesh.vertices.detach().amax(0) + margin
-    t_in, t_out, in_box = ray_box(origins, dirs, lo, hi)
-    stop = hits.hit & (not through_mesh)
-    t_far = torch.where(stop, torch.minimum(hits.t, t_out), t_out)
-    t_far = torch.where(in_box | stop, t_far, t_in)
-    t_near, t_far = body_span(mesh.skinning, origins, dirs, t_in, torch.maximum(t_far, t_in), stop, settings)
-    t = stratified_samples(t_near, t_far, settings.samples, settings.perturb, generator)
+    t = ray_samples(mesh, origins, dirs, hits, settings, through_mesh, generator)
     sigma, rgb, layer_sigma, dist, n = _query(mesh, origins, dirs, t, settings, nerf, nonrigid, occupied)
     shell = None
     if settings.shell > 0:
@@ -154,6 +146,37 @@ def render_rays(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, pixe
             layer_depths = torch.where(layer_masks > 0, at, t[:, -1:])
     return RayRender(out.rgb, out.nerf_mask, nerf_rgb, mesh_rgb, hits.hit, sil, n, layer_masks, layer_depths,
                      out.optical_depth, shell, log_shares, seen_w, distortion(t, out.weights))  # fmt: skip
+
+
+def ray_samples(mesh: PosedMesh, origins, dirs, hits, settings: RenderSettings, through_mesh: bool = False,
+                generator: torch.Generator | None = None) -> torch.Tensor:  # fmt: skip
+    """(R, S) sample positions along rays (R, 3) inside the body's box and within ``max_dist`` of the body,
+    the last at the mesh's hit (``hits``) unless ``through_mesh`` (then at the box's far side)."""
+    margin = room_margin(settings.box_margin, settings.max_dist)
+    lo = mesh.vertices.detach().amin(0) - margin
+    hi = mesh.vertices.detach().amax(0) + margin
+    t_in, t_out, in_box = ray_box(origins, dirs, lo, hi)
+    stop = hits.hit & (not through_mesh)
+    t_far = torch.where(stop, torch.minimum(hits.t, t_out), t_out)
+    t_far = torch.where(in_box | stop, t_far, t_in)
+    t_near, t_far = body_span(mesh.skinning, origins, dirs, t_in, torch.maximum(t_far, t_in), stop, settings)
+    return stratified_samples(t_near, t_far, settings.samples, settings.perturb, generator)
+
+
+@torch.no_grad()
+def exterior_surface(mesh: PosedMesh, origins: torch.Tensor, dirs: torch.Tensor, settings: RenderSettings,
+                     nerf: NeRF, nonrigid: Optional[Deform] = None, generator: torch.Generator | None = None,
+                     occupied: Optional[Occupied] = None) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+    """Where rays (R, 3) see the exterior: the posed point (R, 3) at the opacity-weighted mean depth of their
+    NeRF samples, and the exterior's opacity (R,) (rays stop at the mesh; not differentiated). A ray with
+    no exterior opacity gets its origin."""
+    hits = ray_mesh_hits(mesh.vertices, mesh.faces, origins, dirs)
+    t = ray_samples(mesh, origins, dirs, hits, settings, False, generator)
+    sigma, *_ = _query(mesh, origins, dirs, t, settings, nerf, nonrigid, occupied)
+    out = composite(t, sigma, sigma.new_zeros(*sigma.shape, 1), sigma.new_zeros(len(t), 1))
+    w = out.weights[:, :-1]
+    depth = (w * t[:, :-1]).sum(1) / out.nerf_mask.clamp_min(torch.finfo(t.dtype).tiny)
+    return origins + depth[:, None] * dirs, out.nerf_mask
 
 
 @torch.no_grad()

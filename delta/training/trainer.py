@@ -27,6 +27,7 @@ from delta import DeltaError
 from delta import losses as L
 from delta.body.face_points import FacePoints
 from delta.data.frames import FrameData, RayBatch, sample_rays
+from delta.data.tracks import Tracks, frame_tracks
 from delta.io import atomic_path, load_state
 from delta.models.avatar import HybridAvatar
 from delta.models.image import render_image
@@ -253,6 +254,38 @@ def face_targets(data: FrameData, st: TrainSettings, device) -> Optional[tuple[F
     return points, data.face_points.to(device)
 
 
+#: tracked points a step reads (each two rays, one a frame), and how many a pair of frames must share
+TRACK_POINTS = 512
+TRACK_LEAST = 32
+
+
+def stage_tracks(model: HybridAvatar, data: FrameData, st: TrainSettings, stage: int) -> Optional[Tracks]:
+    """The points of the exterior followed through the training frames, where the track term is on
+    (``weights.track`` > 0) and the stage has F_e to move (stage 2); else None."""
+    if st.weights.track <= 0 or model.deformation is None:  # stage 1, or no exterior: nothing for it to move
+        return None
+    tracks = frame_tracks(data.images, data.exterior, data.frame_ids, data.train)
+    lengths = (~tracks.pixels[..., 0].isnan()).sum(1).float()
+    log.info("stage %d: %d points of the exterior followed through the training frames (%.1f frames each on "
+             "average, %d at most)", stage, tracks.count, float(lengths.mean()) if len(lengths) else 0.0,
+             int(lengths.max()) if len(lengths) else 0)  # fmt: skip
+    return tracks
+
+
+def track_term(model: HybridAvatar, tracks: Tracks, frame: int, partners: torch.Tensor, generator: torch.Generator,
+               num: int = TRACK_POINTS) -> torch.Tensor:  # fmt: skip
+    """The track term (``delta.losses.track``) between ``frame`` and one of its ``partners`` (frames sharing
+    tracks with it, drawn with ``generator``) on up to ``num`` of their shared tracks, each end read in its
+    own frame at its own time."""
+    b = int(partners[torch.randint(len(partners), (1,), generator=generator)])
+    start, end = tracks.between(frame, b)
+    pick = torch.randperm(len(start), generator=generator)[:num]
+    device = model.background.device
+    pa, ua, oa = model.canonical_points(frame, start[pick].to(device), generator)
+    pb, ub, ob = model.canonical_points(b, end[pick].to(device), generator)
+    return L.track(pa, pb, ua, ub, oa, ob)
+
+
 def rays_at(data: FrameData, fine: Optional[FrameData], frame: int, num: int, generator: torch.Generator,
             patch: int = 0, crop: float = 1.0, edge: float = 0.0) -> RayBatch:  # fmt: skip
     """A step's rays: from ``data``, or from the ``fine`` frames with their pixels in ``data``'s units
@@ -296,6 +329,7 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
         _start_occupancy(model, st, stage)
     skin_color = data.skin_color.to(device)
     faces = face_targets(data, st, device)
+    tracks = stage_tracks(model, data, st, stage)
     if start < warmup_end:
         log.info("stage 1: steps %d-%d train the NeRF alone on the whole person (rays through the mesh, from the "
                  "central %.0f%% of the person box)", start + 1, warmup_end, 100 * cfg.nerf_warmup_crop)  # fmt: skip
@@ -328,6 +362,9 @@ def _train_stage(stage: int, model: HybridAvatar, data: FrameData, st: TrainSett
         else:
             face = None if faces is None else (faces[0], faces[1][frame])
             terms, r = loss_terms(model, batch, st, skin_color, semantic, generator, timeless, face)
+            partners = tracks.partners(frame, TRACK_LEAST) if tracks is not None and not timeless else None
+            if partners is not None and len(partners):
+                terms["track"] = track_term(model, tracks, frame, partners, generator)
         loss = L.total(terms, st.weights)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
