@@ -162,3 +162,36 @@ def test_a_step_that_disagrees_with_its_neighbours_is_dropped():
     keep = coherent(g, steps)
     assert not keep[14] and keep[np.arange(len(g)) != 14].all()
     assert coherent(g[:5], steps[:5]).all()  # too few points to tell: all kept
+
+
+@pytest.mark.slow
+def test_stage_2_trains_with_the_track_term(tiny_training, tmp_path, perceptual_weights, monkeypatch):
+    """Two stage-2 steps with ``weights.track`` on: the term is logged and finite in stage 2, absent in stage 1
+    (tracks made by hand where the tiny capture's exterior is, the same pixels in every frame)."""
+    import pandas as pd
+
+    import delta.training.trainer as trainer
+    from delta.data.frames import load_frames
+    from delta.data.tracks import Tracks
+    from delta.training.run import run_stage
+
+    inputs = tiny_training["loose"]
+    tiny = {"resolution": 32, "render": {"samples": 8}, "weights": {"track": 1.0}, "dynamics": {"dropout": 0.0},
+            "stage1": {"iterations": 2, "rays": 64, "preview_every": 0},
+            "stage2": {"iterations": 2, "rays": 64, "patch": 0, "preview_every": 0}}  # fmt: skip
+    data = load_frames(inputs["record"], 32)
+    inside = torch.nonzero(data.exterior[: len(data.frame_ids)].amin(0) > 0.5)[:, [1, 0]].float() + 0.5
+    assert len(inside) >= 8
+    pixels = inside[None].expand(len(data.frame_ids), -1, -1).transpose(0, 1).clone()
+    seen = torch.zeros(len(data.frame_ids), dtype=torch.bool)
+    seen[torch.as_tensor(data.train)] = True
+    pixels[:, ~seen] = float("nan")
+    counts = seen.long()[:, None] * seen.long()[None] * len(inside)
+    monkeypatch.setattr(trainer, "frame_tracks", lambda *a, **k: Tracks(pixels, counts))
+    monkeypatch.setattr(trainer, "TRACK_LEAST", 1)
+    run_stage(1, inputs["record"], inputs["body"], inputs["init"], str(tmp_path / "s1"), "fast", [tiny])
+    run_stage(2, inputs["record"], inputs["body"], str(tmp_path / "s1" / "model.pt"), str(tmp_path / "s2"), "fast",
+              [tiny], perceptual_dir=str(perceptual_weights))  # fmt: skip
+    losses = pd.read_csv(tmp_path / "s2" / "losses.csv")
+    assert "track" not in pd.read_csv(tmp_path / "s1" / "losses.csv")  # stage 1 has no F_e to move
+    assert "track" in losses and np.isfinite(losses["track"].dropna()).all() and losses["track"].notna().any()
