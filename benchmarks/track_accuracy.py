@@ -42,25 +42,32 @@ def frame_camera(camera, row: int):
     return camera
 
 
-def surface_points(meshes: h5py.File, layers: list[str], fid: int, camera, pixels: torch.Tensor):
-    """(M, 3) canonical points and (M,) layer index (-1: no hit) where rays through ``pixels`` meet frame
-    ``fid``'s true surfaces."""
-    verts = [meshes[f"{n}_vertices"][fid] for n in layers]
-    faces = [meshes[f"{n}_faces"][:] for n in layers]
-    start = np.cumsum([0] + [len(v) for v in verts])
-    V = np.concatenate(verts).astype(np.float64)
-    F = np.concatenate([f + start[k] for k, f in enumerate(faces)])
-    owner = np.concatenate([np.full(len(f), k) for k, f in enumerate(faces)])
-    C = np.concatenate([meshes[f"{n}_canonical"][:] for n in layers]).astype(np.float64)
-    origins, dirs = camera.rays(pixels.double())
-    tri, ray, loc = trimesh.Trimesh(V, F, process=False).ray.intersects_id(
-        origins.numpy(), dirs.numpy(), multiple_hits=False, return_locations=True
-    )
-    points, layer = np.full((len(pixels), 3), np.nan), np.full(len(pixels), -1)
-    bary = trimesh.triangles.points_to_barycentric(V[F[tri]], loc)
-    points[ray] = np.einsum("nk,nkc->nc", bary, C[F[tri]])
-    layer[ray] = owner[tri]
-    return points, layer
+class TrueSurfaces:
+    """The generator's surfaces of a capture (the body and every layer) as one mesh a frame; the faces, their
+    layer and the canonical vertices do not change from frame to frame and are read once."""
+
+    def __init__(self, meshes: h5py.File, layers: list[str]):
+        self.meshes, self.layers = meshes, layers
+        faces = [meshes[f"{n}_faces"][:] for n in layers]
+        start = np.cumsum([0] + [len(meshes[f"{n}_canonical"]) for n in layers])
+        self.faces = np.concatenate([f + start[k] for k, f in enumerate(faces)])
+        self.owner = np.concatenate([np.full(len(f), k) for k, f in enumerate(faces)])
+        self.canonical = np.concatenate([meshes[f"{n}_canonical"][:] for n in layers]).astype(np.float64)
+
+    def hits(self, fid: int, camera, pixels: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """(M, 3) canonical points and (M,) layer index (-1: no hit) where rays through ``pixels`` meet frame
+        ``fid``'s surfaces."""
+        V = np.concatenate([self.meshes[f"{n}_vertices"][fid] for n in self.layers]).astype(np.float64)
+        origins, dirs = camera.rays(pixels.double())
+        tri, ray, loc = trimesh.Trimesh(V, self.faces, process=False).ray.intersects_id(
+            origins.numpy(), dirs.numpy(), multiple_hits=False, return_locations=True
+        )
+        points, layer = np.full((len(pixels), 3), np.nan), np.full(len(pixels), -1)
+        corners = self.faces[tri]
+        bary = trimesh.triangles.points_to_barycentric(V[corners], loc)
+        points[ray] = np.einsum("nk,nkc->nc", bary, self.canonical[corners])
+        layer[ray] = self.owner[tri]
+        return points, layer
 
 
 def main() -> None:
@@ -79,14 +86,15 @@ def main() -> None:
     layers = ["body"] + sorted(
         k[: -len("_vertices")] for k in meshes if k.endswith("_vertices") and k != "body_vertices"
     )
+    surfaces = TrueSurfaces(meshes, layers)
     seen = ~tracks.pixels[..., 0].isnan()  # (T, N)
     canon = np.full((*seen.shape, 3), np.nan)
     owner = np.full(seen.shape, -1)
     for f in data.train:  # each frame's tracks against its true surfaces at once
         rows_f = torch.nonzero(seen[:, int(f)]).squeeze(1)
         if len(rows_f):
-            canon[rows_f, int(f)], owner[rows_f, int(f)] = surface_points(
-                meshes, layers, int(data.frame_ids[f]), frame_camera(data.camera, int(f)), tracks.pixels[rows_f, int(f)]
+            canon[rows_f, int(f)], owner[rows_f, int(f)] = surfaces.hits(
+                int(data.frame_ids[f]), frame_camera(data.camera, int(f)), tracks.pixels[rows_f, int(f)]
             )
     rows = []
     for t in range(tracks.count):

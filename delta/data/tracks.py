@@ -101,27 +101,46 @@ def patch_correlation(grey_a: np.ndarray, a: np.ndarray, grey_b: np.ndarray, b: 
     return np.where(norm > 1e-6, (pa * pb).sum(1) / np.maximum(norm, 1e-6), 0.0)
 
 
-def corners(image: np.ndarray, mask: np.ndarray, count: int, avoid: np.ndarray | None = None) -> np.ndarray:
-    """Up to ``count`` corners (M, 2) of ``image`` (H, W, 3 in [0, 1]) inside ``mask`` (H, W in [0, 1]) off
-    its outline, at least ``CORNER_SPACING`` pixels from each point of ``avoid`` (K, 2); OpenCV's pixels."""
-    inner = _inner(mask)
-    if avoid is not None and len(avoid):
-        for x, y in np.rint(avoid).astype(np.int64):
-            cv2.circle(inner, (int(x), int(y)), CORNER_SPACING, 0, -1)
+@dataclasses.dataclass
+class Frame:
+    """What tracking reads of one frame, made once: its grey image and its exterior without the outline."""
+
+    grey: np.ndarray
+    """(H, W) uint8."""
+    inner: np.ndarray
+    """(H, W) uint8 0/255: the exterior mask above one half, its outermost ``EDGE_MARGIN`` pixels off."""
+
+    @classmethod
+    def of(cls, image: np.ndarray, mask: np.ndarray) -> "Frame":
+        """From ``image`` (H, W, 3) and the exterior ``mask`` (H, W), both in [0, 1]."""
+        return cls(_grey(image), _inner(mask))
+
+
+def corners(frame: Frame, count: int, avoid: np.ndarray | None = None) -> np.ndarray:
+    """Up to ``count`` corners (M, 2) of the frame's exterior, at least ``CORNER_SPACING`` pixels from each
+    point of ``avoid`` (K, 2); OpenCV's pixels."""
+    inner = frame.inner
+    if avoid is not None and len(avoid):  # a disc of the spacing about each point taken out
+        taken = np.zeros_like(inner)
+        h, w = inner.shape
+        col, row = np.rint(avoid).astype(np.int64).T
+        on = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        taken[row[on], col[on]] = 255
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * CORNER_SPACING + 1,) * 2)
+        inner = np.where(cv2.dilate(taken, disc) > 0, 0, inner).astype(np.uint8)
     if count <= 0 or not inner.any():
         return np.zeros((0, 2), np.float32)
-    found = cv2.goodFeaturesToTrack(_grey(image), count, CORNER_QUALITY, CORNER_SPACING, mask=inner)
+    found = cv2.goodFeaturesToTrack(frame.grey, count, CORNER_QUALITY, CORNER_SPACING, mask=inner)
     return np.zeros((0, 2), np.float32) if found is None else found.reshape(-1, 2).astype(np.float32)
 
 
-def follow(image_a: np.ndarray, image_b: np.ndarray, mask_a: np.ndarray, mask_b: np.ndarray,
-           points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def follow(frame_a: Frame, frame_b: Frame, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Points (M, 2) of frame a (OpenCV's pixels) followed into frame b: (M,) bool, which were, and (K, 2)
-    where those lie in b. ``image_*`` (H, W, 3) in [0, 1], ``mask_*`` (H, W) in [0, 1] (the exterior)."""
+    where those lie in b."""
     kept = np.zeros(len(points), bool)
     if not len(points):
         return kept, np.zeros((0, 2), np.float32)
-    ga, gb = _grey(image_a), _grey(image_b)
+    ga, gb = frame_a.grey, frame_b.grey
     criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01)
     lk = dict(winSize=(LK_WINDOW, LK_WINDOW), maxLevel=LK_LEVELS, criteria=criteria)
     a = np.ascontiguousarray(points, np.float32).reshape(-1, 1, 2)
@@ -131,7 +150,7 @@ def follow(image_a: np.ndarray, image_b: np.ndarray, mask_a: np.ndarray, mask_b:
     ok = (ok_f.ravel() == 1) & (ok_b.ravel() == 1)
     ok &= np.linalg.norm(back.reshape(-1, 2) - a, axis=1) < FB_TOLERANCE
     ok[ok] &= patch_correlation(ga, a[ok], gb, b[ok]) >= MIN_CORRELATION
-    for img_mask, pts in ((_inner(mask_a), a), (_inner(mask_b), b)):
+    for img_mask, pts in ((frame_a.inner, a), (frame_b.inner, b)):
         h, w = img_mask.shape
         col, row = np.rint(pts[:, 0]).astype(np.int64), np.rint(pts[:, 1]).astype(np.int64)
         inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
@@ -151,45 +170,35 @@ def coherent(points: np.ndarray, steps: np.ndarray, k: int = NEIGHBOURS, toleran
     return np.linalg.norm(steps - median, axis=1) <= tolerance
 
 
-def track_pair(image_a: np.ndarray, image_b: np.ndarray, mask_a: np.ndarray, mask_b: np.ndarray,
-               max_corners: int = MAX_CORNERS) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-    """Corners of ``mask_a``'s region tracked into the next frame: (M, 2) ray pixels in a and (M, 2) in b.
-
-    ``image_*``: (H, W, 3) in [0, 1]; ``mask_*``: (H, W) in [0, 1] (the exterior). Empty arrays where
-    nothing could be tracked."""
-    start = corners(image_a, mask_a, max_corners)
-    kept, end = follow(image_a, image_b, mask_a, mask_b, start)
-    return start[kept] + 0.5, end + 0.5
-
-
 def frame_tracks(images, exterior, frame_ids: np.ndarray, train: np.ndarray, max_gap: int = 3,
                  max_corners: int = MAX_CORNERS) -> Tracks:  # fmt: skip
     """Points of the exterior followed from training frame to training frame through the capture (frames at
     most ``max_gap`` capture frames apart; a wider gap ends every track), new corners taken up where the
     frame's exterior has room; ``images`` (N, H, W, 3) and ``exterior`` (N, H, W) index as float tensors
-    (``FrameData``'s). A track lives while each step passes :func:`track_pair`'s checks."""
+    (``FrameData``'s). A track lives while each step passes :func:`follow`'s checks."""
     n = len(frame_ids)
     order = np.asarray(train)[np.argsort(np.asarray(frame_ids)[train], kind="stable")]
     done: list[np.ndarray] = []  # finished tracks, each (N, 2)
     live = np.full((0, n, 2), np.nan, np.float32)
-    for k, frame in enumerate(order):
-        image, mask = images[int(frame)].numpy(), exterior[int(frame)].numpy()
-        if k and 0 < frame_ids[frame] - frame_ids[order[k - 1]] <= max_gap and len(live):
-            prev = int(order[k - 1])
-            at = live[:, prev] - 0.5
-            kept, to = follow(images[prev].numpy(), image, exterior[prev].numpy(), mask, at)
+    before = None
+    for k, f in enumerate(order):
+        f = int(f)
+        here = Frame.of(images[f].numpy(), exterior[f].numpy())
+        if k and 0 < frame_ids[f] - frame_ids[order[k - 1]] <= max_gap and len(live):
+            kept, to = follow(before, here, live[:, int(order[k - 1])] - 0.5)
             done.extend(live[~kept])
             live = live[kept]
-            live[:, frame] = to + 0.5
+            live[:, f] = to + 0.5
         else:
             done.extend(live)
             live = live[:0]
         room = max_corners - len(live)
         if room > 0:
-            new = corners(image, mask, room, live[:, frame] - 0.5)
+            new = corners(here, room, live[:, f] - 0.5)
             fresh = np.full((len(new), n, 2), np.nan, np.float32)
-            fresh[:, frame] = new + 0.5
+            fresh[:, f] = new + 0.5
             live = np.concatenate([live, fresh])
+        before = here
     done.extend(live)
     pixels = np.stack(done) if done else np.zeros((0, n, 2), np.float32)
     pixels = pixels[(~np.isnan(pixels[..., 0])).sum(1) >= 2]  # a track seen once says nothing

@@ -338,6 +338,15 @@ class HybridAvatar(nn.Module):
             return None
         return time_features(self.frame_time[frame], self.spec.time_freqs)
 
+    def _exterior_reads(self, frame: int, timeless: bool = False):
+        """The occupancy test (None while the grid is not in use) and F_e at the frame's time (without it where
+        ``timeless``; None without F_e) that a frame's rays read the exterior through."""
+        occ = self.occupancy
+        occupied = occ.contains if occ is not None and bool(occ.active) else None
+        code = None if timeless else self.time_code(frame)
+        nonrigid = self.deformation if code is None else functools.partial(self.deformation, time=code)
+        return occupied, nonrigid
+
     def render(self, frame: int, pixels: torch.Tensor, generator: torch.Generator | None = None,
                mesh: Optional[PosedMesh] = None, timeless: bool = False, through_mesh: bool = False,
                soft: bool = True) -> RayRender:  # fmt: skip
@@ -347,12 +356,7 @@ class HybridAvatar(nn.Module):
         if mesh is None:
             mesh = self.posed_mesh(frame)[0]
         origins, dirs = self.camera(frame).rays(pixels)
-        occ = self.occupancy
-        occupied = occ.contains if occ is not None and bool(occ.active) else None
-        nonrigid = self.deformation
-        code = None if timeless else self.time_code(frame)
-        if code is not None:
-            nonrigid = functools.partial(self.deformation, time=code)
+        occupied, nonrigid = self._exterior_reads(frame, timeless)
         return render_rays(mesh, origins, dirs, pixels, self.background, self.spec.render, self.nerf,
                            nonrigid, generator, occupied, through_mesh, soft)  # fmt: skip
 
@@ -368,11 +372,7 @@ class HybridAvatar(nn.Module):
         if self.nerf is None:
             raise ValueError("canonical_points: the avatar has no exterior")
         rs = self.spec.render
-        occ = self.occupancy
-        occupied = occ.contains if occ is not None and bool(occ.active) else None
-        nonrigid, code = self.deformation, None if timeless else self.time_code(frame)
-        if nonrigid is not None and code is not None:
-            nonrigid = functools.partial(self.deformation, time=code)
+        occupied, nonrigid = self._exterior_reads(frame, timeless)
         with torch.no_grad():
             mesh = self.posed_mesh(frame)[0]
             origins, dirs = self.camera(frame).rays(pixels)

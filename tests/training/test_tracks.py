@@ -5,10 +5,18 @@ import pytest
 import torch
 
 from delta import losses as L
-from delta.data.tracks import EDGE_MARGIN, frame_tracks, track_pair
+from delta.data.tracks import EDGE_MARGIN, MAX_CORNERS, Frame, corners, follow, frame_tracks
 from delta.render.hybrid import exterior_surface, render_rays
 from delta.render.settings import RenderSettings
 from tests.render.test_hybrid import BG, rays, sphere_avatar
+
+
+def track_pair(image_a, image_b, mask_a, mask_b, max_corners=MAX_CORNERS):
+    """Corners of ``mask_a``'s region followed into the next frame: (M, 2) ray pixels in a and in b."""
+    a, b = Frame.of(image_a, mask_a), Frame.of(image_b, mask_b)
+    start = corners(a, max_corners)
+    kept, end = follow(a, b, start)
+    return start[kept] + 0.5, end + 0.5
 
 
 def texture(h=96, w=96, seed=0):
