@@ -116,15 +116,20 @@ class Frame:
         return cls(_grey(image), _inner(mask))
 
 
+def _pixel_of(points: np.ndarray, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The column, row (the nearest pixel) of points (M, 2) in OpenCV's pixels, and (M,) bool: which lie in an
+    image of ``shape`` (H, W)."""
+    col, row = np.rint(points).astype(np.int64).T
+    return col, row, (col >= 0) & (col < shape[1]) & (row >= 0) & (row < shape[0])
+
+
 def corners(frame: Frame, count: int, avoid: np.ndarray | None = None) -> np.ndarray:
     """Up to ``count`` corners (M, 2) of the frame's exterior, at least ``CORNER_SPACING`` pixels from each
     point of ``avoid`` (K, 2); OpenCV's pixels."""
     inner = frame.inner
     if avoid is not None and len(avoid):  # a disc of the spacing about each point taken out
         taken = np.zeros_like(inner)
-        h, w = inner.shape
-        col, row = np.rint(avoid).astype(np.int64).T
-        on = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        col, row, on = _pixel_of(avoid, inner.shape)
         taken[row[on], col[on]] = 255
         disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * CORNER_SPACING + 1,) * 2)
         inner = np.where(cv2.dilate(taken, disc) > 0, 0, inner).astype(np.uint8)
@@ -151,9 +156,7 @@ def follow(frame_a: Frame, frame_b: Frame, points: np.ndarray) -> tuple[np.ndarr
     ok &= np.linalg.norm(back.reshape(-1, 2) - a, axis=1) < FB_TOLERANCE
     ok[ok] &= patch_correlation(ga, a[ok], gb, b[ok]) >= MIN_CORRELATION
     for img_mask, pts in ((frame_a.inner, a), (frame_b.inner, b)):
-        h, w = img_mask.shape
-        col, row = np.rint(pts[:, 0]).astype(np.int64), np.rint(pts[:, 1]).astype(np.int64)
-        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        col, row, inside = _pixel_of(pts, img_mask.shape)
         ok &= inside
         ok[inside] &= img_mask[row[inside], col[inside]] > 0
     ok[ok] &= coherent(a[ok], b[ok] - a[ok])
