@@ -57,6 +57,8 @@ class Refinement:
     """The step whose pose was kept (``check`` > 0: the probe's best, 0 = the pose as given); -1: the last."""
     sides: tuple[str, ...] = ()
     """The limbs swung to their other side along the view before the steps (``sides``)."""
+    checks: tuple[tuple[int, float], ...] = ()
+    """(step, probe loss) at each check (``check`` > 0), in order: the kept pose's is the lowest below the start."""
 
 
 def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, rays: int = 4096,
@@ -98,6 +100,7 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
     with torch.no_grad():
         chosen = _loss(model, frame, probe, seed + 2) if swung else start
     best = (float(chosen), 0, [p.detach()[frame].clone() for p in params]) if check else None
+    checks = []  # (step, probe loss) of each check
     try:
         for step, rate in enumerate(rates, 1):
             for group in opt.param_groups:
@@ -117,7 +120,8 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
                 if last > (1 - tol) * before:
                     converged = True
             if check and (step % check == 0 or step == len(rates) or converged):
-                best = _better(model, frame, probe, seed + 2, params, step, best)
+                best, now = _better(model, frame, probe, seed + 2, params, step, best)
+                checks.append((step, now))
             if converged:
                 break
     finally:
@@ -127,7 +131,7 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
         with torch.no_grad():
             for p, kept in zip(params, best[2]):
                 p[frame] = kept
-        return Refinement(len(losses), float(start), best[0], converged, best[1], swung)
+        return Refinement(len(losses), float(start), best[0], converged, best[1], swung, tuple(checks))
     with torch.no_grad():
         end = _loss(model, frame, probe, seed + 2)
     return Refinement(len(losses), float(start), float(end), converged, sides=swung)
@@ -177,10 +181,11 @@ def limb_box(uv: torch.Tensor, pad: float = 0.35, px: float = 6.0) -> tuple[int,
 
 
 @torch.no_grad()
-def _better(model: HybridAvatar, frame: int, probe, seed: int, params, step: int, best: tuple) -> tuple:
-    """(probe loss, step, the frame's parameters): ``best``, or the pose now where its probe loss is lower."""
+def _better(model: HybridAvatar, frame: int, probe, seed: int, params, step: int, best: tuple) -> tuple[tuple, float]:
+    """(probe loss, step, the frame's parameters): ``best``, or the pose now where its probe loss is lower; and
+    the probe loss now."""
     loss = float(_loss(model, frame, probe, seed))
-    return (loss, step, [p.detach()[frame].clone() for p in params]) if loss < best[0] else best
+    return ((loss, step, [p.detach()[frame].clone() for p in params]) if loss < best[0] else best), loss
 
 
 def refine_rates(lr: float, lr_end: float | None, steps: int) -> list[float]:

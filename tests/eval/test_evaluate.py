@@ -310,6 +310,36 @@ def test_a_checked_refinement_keeps_the_pose_of_its_lowest_probe_loss(trained):
             p[f] = g
 
 
+def test_a_checked_refinement_reports_each_check_and_keeps_the_lowest(trained):
+    """``checks``: the probe loss at every ``check`` steps and after the last, each the loss of the pose then
+    (rendered again); the pose kept is the lowest of them where it lies below the start's."""
+    from delta.data.frames import sample_rays
+    from delta.eval.heldout import PROBE_RAYS, _loss
+
+    tr, _ = trained
+    model, data = tr.model, tr.data
+    f = int(np.flatnonzero(data.split == 1)[0])
+    params = model.per_frame_parameters()
+    given = [p.detach()[f].clone() for p in params]
+    with torch.no_grad():
+        model.transl[f] += torch.tensor([0.03, 0.0, 0.0])
+    fit = refine_frame(model, data, f, 23, rays=256, lr=2e-3, lr_end=1e-4, seed=f, check=5)
+    assert [s for s, _ in fit.checks] == [5, 10, 15, 20, 23]
+    low = min(fit.checks, key=lambda c: c[1])
+    assert low[1] < fit.loss_start and (fit.kept, fit.loss_end) == low
+    # the last check's loss is the pose after the last step: that run again, unchecked, ends on it
+    with torch.no_grad():
+        for p, g in zip(params, given):
+            p[f] = g
+        model.transl[f] += torch.tensor([0.03, 0.0, 0.0])
+    refine_frame(model, data, f, 23, rays=256, lr=2e-3, lr_end=1e-4, seed=f)
+    probe = sample_rays(data, f, PROBE_RAYS, torch.Generator().manual_seed(f + 1))
+    with torch.no_grad():
+        assert float(_loss(model, f, probe, f + 2)) == pytest.approx(fit.checks[-1][1], rel=1e-4)
+        for p, g in zip(params, given):
+            p[f] = g
+
+
 def test_the_clothing_distance_without_the_size_leaves_out_a_similarity_of_the_whole_figure(trained, tmp_path):
     """The truth is the avatar itself, posed, then rotated 10°, scaled 1.2× and moved: the centroid-aligned
     clothing distance sees the size, the one under the body's similarity (``clothing_p2s_pa_*``) sees none."""
