@@ -39,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from table import device_name, trained_model_arguments  # noqa: E402
 
 SCORES = ("psnr", "ssim", "stlpips_alex", "nerf_iou", "body_err_mm", "body_err_visible_mm", "refine_steps",
-          "refine_loss_start", "refine_loss_end", "refine_kept_step")  # fmt: skip
+          "refine_loss_start", "refine_loss_end", "refine_kept_step", "refine_overruled")  # fmt: skip
 
 
 def main(argv=None) -> None:

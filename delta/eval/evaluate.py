@@ -190,7 +190,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
             if refined:
                 fit = refine_frame(model, data, f, st.refine_steps, rays=st.refine_rays, lr=st.refine_lr, seed=f,
                                    tol=st.refine_tol, lr_end=st.refine_lr_end, check=st.refine_check,
-                                   sides=st.refine_sides)  # fmt: skip
+                                   sides=st.refine_sides, confirm=st.refine_confirm)  # fmt: skip
             with torch.no_grad():
                 mesh, offsets, out = model.posed_mesh(f)
             img = render_image(model, f, supersample=st.supersample, view=view, soft_silhouette=False)
@@ -208,6 +208,7 @@ def evaluate(trained: Trained, record: str | Path, st: EvalSettings, gt_meshes: 
             if fit:  # the refinement's residual: its loss on one fixed probe draw of rays before and after
                 row |= {"refine_loss_start": fit.loss_start, "refine_loss_end": fit.loss_end,
                         "refine_converged": fit.converged, "refine_kept_step": fit.kept,
+                        "refine_overruled": fit.overruled,
                         "refine_sides": " ".join(fit.sides)}  # fmt: skip
             row |= score_image(img, full.images[k], masks, perceptual, ("head",), trained.settings.background)
             row["outline_error_share"] = M.error_share(img["rgb"].clamp(0, 1), full.images[k], masks["outline"])

@@ -50,6 +50,10 @@ class EvalSettings:
     """Every this many steps (and after the last) the refinement measures its probe loss and keeps the pose of
     the lowest, the given pose included (0: the last step's pose, unchecked). On tight's held-out views the
     unchecked 30 steps ended 0.23 dB apart on a CPU and a GPU, checked 0.04 apart (docs/evaluation.md)."""
+    refine_confirm: int = _f(default=65536, metadata={"minimum": 0})
+    """With ``refine_check``: the pose the checks kept must also score below the pose as given on an independent
+    draw of this many rays, else the frame keeps the pose as given (0: the probe decides alone). A close
+    frame's 4096-ray probe can prefer by 0.1 % a pose the whole frame scores 0.6 dB lower (docs/evaluation.md)."""
     refine_sides: bool = False
     """Before the refinement's steps, try each arm and leg with its upper bone, its lower bone or both swung
     to their other side along the view (the same keypoints: one view does not tell them apart, and the steps

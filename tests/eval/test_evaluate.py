@@ -340,6 +340,46 @@ def test_a_checked_refinement_reports_each_check_and_keeps_the_lowest(trained):
             p[f] = g
 
 
+def test_a_kept_pose_is_confirmed_against_the_given_one_on_an_independent_draw(trained):
+    """``confirmed``: the frame's own pose scores below one moved 3 cm sideways on a large draw, not the other way
+    round, and the frame's parameters are left as they were; a refinement from the moved pose that walks back
+    keeps its pose with ``confirm`` on (not overruled), and one whose kept pose is worse than the given one on
+    the large draw is overruled back to the given pose."""
+    import delta.eval.heldout as heldout
+
+    tr, _ = trained
+    model, data = tr.model, tr.data
+    f = int(np.flatnonzero(data.split == 1)[0])
+    params = model.per_frame_parameters()
+    given = [p.detach()[f].clone() for p in params]
+    moved = [g.clone() for g in given]
+    moved[[i for i, p in enumerate(params) if p is model.transl][0]] += torch.tensor([0.03, 0.0, 0.0])
+    assert not heldout.confirmed(model, data, f, given, moved, 8192, f)
+    assert heldout.confirmed(model, data, f, moved, given, 8192, f)
+    assert all(torch.equal(p.detach()[f], g) for p, g in zip(params, given))
+
+    def put(pose):
+        with torch.no_grad():
+            for p, v in zip(params, pose):
+                p[f] = v
+
+    put(moved)
+    fit = refine_frame(model, data, f, 40, rays=256, lr=2e-3, seed=f, check=10, confirm=8192)
+    assert fit.kept > 0 and not fit.overruled
+    assert heldout.confirmed(model, data, f, moved, [p.detach()[f].clone() for p in params], 8192, f)
+    # a probe that prefers a worse pose: the large draw overrules it and the given pose stays, bit for bit
+    put(moved)
+    real = heldout.confirmed
+    try:
+        heldout.confirmed = lambda *a: False  # the large draw disagrees with whatever the probe kept
+        fit = refine_frame(model, data, f, 40, rays=256, lr=2e-3, seed=f, check=10, confirm=8192)
+    finally:
+        heldout.confirmed = real
+    assert fit.overruled and fit.kept == 0 and fit.loss_end == fit.loss_start
+    assert all(torch.equal(p.detach()[f], g) for p, g in zip(params, moved))
+    put(given)
+
+
 def test_the_clothing_distance_without_the_size_leaves_out_a_similarity_of_the_whole_figure(trained, tmp_path):
     """The truth is the avatar itself, posed, then rotated 10°, scaled 1.2× and moved: the centroid-aligned
     clothing distance sees the size, the one under the body's similarity (``clothing_p2s_pa_*``) sees none."""
