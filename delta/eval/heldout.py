@@ -199,12 +199,13 @@ def confirmed(model: HybridAvatar, data: FrameData, frame: int, given: list[torc
     the same sample jitter. The frame's parameters are left as they were."""
     params = model.per_frame_parameters()
     before = [p.detach()[frame].clone() for p in params]
-    batch = sample_rays(data, frame, rays, torch.Generator().manual_seed(seed + 3))
+    g = torch.Generator().manual_seed(seed + 3)  # drawn in parts of PROBE_RAYS: a render's memory stays a probe's
+    parts = [sample_rays(data, frame, min(PROBE_RAYS, rays - k), g) for k in range(0, rays, PROBE_RAYS)]
     losses = []
     for pose in (given, kept):
         for p, v in zip(params, pose):
             p[frame] = v
-        losses.append(float(_loss(model, frame, batch, seed + 4)))
+        losses.append(sum(float(_loss(model, frame, b, seed + 4)) * len(b.pixels) for b in parts))
     for p, v in zip(params, before):
         p[frame] = v
     return losses[1] < losses[0]
