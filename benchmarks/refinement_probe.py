@@ -27,7 +27,6 @@ import pandas as pd
 import torch
 
 import delta.eval.heldout as heldout
-from delta import losses as L
 from delta.data.frames import load_full_frames, sample_rays
 from delta.eval.settings import SPLITS, EvalSettings
 from delta.models.image import full_view, render_image
@@ -43,9 +42,10 @@ SPLIT_NAMES = {v: k for k, v in SPLITS.items()}
 def measures(model, frame: int, batch, seed: int) -> dict[str, float]:
     """The refinement's loss on ``batch`` (rendered with the sample jitter of ``seed``) and its squared error."""
     r = model.render(frame, batch.pixels.to(model.background.device), torch.Generator().manual_seed(seed))
-    rgb, person = batch.rgb.to(r.rgb.device), batch.person.to(r.rgb.device)
-    loss = L.pixel(r.rgb, rgb) + 0.1 * L.silhouette(r.silhouette, person)
-    return {"loss": float(loss), "mse": float((r.rgb - rgb).square().mean())}
+    return {
+        "loss": float(heldout.loss_of(r, batch)),
+        "mse": float((r.rgb - batch.rgb.to(r.rgb.device)).square().mean()),
+    }
 
 
 def main(argv=None) -> None:
@@ -83,9 +83,7 @@ def main(argv=None) -> None:
         view = full_view(full, model.resolution)
         frame_rows = {}
         for step, pose in sorted(poses.items()):
-            with torch.no_grad():
-                for p, v in zip(params, pose):
-                    p[f] = v
+            heldout.put_pose(params, f, pose)
             on_probe = measures(model, f, probe, f + 2)  # the refinement's own probe and jitter
             frame_rows[step] = {"subject": a.subject, "split": SPLIT_NAMES.get(int(data.split[f]), "train"),
                                 "frame": f, "step": step, "kept": step == fit.kept, "probe_loss": on_probe["loss"],
@@ -93,15 +91,12 @@ def main(argv=None) -> None:
                                 "large_mse_b": measures(model, f, large[1], 8)["mse"], "full_psnr": np.nan}  # fmt: skip
         by = lambda key: min(frame_rows, key=lambda s: frame_rows[s][key])  # noqa: E731
         for step in sorted({0, fit.kept, max(poses), by("large_mse_a"), by("probe_mse")}):
+            heldout.put_pose(params, f, poses[step])
             with torch.no_grad():
-                for p, v in zip(params, poses[step]):
-                    p[f] = v
                 img = render_image(model, f, supersample=st.supersample, view=view, soft_silhouette=False)
             mse = float((img["rgb"].clamp(0, 1) - full.images[0].to(img["rgb"].device)).square().mean())
             frame_rows[step]["full_psnr"] = -10 * math.log10(mse)
-        with torch.no_grad():
-            for p, v in zip(params, given):
-                p[f] = v
+        heldout.put_pose(params, f, given)
         rows += frame_rows.values()
         print(pd.DataFrame(frame_rows.values()).drop(columns="subject").to_string(), flush=True)
         # written after every frame: a run cut short keeps what it measured

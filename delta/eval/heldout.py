@@ -139,9 +139,7 @@ def refine_frame(model: HybridAvatar, data: FrameData, frame: int, steps: int, r
         )
         if overruled:
             best = given
-        with torch.no_grad():
-            for p, kept in zip(params, best[2]):
-                p[frame] = kept
+        put_pose(params, frame, best[2])
         return Refinement(len(losses), float(start), best[0], converged, best[1], swung, tuple(checks), overruled)
     with torch.no_grad():
         end = _loss(model, frame, probe, seed + 2)
@@ -203,12 +201,17 @@ def confirmed(model: HybridAvatar, data: FrameData, frame: int, given: list[torc
     parts = [sample_rays(data, frame, min(PROBE_RAYS, rays - k), g) for k in range(0, rays, PROBE_RAYS)]
     losses = []
     for pose in (given, kept):
-        for p, v in zip(params, pose):
-            p[frame] = v
+        put_pose(params, frame, pose)
         losses.append(sum(float(_loss(model, frame, b, seed + 4)) * len(b.pixels) for b in parts))
-    for p, v in zip(params, before):
-        p[frame] = v
+    put_pose(params, frame, before)
     return losses[1] < losses[0]
+
+
+@torch.no_grad()
+def put_pose(params: list[torch.Tensor], frame: int, pose: list[torch.Tensor]) -> None:
+    """Set the frame's rows of the per-frame parameters (``model.per_frame_parameters()``) to ``pose``."""
+    for p, v in zip(params, pose):
+        p[frame] = v
 
 
 @torch.no_grad()
@@ -230,7 +233,11 @@ def refine_rates(lr: float, lr_end: float | None, steps: int) -> list[float]:
 def _loss(model: HybridAvatar, frame: int, batch, jitter: torch.Generator | int) -> torch.Tensor:
     """Refinement's loss on a batch of rays (``jitter``: the samples' generator, or a seed for a fresh one)."""
     g = torch.Generator().manual_seed(jitter) if isinstance(jitter, int) else jitter
-    r = model.render(frame, batch.pixels.to(model.background.device), g)
+    return loss_of(model.render(frame, batch.pixels.to(model.background.device), g), batch)
+
+
+def loss_of(r, batch) -> torch.Tensor:
+    """The refinement's loss of a render ``r`` of ``batch``'s rays: pixel Huber + 0.1 × silhouette Huber."""
     dev = r.rgb.device
     return L.pixel(r.rgb, batch.rgb.to(dev)) + 0.1 * L.silhouette(r.silhouette, batch.person.to(dev))
 
